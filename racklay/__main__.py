@@ -1,0 +1,5 @@
+import sys
+
+from racklay.cli import main
+
+sys.exit(main())

@@ -1,0 +1,66 @@
+"""`racklay` command line. Each sub-command lives in its own module under racklay/commands/
+and exposes `register(subparsers)`; add new ones to COMMANDS."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: sub-command modules, in the order `racklay --help` lists them
+COMMANDS = [
+    "racklay.commands.check_data",
+    "racklay.commands.score",
+    "racklay.commands.show",
+    "racklay.commands.demo",
+]
+
+
+class CLIError(Exception):
+    """An error for the user: printed as one line, exit code 2."""
+
+
+def build_parser(prog: str = "racklay", description: str | None = None, commands=None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=prog,
+        description=description or (
+            "RackLay toolkit: estimate per-shelf top- and front-view layouts of warehouse racks "
+            "from one photo; generate, check, score and show RackLay-format datasets."),
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in commands if commands is not None else COMMANDS:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def _version() -> str:
+    from racklay import __version__
+    return __version__
+
+
+def run(parser: argparse.ArgumentParser, argv=None) -> int:
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0
+    try:
+        rc = args.func(args)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except CLIError as e:
+        print(f"{parser.prog}: error: {e}", file=sys.stderr)
+        return 2
+    except (FileNotFoundError, ValueError) as e:
+        # DataError, LayoutError and friends carry a one-line message naming the file
+        print(f"{parser.prog}: error: {e}", file=sys.stderr)
+        return 2
+    return int(rc or 0)
+
+
+def main(argv=None) -> int:
+    return run(build_parser(), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""One module per `racklay` sub-command; each defines `register(subparsers)`."""

@@ -1,0 +1,37 @@
+"""racklay check-data ROOT"""
+from __future__ import annotations
+
+import json
+import sys
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "check-data", help="validate a RackLay-format dataset",
+        description="Validate every sample of a RackLay-format dataset: readable images, layout "
+                    "shapes, dtype and values (0/115/255 only), image/layout pairs, split entries "
+                    "pointing at missing files and duplicate entries. Prints a summary and one line "
+                    "per problem naming the file; exits 0 only when the dataset is clean.")
+    p.add_argument("root", help="dataset folder (Images/, topLayouts/, frontLayouts/, splits/)")
+    p.add_argument("--R", type=int, default=None, help="expected number of shelf channels")
+    p.add_argument("--D", type=int, default=None, help="expected layout size in pixels")
+    p.add_argument("--json", default=None, help="also write the report as JSON here")
+    p.add_argument("--max-problems", type=int, default=200, help="print at most this many problem lines (all are counted)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from racklay.atomic import atomic_write_json
+    from racklay.data import check_dataset
+
+    rep = check_dataset(args.root, R=args.R, D=args.D, progress=sys.stderr.isatty())
+    for line in rep.problems[: args.max_problems]:
+        print(line)
+    if len(rep.problems) > args.max_problems:
+        print(f"... and {len(rep.problems) - args.max_problems} more problem(s)")
+    print(rep.summary())
+    if args.json:
+        atomic_write_json(args.json, {"root": str(rep.root), "samples": rep.samples, "views": list(rep.views),
+                                      "R": rep.R, "D": rep.D, "splits": rep.splits, "problems": rep.problems,
+                                      "ok": rep.ok})
+    return 0 if rep.ok else 1

@@ -1,0 +1,60 @@
+"""racklay score --pred PRED_ROOT --gt GT_ROOT"""
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "score", help="score predicted layouts against ground truth",
+        description="Score a folder of predicted layouts (RackLay format: topLayouts/topNNNNNN.npy, "
+                    "frontLayouts/frontNNNNNN.npy) against a ground-truth dataset. Prints the paper's "
+                    "Table-1 layout (paper protocol; the paper's 'mAP' is pixel precision) and "
+                    "dataset-level IoU / precision / recall from the accumulated confusion matrix.")
+    p.add_argument("--pred", required=True, help="folder with predicted topLayouts/ and/or frontLayouts/")
+    p.add_argument("--gt", required=True, help="ground-truth RackLay-format dataset")
+    p.add_argument("--split", default=None, help="score only this ground-truth split (default: every predicted id)")
+    p.add_argument("--json", default=None, help="write the metrics as JSON here")
+    p.set_defaults(func=run)
+
+
+def score_roots(pred_root, gt_root, split=None):
+    """Metrics dict for predicted layouts in pred_root against gt_root."""
+    from racklay.cli import CLIError
+    from racklay.data import RackLayRoot, VIEW_DIRS, VIEW_PREFIX
+    from racklay.metrics import LayoutMetrics
+
+    pred, gt = RackLayRoot(pred_root), RackLayRoot(gt_root)
+    views = [v for v in pred.views() if v in gt.views()]
+    if not views:
+        raise CLIError(f"no common view: {pred.root} has {list(pred.views()) or 'no layouts'}, "
+                       f"{gt.root} has {list(gt.views()) or 'no layouts'}")
+    m = LayoutMetrics()
+    n = 0
+    for view in views:
+        pdir = pred.root / VIEW_DIRS[view]
+        ids = sorted(p.stem[len(VIEW_PREFIX[view]):] for p in pdir.glob(f"{VIEW_PREFIX[view]}*.npy"))
+        if split:
+            wanted = set(gt.split_ids(split))
+            ids = [i for i in ids if i in wanted]
+        if not ids:
+            raise CLIError(f"{pdir}: no predicted {view} layouts to score")
+        for sid in ids:
+            gpath = gt.layout_path(view, sid)
+            if not gpath.exists():
+                raise CLIError(f"{gpath}: ground truth missing for predicted {view} layout {sid}")
+            g = gt.read_layouts(view, sid)
+            p = pred.read_layouts(view, sid, R=g.shape[0], D=g.shape[1])
+            m.update(view, p, g)
+        n = max(n, len(ids))
+    return m.result(), n
+
+
+def run(args) -> int:
+    from racklay.atomic import atomic_write_json
+    from racklay.metrics import format_tables
+
+    result, n = score_roots(args.pred, args.gt, args.split)
+    print(format_tables(result, title=f"{n} images: {args.pred} vs {args.gt}"))
+    if args.json:
+        atomic_write_json(args.json, result)
+        print(f"metrics written to {args.json}")
+    return 0

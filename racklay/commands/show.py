@@ -1,0 +1,42 @@
+"""racklay show ROOT --index N --out fig.png"""
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "show", help="draw an image beside every shelf's top and front layout",
+        description="Draw a paper-style figure: the image beside every shelf's top-view (upper row) "
+                    "and front-view (lower row) layout, colour-coded (background / shelf / box) with a "
+                    "legend. Layouts are cropped to their content unless --full is given.")
+    p.add_argument("root", help="RackLay-format dataset folder")
+    sel = p.add_mutually_exclusive_group()
+    sel.add_argument("--index", type=int, default=0, help="position of the sample in sorted ids (or in --split)")
+    sel.add_argument("--id", default=None, help="sample id, e.g. 000042")
+    p.add_argument("--split", default=None, help="index into this split instead of all images")
+    p.add_argument("--out", required=True, help="output PNG")
+    p.add_argument("--full", action="store_true", help="show the whole D x D grid, not a crop")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from racklay.cli import CLIError
+    from racklay.data import RackLayRoot
+    from racklay.viz import layout_figure
+
+    ds = RackLayRoot(args.root)
+    ids = ds.resolve(args.split)
+    if args.id is not None:
+        sid = args.id
+    else:
+        if not ids:
+            raise CLIError(f"{ds.root}: no images")
+        if not 0 <= args.index < len(ids):
+            raise CLIError(f"--index {args.index} out of range: {ds.root} has {len(ids)} samples")
+        sid = ids[args.index]
+    views = ds.views()
+    top = ds.read_layouts("top", sid) if "top" in views else None
+    front = ds.read_layouts("front", sid) if "front" in views else None
+    layout_figure(ds.read_image(sid), top, front, out=args.out, title=f"{ds.root.name} / {sid}",
+                  crop=not args.full)
+    print(f"figure written to {args.out}")
+    return 0

@@ -1,0 +1,294 @@
+"""RackLay-format datasets on disk: reading, writing and validating.
+
+Layout of a dataset root (exactly what the authors' downloads look like)::
+
+    ROOT/
+      Images/000000.png              RGB image (.png; .jpg/.jpeg also read)
+      topLayouts/top000000.npy       (R, D, D) uint8, values 0 / 115 / 255
+      frontLayouts/front000000.npy   (R, D, D) uint8, values 0 / 115 / 255
+      meta/000000.json               optional per-image metadata (WareSynth extras)
+      splits/train.txt val.txt test.txt   one entry per line
+
+Either layout folder may be absent (a view-specific dataset). A split entry is an image path
+(`Images/000123.png`, absolute paths from another machine too) or a bare id (`000123`); the
+sample id is the file stem. This module never imports torch; `racklay.torchdata` wraps it.
+"""
+from __future__ import annotations
+
+import json
+import os
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from . import layout as L
+from .atomic import atomic_save_npy, atomic_save_png, atomic_write_json, atomic_write_text
+
+IMAGES_DIR, TOP_DIR, FRONT_DIR, META_DIR, SPLITS_DIR = "Images", "topLayouts", "frontLayouts", "meta", "splits"
+VIEW_DIRS = {"top": TOP_DIR, "front": FRONT_DIR}
+VIEW_PREFIX = {"top": "top", "front": "front"}
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+SPLIT_NAMES = ("train", "val", "test")
+
+
+class DataError(ValueError):
+    """A file in a dataset that cannot be used; the message names the file."""
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Read an image file as RGB uint8 (H, W, 3). Raises DataError naming the file."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: image file not found")
+    data = np.fromfile(str(path), dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    if img is None:
+        raise DataError(f"{path}: not a readable image (corrupt, truncated or not an image)")
+    if path.suffix.lower() == ".png" and not _png_complete(data):
+        raise DataError(f"{path}: truncated PNG (no IEND chunk)")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def _png_complete(data: np.ndarray) -> bool:
+    tail = data[-12:].tobytes()
+    return b"IEND" in tail
+
+
+def read_layout_file(path: str | os.PathLike, R: int | None = None, D: int | None = None) -> np.ndarray:
+    """Load a RackLay .npy layout stack and return class ids (R, D, D) uint8. Strict."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: layout file not found")
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except Exception as e:  # numpy raises several types for bad files
+        raise DataError(f"{path}: not a readable .npy array ({type(e).__name__}: {e})") from None
+    try:
+        L.check_stack(arr, R=R, D=D, source=str(path))
+    except L.LayoutError as e:
+        raise DataError(str(e)) from None
+    return L.decode(arr, str(path))
+
+
+@dataclass
+class RackLayRoot:
+    """A RackLay-format dataset folder."""
+
+    root: Path
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+
+    # --- paths ---
+    def image_path(self, sid: str) -> Path:
+        for ext in IMAGE_EXTS:
+            p = self.root / IMAGES_DIR / f"{sid}{ext}"
+            if p.exists():
+                return p
+        return self.root / IMAGES_DIR / f"{sid}.png"
+
+    def layout_path(self, view: str, sid: str) -> Path:
+        return self.root / VIEW_DIRS[view] / f"{VIEW_PREFIX[view]}{sid}.npy"
+
+    def meta_path(self, sid: str) -> Path:
+        return self.root / META_DIR / f"{sid}.json"
+
+    def split_path(self, name: str) -> Path:
+        return self.root / SPLITS_DIR / f"{name}.txt"
+
+    # --- listing ---
+    def views(self) -> tuple[str, ...]:
+        """Views present in this dataset (a layout folder exists)."""
+        return tuple(v for v in L.VIEWS if (self.root / VIEW_DIRS[v]).is_dir())
+
+    def ids(self) -> list[str]:
+        """All sample ids with an image, sorted."""
+        d = self.root / IMAGES_DIR
+        if not d.is_dir():
+            return []
+        return sorted(p.stem for p in d.iterdir() if p.suffix.lower() in IMAGE_EXTS and not p.name.startswith("."))
+
+    def splits(self) -> list[str]:
+        d = self.root / SPLITS_DIR
+        return sorted(p.stem for p in d.glob("*.txt")) if d.is_dir() else []
+
+    def split_ids(self, name: str) -> list[str]:
+        """Sample ids listed in splits/NAME.txt, in file order. Clear error when missing."""
+        p = self.split_path(name)
+        if not p.is_file():
+            found = ", ".join(self.splits()) or "none"
+            raise DataError(f"{p}: split file not found (splits found in {self.root / SPLITS_DIR}: {found})")
+        return [parse_split_entry(line) for line in p.read_text().splitlines() if line.strip()]
+
+    def resolve(self, split: str | None) -> list[str]:
+        """Ids of a split, or every image when split is None / 'all'."""
+        return self.ids() if split in (None, "all") else self.split_ids(split)
+
+    # --- reading ---
+    def read_image(self, sid: str) -> np.ndarray:
+        return read_image(self.image_path(sid))
+
+    def read_layouts(self, view: str, sid: str, R: int | None = None, D: int | None = None) -> np.ndarray:
+        return read_layout_file(self.layout_path(view, sid), R=R, D=D)
+
+    def read_meta(self, sid: str) -> dict | None:
+        p = self.meta_path(sid)
+        if not p.exists():
+            return None
+        try:
+            return json.loads(p.read_text())
+        except json.JSONDecodeError as e:
+            raise DataError(f"{p}: invalid JSON ({e})") from None
+
+    # --- writing (atomic) ---
+    def write_sample(self, sid: str, image: np.ndarray | None = None, top: np.ndarray | None = None,
+                     front: np.ndarray | None = None, meta: dict | None = None,
+                     image_bytes: bytes | None = None) -> None:
+        """Write one sample. `top`/`front` are class-id stacks (R, D, D); they are encoded to
+        0/115/255 on the way out. `image_bytes` writes already-encoded PNG bytes."""
+        from .atomic import atomic_write_bytes
+
+        if image_bytes is not None:
+            atomic_write_bytes(self.root / IMAGES_DIR / f"{sid}.png", image_bytes)
+        elif image is not None:
+            atomic_save_png(self.root / IMAGES_DIR / f"{sid}.png", image)
+        for view, arr in (("top", top), ("front", front)):
+            if arr is not None:
+                L.check_stack(arr, encoded=False, source=f"{view} layouts of {sid}")
+                atomic_save_npy(self.layout_path(view, sid), L.encode(arr))
+        if meta is not None:
+            atomic_write_json(self.meta_path(sid), meta)
+
+    def write_split(self, name: str, ids: Iterable[str]) -> Path:
+        lines = [f"{IMAGES_DIR}/{sid}.png" for sid in ids]
+        return atomic_write_text(self.split_path(name), "\n".join(lines) + ("\n" if lines else ""))
+
+
+def parse_split_entry(line: str) -> str:
+    """`Images/000123.png`, `/abs/path/000123.png`, `000123` -> `000123`."""
+    entry = line.strip().replace("\\", "/").split()[0]
+    name = entry.rsplit("/", 1)[-1]
+    stem, dot, ext = name.rpartition(".")
+    return stem if dot and ("." + ext.lower()) in IMAGE_EXTS + (".npy",) else name
+
+
+def make_splits(ids: Sequence[str], fractions: dict[str, float], seed: int = 0) -> dict[str, list[str]]:
+    """Shuffle ids reproducibly and cut them into named splits by fraction (sums to <= 1)."""
+    total = sum(fractions.values())
+    if total > 1 + 1e-9 or any(f < 0 for f in fractions.values()):
+        raise ValueError(f"split fractions must be >= 0 and sum to <= 1, got {fractions}")
+    order = list(ids)
+    np.random.default_rng(seed).shuffle(order)
+    out, start = {}, 0
+    names = list(fractions)
+    for i, name in enumerate(names):
+        n = round(fractions[name] * len(order)) if i < len(names) - 1 or total < 1 - 1e-9 else len(order) - start
+        out[name] = sorted(order[start:start + n])
+        start += n
+    return out
+
+
+# --- validation ---------------------------------------------------------------------------
+@dataclass
+class CheckReport:
+    root: Path
+    samples: int = 0
+    views: tuple[str, ...] = ()
+    R: int | None = None
+    D: int | None = None
+    splits: dict[str, int] = field(default_factory=dict)
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def summary(self) -> str:
+        sp = ", ".join(f"{k}={v}" for k, v in self.splits.items()) or "none"
+        shape = f"R={self.R}, D={self.D}" if self.R else "no layouts"
+        status = "OK" if self.ok else f"{len(self.problems)} problem(s)"
+        return (f"{self.root}: {self.samples} samples, views: {', '.join(self.views) or 'none'}, "
+                f"{shape}, splits: {sp} -> {status}")
+
+
+def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None = None,
+                  progress: bool = False) -> CheckReport:
+    """Validate every sample of a dataset; return a report with one line per problem."""
+    ds = RackLayRoot(root)
+    rep = CheckReport(root=ds.root)
+    if not ds.root.is_dir():
+        rep.problems.append(f"{ds.root}: dataset folder not found")
+        return rep
+    if not (ds.root / IMAGES_DIR).is_dir():
+        rep.problems.append(f"{ds.root / IMAGES_DIR}: images folder missing")
+        return rep
+    ids = ds.ids()
+    rep.samples = len(ids)
+    rep.views = ds.views()
+    if not rep.views:
+        rep.problems.append(f"{ds.root}: neither {TOP_DIR}/ nor {FRONT_DIR}/ exists")
+    stems = Counter(ids)
+    for sid, n in stems.items():
+        if n > 1:
+            rep.problems.append(f"{ds.root / IMAGES_DIR}: {n} image files share the id {sid}")
+    shapes: Counter = Counter()
+    it = ids
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(ids, desc="check-data", unit="img", leave=False)
+    for sid in it:
+        try:
+            ds.read_image(sid)
+        except DataError as e:
+            rep.problems.append(str(e))
+        for view in rep.views:
+            p = ds.layout_path(view, sid)
+            if not p.exists():
+                rep.problems.append(f"{p}: missing {view} layout for image {ds.image_path(sid).name}")
+                continue
+            try:
+                arr = np.load(p, allow_pickle=False)
+                shapes[arr.shape] += 1
+                L.check_stack(arr, R=R, D=D, source=str(p))
+            except L.LayoutError as e:
+                rep.problems.append(str(e))
+            except Exception as e:
+                rep.problems.append(f"{p}: not a readable .npy array ({type(e).__name__})")
+        mp = ds.meta_path(sid)
+        if mp.exists():
+            try:
+                json.loads(mp.read_text())
+            except json.JSONDecodeError as e:
+                rep.problems.append(f"{mp}: invalid JSON ({e.msg} at line {e.lineno})")
+    # layouts without an image
+    idset = set(ids)
+    for view in rep.views:
+        d = ds.root / VIEW_DIRS[view]
+        for p in sorted(d.glob("*.npy")):
+            sid = p.stem[len(VIEW_PREFIX[view]):]
+            if not p.stem.startswith(VIEW_PREFIX[view]):
+                rep.problems.append(f"{p}: unexpected file name (expected {VIEW_PREFIX[view]}NNNNNN.npy)")
+            elif sid not in idset:
+                rep.problems.append(f"{p}: {view} layout has no image {IMAGES_DIR}/{sid}.png")
+    if shapes:
+        if len(shapes) > 1:
+            common = shapes.most_common(1)[0][0]
+            rep.problems.append(f"{ds.root}: layouts have mixed shapes {sorted(shapes)}; most are {common}")
+        (rep.R, rep.D, _), _ = shapes.most_common(1)[0]
+    # splits
+    for name in ds.splits():
+        sp = ds.split_path(name)
+        entries = [parse_split_entry(l) for l in sp.read_text().splitlines() if l.strip()]
+        rep.splits[name] = len(entries)
+        for sid, n in Counter(entries).items():
+            if n > 1:
+                rep.problems.append(f"{sp}: entry {sid} listed {n} times")
+        for sid in dict.fromkeys(entries):
+            if sid not in idset:
+                rep.problems.append(f"{sp}: entry {sid} points at a missing image")
+    return rep

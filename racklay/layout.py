@@ -1,0 +1,325 @@
+"""The layout convention: one home for grids, classes, pixel encoding and rasterising.
+
+Everything that turns shelves and boxes into layout pixels, or layout pixels back into metres,
+calls this module: the WareSynth generator, the annotation tool, the model's data pipeline, the
+metrics and the 3D rack reasoning. If you find yourself writing metre/pixel arithmetic anywhere
+else, add it here instead.
+
+Convention (see docs/architecture.md for a figure)
+--------------------------------------------------
+Classes (model space):   BACKGROUND = 0, SHELF = 1 (free shelf space), BOX = 2 (occupied).
+File encoding (RackLay): 0 / 115 / 255, uint8. Decoding is strict: any other value is an error.
+
+Grid: a layout is D x D pixels covering L x L metres (defaults D = 512, L = 8 m, so
+1.5625 cm/pixel). R channels (default 4), one per shelf, channel 0 = lowest *visible* shelf;
+channels of shelves that are not visible are all background.
+
+Shelf-centric frame, per shelf i: origin at the centre of the shelf board's top surface;
+x along the rack's length (to the camera's right), y along its depth (away from the camera),
+z up.
+
+Top view T_i: column c <-> x, row r <-> y. Column centres are x = (c + 0.5 - D/2) * res, so x
+grows to the right and x = 0 is the centre line of the map. Rows run the other way: the far side
+(back of the shelf, +y) is at the top of the map, y = (D/2 - r - 0.5) * res. The shelf rectangle
+is centred in the map.
+
+Front view F_i: the same columns as T_i (both views share the x axis), rows <-> z with up being
+up: z = (D/2 - r - 0.5) * res. The board's top surface (z = 0) lies on the centre row boundary,
+so the shelf's free space (length x clear height) fills rows D/2 - 1 upward.
+
+A pixel belongs to a shape when its *centre* lies inside the shape (half-open on the low side
+of each axis in metric coordinates: lo <= v < hi), which makes adjacent shapes tile without
+gaps or overlaps and makes pixel counts exact.
+
+Flip: a horizontal flip of the image (mirror left-right) corresponds to a left-right flip of
+every T_i and F_i (x -> -x; reverse the columns). Rows are unchanged. `hflip_layouts` does it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence
+
+import numpy as np
+
+BACKGROUND, SHELF, BOX = 0, 1, 2
+CLASS_NAMES = ("background", "shelf", "box")
+NUM_CLASSES = 3
+#: uint8 value written in RackLay .npy files for each class id
+FILE_VALUES = np.array([0, 115, 255], dtype=np.uint8)
+DEFAULT_D = 512
+DEFAULT_EXTENT_M = 8.0
+DEFAULT_R = 4
+#: WareSynth drew the front-view free space 5 cm taller than the inter-shelf height.
+FRONT_CLEARANCE_PAD_M = 0.05
+VIEWS = ("top", "front")
+
+
+class LayoutError(ValueError):
+    """A layout array that breaks the convention (bad values, shape or dtype)."""
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A D x D metric grid of `extent` metres a side, centred on the shelf origin."""
+
+    size: int = DEFAULT_D
+    extent: float = DEFAULT_EXTENT_M
+
+    def __post_init__(self):
+        if int(self.size) != self.size or self.size <= 0 or self.size % 2:
+            raise ValueError(f"grid size must be a positive even integer, got {self.size}")
+        if not self.extent > 0:
+            raise ValueError(f"grid extent must be positive metres, got {self.extent}")
+
+    @property
+    def res(self) -> float:
+        """Metres per pixel."""
+        return self.extent / self.size
+
+    # --- metres <-> pixels. Pixel coordinates are continuous: pixel c spans [c, c + 1). ---
+    def x_to_col(self, x):
+        """Metric x (shelf frame) -> continuous column coordinate."""
+        return np.asarray(x, dtype=np.float64) / self.res + self.size / 2
+
+    def col_to_x(self, col):
+        """Continuous column coordinate -> metric x. col_to_x(c + 0.5) is pixel c's centre."""
+        return (np.asarray(col, dtype=np.float64) - self.size / 2) * self.res
+
+    def y_to_row(self, y):
+        """Metric y (depth, away from camera) -> continuous top-view row (far side on top)."""
+        return self.size / 2 - np.asarray(y, dtype=np.float64) / self.res
+
+    def row_to_y(self, row):
+        return (self.size / 2 - np.asarray(row, dtype=np.float64)) * self.res
+
+    # z (up) uses the same mapping in the front view as y does in the top view.
+    z_to_row = y_to_row
+    row_to_z = row_to_y
+
+    def centers(self) -> np.ndarray:
+        """Metric coordinate of every column centre (equal to row centres' y/z reversed)."""
+        return self.col_to_x(np.arange(self.size) + 0.5)
+
+    def row_centers(self) -> np.ndarray:
+        """Metric y (top view) or z (front view) of every row centre, top row first."""
+        return self.row_to_y(np.arange(self.size) + 0.5)
+
+    def pixel_area_m2(self) -> float:
+        return self.res * self.res
+
+
+def _span_mask(centres: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    return (centres >= lo) & (centres < hi)
+
+
+def fill_axis_rect(canvas: np.ndarray, grid: Grid, x0: float, x1: float, v0: float, v1: float,
+                   value: int) -> np.ndarray:
+    """Fill pixels whose centre has x in [x0, x1) and y/z in [v0, v1) with `value`, in place.
+
+    Works for both views: v is y in the top view and z in the front view.
+    """
+    xs = _span_mask(grid.centers(), min(x0, x1), max(x0, x1))
+    vs = _span_mask(grid.row_centers(), min(v0, v1), max(v0, v1))
+    canvas[np.ix_(vs, xs)] = value
+    return canvas
+
+
+def oriented_rect_mask(grid: Grid, cx: float, cy: float, sx: float, sy: float,
+                       yaw: float) -> np.ndarray:
+    """Boolean D x D top-view mask of a rectangle of size (sx, sy) centred at (cx, cy), rotated
+    by `yaw` radians counter-clockwise about z (seen from above). Vectorised over the shape's
+    bounding box only."""
+    D = grid.size
+    mask = np.zeros((D, D), dtype=bool)
+    c, s = np.cos(yaw), np.sin(yaw)
+    hx, hy = abs(sx) / 2, abs(sy) / 2
+    ex = abs(c) * hx + abs(s) * hy  # half-extent of the rotated rectangle's bounding box
+    ey = abs(s) * hx + abs(c) * hy
+    c0 = max(int(np.floor(grid.x_to_col(cx - ex))) - 1, 0)
+    c1 = min(int(np.ceil(grid.x_to_col(cx + ex))) + 1, D)
+    r0 = max(int(np.floor(grid.y_to_row(cy + ey))) - 1, 0)
+    r1 = min(int(np.ceil(grid.y_to_row(cy - ey))) + 1, D)
+    if c0 >= c1 or r0 >= r1:
+        return mask
+    px = grid.col_to_x(np.arange(c0, c1) + 0.5)[None, :] - cx
+    py = grid.row_to_y(np.arange(r0, r1) + 0.5)[:, None] - cy
+    u = c * px + s * py  # coordinates in the box's own frame
+    v = -s * px + c * py
+    mask[r0:r1, c0:c1] = (u >= -hx) & (u < hx) & (v >= -hy) & (v < hy)
+    return mask
+
+
+@dataclass(frozen=True)
+class Shelf:
+    """One shelf in its own frame: board `length` along x, `depth` along y, free space of
+    `clear_height` above the board top (the inter-shelf distance for all but the top shelf)."""
+
+    length: float
+    depth: float
+    clear_height: float
+
+    def __post_init__(self):
+        for name in ("length", "depth", "clear_height"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"shelf {name} must be positive metres, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class Box:
+    """A box (or box stack) standing on a shelf, in the shelf frame: footprint centre (cx, cy),
+    size (sx along its own x, sy along its own y, sz up), bottom at height z0 above the board,
+    rotated by `yaw` radians about z."""
+
+    cx: float
+    cy: float
+    sx: float
+    sy: float
+    sz: float
+    z0: float = 0.0
+    yaw: float = 0.0
+
+    def x_range(self) -> tuple[float, float]:
+        """Extent of the rotated footprint along x (what the front view sees)."""
+        ex = abs(np.cos(self.yaw)) * self.sx / 2 + abs(np.sin(self.yaw)) * self.sy / 2
+        return self.cx - ex, self.cx + ex
+
+    def y_range(self) -> tuple[float, float]:
+        ey = abs(np.sin(self.yaw)) * self.sx / 2 + abs(np.cos(self.yaw)) * self.sy / 2
+        return self.cy - ey, self.cy + ey
+
+    def corners_xy(self) -> np.ndarray:
+        """4 x 2 footprint corners in the shelf frame, counter-clockwise."""
+        c, s = np.cos(self.yaw), np.sin(self.yaw)
+        local = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64) * [self.sx / 2, self.sy / 2]
+        rot = np.array([[c, -s], [s, c]])
+        return local @ rot.T + [self.cx, self.cy]
+
+
+@dataclass
+class ShelfLayout:
+    """Class-id top and front layouts (D x D uint8 each) of one shelf."""
+
+    top: np.ndarray
+    front: np.ndarray
+
+
+def rasterize_shelf(shelf: Shelf, boxes: Iterable[Box], grid: Grid = Grid(),
+                    front_pad: float = FRONT_CLEARANCE_PAD_M) -> ShelfLayout:
+    """Draw one shelf and its boxes into class-id top and front layouts.
+
+    Top view: the shelf rectangle (length x depth, centred) as SHELF, each box's rotated
+    footprint as BOX on top. Front view: the free space (length x (clear_height + front_pad))
+    from the board upward as SHELF, each box's elevation (x-range of its rotated footprint x
+    [z0, z0 + sz]) as BOX. Boxes behind each other merge in the front view, stacked boxes merge
+    in the top view, as in WareSynth.
+    """
+    D = grid.size
+    top = np.zeros((D, D), dtype=np.uint8)
+    front = np.zeros((D, D), dtype=np.uint8)
+    L, W = shelf.length, shelf.depth
+    fill_axis_rect(top, grid, -L / 2, L / 2, -W / 2, W / 2, SHELF)
+    fill_axis_rect(front, grid, -L / 2, L / 2, 0.0, shelf.clear_height + front_pad, SHELF)
+    for b in boxes:
+        top[oriented_rect_mask(grid, b.cx, b.cy, b.sx, b.sy, b.yaw)] = BOX
+        x0, x1 = b.x_range()
+        fill_axis_rect(front, grid, x0, x1, b.z0, b.z0 + b.sz, BOX)
+    return ShelfLayout(top, front)
+
+
+def stack_shelves(layouts: Sequence[ShelfLayout | None], R: int = DEFAULT_R,
+                  grid: Grid = Grid()) -> tuple[np.ndarray, np.ndarray]:
+    """Stack per-shelf layouts (lowest visible shelf first) into R x D x D class-id arrays.
+    Missing shelves (fewer than R, or None entries) are all background."""
+    if len(layouts) > R:
+        raise LayoutError(f"{len(layouts)} shelves given but only R={R} channels")
+    D = grid.size
+    top = np.zeros((R, D, D), dtype=np.uint8)
+    front = np.zeros((R, D, D), dtype=np.uint8)
+    for i, lay in enumerate(layouts):
+        if lay is not None:
+            top[i], front[i] = lay.top, lay.front
+    return top, front
+
+
+# --- encoding ------------------------------------------------------------------------------
+_VALUE_TO_CLASS = np.full(256, 255, dtype=np.uint8)
+_VALUE_TO_CLASS[FILE_VALUES] = np.arange(NUM_CLASSES, dtype=np.uint8)
+
+
+def encode(classes: np.ndarray) -> np.ndarray:
+    """Class ids {0, 1, 2} -> file values {0, 115, 255} (uint8). Strict."""
+    classes = np.asarray(classes)
+    if classes.size and (classes.min() < 0 or classes.max() >= NUM_CLASSES):
+        bad = np.setdiff1d(np.unique(classes), np.arange(NUM_CLASSES))
+        raise LayoutError(f"class ids must be 0, 1 or 2; found {bad[:5].tolist()}")
+    return FILE_VALUES[classes.astype(np.intp)]
+
+
+def decode(values: np.ndarray, source: str = "layout") -> np.ndarray:
+    """File values {0, 115, 255} -> class ids {0, 1, 2}. Any other value raises LayoutError
+    naming the value and `source`."""
+    values = np.asarray(values)
+    if values.dtype != np.uint8:
+        if not np.issubdtype(values.dtype, np.integer):
+            raise LayoutError(f"{source}: dtype {values.dtype}, expected uint8 values 0/115/255")
+        if values.size and (values.min() < 0 or values.max() > 255):
+            raise LayoutError(f"{source}: values outside 0..255 (expected 0/115/255)")
+        values = values.astype(np.uint8)
+    out = _VALUE_TO_CLASS[values]
+    if values.size and out.max() == 255:
+        bad = np.unique(values[out == 255])
+        raise LayoutError(f"{source}: stray value(s) {bad[:5].tolist()} (allowed: 0, 115, 255)")
+    return out
+
+
+def check_stack(arr: np.ndarray, R: int | None = None, D: int | None = None,
+                source: str = "layout", encoded: bool = True) -> None:
+    """Raise LayoutError unless `arr` is an R x D x D layout stack of allowed values."""
+    if arr.ndim != 3 or arr.shape[1] != arr.shape[2]:
+        raise LayoutError(f"{source}: shape {tuple(arr.shape)}, expected (R, D, D)")
+    if R is not None and arr.shape[0] != R:
+        raise LayoutError(f"{source}: {arr.shape[0]} shelf channels, expected R={R}")
+    if D is not None and arr.shape[1] != D:
+        raise LayoutError(f"{source}: {arr.shape[1]}x{arr.shape[2]} layout, expected D={D}")
+    if encoded:
+        if arr.dtype != np.uint8:
+            raise LayoutError(f"{source}: dtype {arr.dtype}, expected uint8")
+        decode(arr, source)
+    elif arr.size and arr.max() >= NUM_CLASSES:
+        raise LayoutError(f"{source}: class ids must be 0, 1 or 2")
+
+
+def hflip_layouts(layouts: np.ndarray) -> np.ndarray:
+    """Layouts matching a horizontally flipped image: reverse the columns (x -> -x) of every
+    channel. Works on (..., D, D) arrays."""
+    return np.ascontiguousarray(np.asarray(layouts)[..., ::-1])
+
+
+def visible_shelf_count(layouts: np.ndarray) -> int:
+    """Number of leading channels that contain any non-background pixel."""
+    flat = np.asarray(layouts).reshape(layouts.shape[0], -1)
+    return int((flat.max(axis=1) > 0).sum())
+
+
+def resize_layouts(layouts: np.ndarray, size: int) -> np.ndarray:
+    """Nearest-neighbour resize of (..., D, D) layouts to (..., size, size), sampling at pixel
+    centres so the metric convention is preserved (the grid extent stays the same)."""
+    D = layouts.shape[-1]
+    if size == D:
+        return layouts
+    idx = np.minimum(((np.arange(size) + 0.5) * D / size).astype(np.intp), D - 1)
+    return layouts[..., idx[:, None], idx[None, :]]
+
+
+def layout_area_m2(mask: np.ndarray, grid: Grid) -> float:
+    """Metric area of a boolean layout mask."""
+    return float(np.count_nonzero(mask)) * grid.pixel_area_m2()
+
+
+__all__ = [
+    "BACKGROUND", "SHELF", "BOX", "CLASS_NAMES", "NUM_CLASSES", "FILE_VALUES", "DEFAULT_D",
+    "DEFAULT_EXTENT_M", "DEFAULT_R", "FRONT_CLEARANCE_PAD_M", "VIEWS", "LayoutError", "Grid",
+    "Shelf", "Box", "ShelfLayout", "fill_axis_rect", "oriented_rect_mask", "rasterize_shelf",
+    "stack_shelves", "encode", "decode", "check_stack", "hflip_layouts",
+    "visible_shelf_count", "resize_layouts", "layout_area_m2",
+]

@@ -1,0 +1,99 @@
+"""Pictures of layouts: colour-coding and paper-style figures (photo + every shelf's top and
+front layout). Uses matplotlib's Agg backend; nothing here opens a window."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .layout import BOX, CLASS_NAMES, SHELF, Grid
+
+#: RGB colour per class id: background, shelf (free space), box (occupied)
+PALETTE = np.array([[24, 24, 32], [70, 160, 230], [250, 150, 40]], dtype=np.uint8)
+
+
+def colorize(classes: np.ndarray) -> np.ndarray:
+    """(…, D, D) class ids -> (…, D, D, 3) RGB uint8."""
+    return PALETTE[np.asarray(classes, dtype=np.intp)]
+
+
+def content_window(stacks: Sequence[np.ndarray], margin: float = 0.15, min_px: int = 32) -> tuple[int, int]:
+    """A square window [lo, hi) around the centre that holds every non-background pixel of all
+    given layout stacks (symmetric about the centre, so both views keep the shared x axis)."""
+    D = stacks[0].shape[-1]
+    half = min_px // 2
+    for s in stacks:
+        nz = np.nonzero(np.asarray(s).reshape(-1, D, D).max(axis=0))
+        if nz[0].size:
+            ext = max(np.abs(nz[0] + 0.5 - D / 2).max(), np.abs(nz[1] + 0.5 - D / 2).max())
+            half = max(half, int(np.ceil(ext * (1 + margin))))
+    half = min(half, D // 2)
+    return D // 2 - half, D // 2 + half
+
+
+def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.ndarray | None,
+                  out: str | os.PathLike | None = None, title: str = "", grid: Grid | None = None,
+                  crop: bool = True, dpi: int = 110):
+    """Paper-style figure: the photo on the left, then one column per shelf (lowest first) with
+    its top view above its front view. Returns the matplotlib Figure (closed after saving when
+    `out` is given)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    stacks = [s for s in (top, front) if s is not None]
+    if not stacks:
+        raise ValueError("nothing to draw: give top and/or front layouts")
+    R, D = stacks[0].shape[0], stacks[0].shape[-1]
+    grid = grid or Grid(size=D)
+    lo, hi = content_window(stacks) if crop else (0, D)
+    half_m = (hi - lo) / 2 * grid.res
+    rows = [("top", top), ("front", front)]
+    rows = [(n, s) for n, s in rows if s is not None]
+    ncols = R + (1 if image is not None else 0)
+    fig = plt.figure(figsize=(2.1 * R + (3.6 if image is not None else 0), 2.2 * len(rows) + 0.7))
+    gs = fig.add_gridspec(len(rows), ncols, width_ratios=([1.7] if image is not None else []) + [1] * R)
+    if image is not None:
+        ax = fig.add_subplot(gs[:, 0])
+        ax.imshow(image)
+        ax.set_axis_off()
+        ax.set_title("input")
+    extent = (-half_m, half_m, -half_m, half_m)
+    off = 1 if image is not None else 0
+    for ri, (name, stack) in enumerate(rows):
+        for i in range(R):
+            ax = fig.add_subplot(gs[ri, off + i])
+            ax.imshow(colorize(stack[i, lo:hi, lo:hi]), extent=extent, interpolation="nearest")
+            ax.set_title(f"shelf {i + 1} {name}", fontsize=9)
+            ax.tick_params(labelsize=6)
+            if i == 0:
+                ax.set_ylabel("y (m, far up)" if name == "top" else "z (m, up)", fontsize=7)
+            if ri == len(rows) - 1:
+                ax.set_xlabel("x (m)", fontsize=7)
+    handles = [Patch(color=PALETTE[c] / 255, label=CLASS_NAMES[c]) for c in range(3)]
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, 0.05, 1, 0.96 if title else 1))
+    if out is not None:
+        save_figure(fig, out, dpi=dpi)
+    return fig
+
+
+def save_figure(fig, out: str | os.PathLike, dpi: int = 110) -> Path:
+    """Save a matplotlib figure atomically (PNG by the file's suffix) and close it."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    from .atomic import atomic_write_bytes
+
+    out = Path(out)
+    buf = io.BytesIO()
+    fig.savefig(buf, format=out.suffix.lstrip(".") or "png", dpi=dpi)
+    plt.close(fig)
+    return atomic_write_bytes(out, buf.getvalue())
