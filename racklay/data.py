@@ -237,6 +237,7 @@ def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None =
         if n > 1:
             rep.problems.append(f"{ds.root / IMAGES_DIR}: {n} image files share the id {sid}")
     shapes: Counter = Counter()
+    shape_of: dict[Path, tuple] = {}
     it = ids
     if progress:
         from tqdm import tqdm
@@ -253,8 +254,9 @@ def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None =
                 continue
             try:
                 arr = np.load(p, allow_pickle=False)
-                shapes[arr.shape] += 1
                 L.check_stack(arr, R=R, D=D, source=str(p))
+                shapes[arr.shape] += 1
+                shape_of[p] = arr.shape
             except L.LayoutError as e:
                 rep.problems.append(str(e))
             except Exception as e:
@@ -276,11 +278,13 @@ def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None =
             elif sid not in idset:
                 rep.problems.append(f"{p}: {view} layout has no image {IMAGES_DIR}/{sid}.png")
     if shapes:
-        if len(shapes) > 1:
-            common = shapes.most_common(1)[0][0]
-            rep.problems.append(f"{ds.root}: layouts have mixed shapes {sorted(shapes)}; most are {common}")
-        (rep.R, rep.D, _), _ = shapes.most_common(1)[0]
+        common = shapes.most_common(1)[0][0]
+        for p, shp in shape_of.items():
+            if shp != common:
+                rep.problems.append(f"{p}: shape {shp} differs from the dataset's {common}")
+        rep.R, rep.D = common[0], common[1]
     # splits
+    seen: dict[str, str] = {}
     for name in ds.splits():
         sp = ds.split_path(name)
         entries = [parse_split_entry(l) for l in sp.read_text().splitlines() if l.strip()]
@@ -291,4 +295,8 @@ def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None =
         for sid in dict.fromkeys(entries):
             if sid not in idset:
                 rep.problems.append(f"{sp}: entry {sid} points at a missing image")
+            if sid in seen:
+                rep.problems.append(f"{sp}: entry {sid} is also in split '{seen[sid]}' (splits must not overlap)")
+            else:
+                seen[sid] = name
     return rep

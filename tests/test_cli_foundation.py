@@ -1,0 +1,65 @@
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from racklay.cli import main
+from racklay.data import RackLayRoot
+from racklay.toy import build_toy_dataset
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli") / "ds"
+    build_toy_dataset(root, n=8, seed=2, D=64)
+    return root
+
+
+@pytest.mark.parametrize("prog", ["racklay", "transfer", "annotate"])
+def test_console_scripts_have_help(prog):
+    exe = shutil.which(prog) or str(__import__("pathlib").Path(sys.executable).parent / prog)
+    out = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and "usage" in out.stdout
+
+
+def test_check_data_clean_and_dirty(toy, tmp_path, capsys):
+    assert main(["check-data", str(toy), "--json", str(tmp_path / "r.json")]) == 0
+    assert json.loads((tmp_path / "r.json").read_text())["ok"] is True
+    bad = tmp_path / "bad"
+    shutil.copytree(toy, bad)
+    a = np.load(bad / "topLayouts" / "top000000.npy")
+    a[0, 0, 0] = 114
+    np.save(bad / "topLayouts" / "top000000.npy", a)
+    capsys.readouterr()
+    assert main(["check-data", str(bad)]) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].endswith("(allowed: 0, 115, 255)") and "top000000.npy" in out[0]
+    assert "1 problem(s)" in out[-1]
+
+
+def test_score_gt_against_itself_is_perfect(toy, tmp_path, capsys):
+    assert main(["score", "--pred", str(toy), "--gt", str(toy), "--json", str(tmp_path / "s.json")]) == 0
+    res = json.loads((tmp_path / "s.json").read_text())
+    assert res["top"]["paper"]["box"]["mIoU"] == 1.0
+    assert res["front"]["dataset"]["shelf"]["IoU"] == 1.0
+    assert "pixel precision" in capsys.readouterr().out
+
+
+def test_score_missing_ground_truth_is_one_line_error(toy, tmp_path, capsys):
+    pred = RackLayRoot(tmp_path / "pred")
+    pred.write_sample("777777", top=np.zeros((4, 64, 64), np.uint8))
+    assert main(["score", "--pred", str(pred.root), "--gt", str(toy)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "top777777.npy" in err[0]
+
+
+def test_show_writes_figure(toy, tmp_path):
+    out = tmp_path / "fig.png"
+    assert main(["show", str(toy), "--index", "1", "--out", str(out)]) == 0
+    from PIL import Image
+    w, h = Image.open(out).size
+    assert w > 600 and h > 300
+    assert main(["show", str(toy), "--index", "99", "--out", str(out)]) == 2

@@ -1,0 +1,158 @@
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from racklay import layout as L
+from racklay.data import DataError, RackLayRoot, check_dataset, make_splits, parse_split_entry
+from racklay.toy import build_toy_dataset
+from racklay.torchdata import RackLayDataset
+
+
+@pytest.fixture(scope="module")
+def toy_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("toy") / "ds"
+    build_toy_dataset(root, n=10, seed=1, D=64)
+    return root
+
+
+@pytest.fixture
+def ds(toy_root, tmp_path):
+    dst = tmp_path / "ds"
+    shutil.copytree(toy_root, dst)
+    return RackLayRoot(dst)
+
+
+def test_layout_on_disk_is_racklay_format(toy_root):
+    ds = RackLayRoot(toy_root)
+    sid = ds.ids()[0]
+    assert (toy_root / "Images" / f"{sid}.png").is_file()
+    raw = np.load(toy_root / "topLayouts" / f"top{sid}.npy")
+    assert raw.dtype == np.uint8 and raw.shape == (4, 64, 64)
+    assert set(np.unique(raw)) <= {0, 115, 255}
+    assert set(ds.splits()) == {"train", "val", "test"}
+    assert sum(len(ds.split_ids(s)) for s in ds.splits()) == 10
+    assert check_dataset(toy_root).ok
+
+
+def test_split_entries_accept_paths_and_ids():
+    assert parse_split_entry("Images/000123.png") == "000123"
+    assert parse_split_entry("/home/u/RackLay/data/Images/000123.png\n") == "000123"
+    assert parse_split_entry("000123") == "000123"
+    assert parse_split_entry("C:\\data\\Images\\000009.jpg") == "000009"
+
+
+def test_make_splits_reproducible_and_disjoint():
+    ids = [f"{i:06d}" for i in range(100)]
+    a = make_splits(ids, {"train": 0.8, "val": 0.1, "test": 0.1}, seed=3)
+    b = make_splits(ids, {"train": 0.8, "val": 0.1, "test": 0.1}, seed=3)
+    assert a == b
+    assert [len(a[k]) for k in ("train", "val", "test")] == [80, 10, 10]
+    assert not set(a["train"]) & set(a["test"])
+
+
+def _problems(root):
+    rep = check_dataset(root)
+    assert not rep.ok
+    return rep.problems
+
+
+def test_check_truncated_png(ds):
+    p = ds.image_path(ds.ids()[0])
+    p.write_bytes(p.read_bytes()[:200])
+    probs = _problems(ds.root)
+    assert len(probs) == 1 and str(p) in probs[0] and ("truncated" in probs[0] or "readable" in probs[0])
+
+
+def test_check_wrong_shape(ds):
+    sid = ds.ids()[1]
+    np.save(ds.layout_path("top", sid), np.zeros((4, 64, 32), np.uint8))
+    (line,) = _problems(ds.root)
+    assert f"top{sid}.npy" in line and "shape" in line
+
+
+def test_check_wrong_dtype(ds):
+    sid = ds.ids()[2]
+    np.save(ds.layout_path("front", sid), np.zeros((4, 64, 64), np.float32))
+    (line,) = _problems(ds.root)
+    assert f"front{sid}.npy" in line and "dtype" in line
+
+
+def test_check_stray_value(ds):
+    sid = ds.ids()[3]
+    a = np.load(ds.layout_path("top", sid))
+    a[0, 0, 0] = 114
+    np.save(ds.layout_path("top", sid), a)
+    (line,) = _problems(ds.root)
+    assert f"top{sid}.npy" in line and "114" in line
+
+
+def test_check_missing_pair_and_orphan_layout(ds):
+    sid = ds.ids()[4]
+    ds.layout_path("front", sid).unlink()
+    (line,) = _problems(ds.root)
+    assert f"front{sid}.npy" in line and "missing" in line
+    orphan = ds.layout_path("top", "999999")
+    shutil.copy(ds.layout_path("top", sid), orphan)
+    assert any("999999" in p and "no image" in p for p in _problems(ds.root))
+
+
+def test_check_split_to_missing_file_and_duplicates(ds):
+    sp = ds.split_path("test")
+    sp.write_text(sp.read_text() + "Images/424242.png\n")
+    (line,) = _problems(ds.root)
+    assert "test.txt" in line and "424242" in line
+    first = sp.read_text().splitlines()[0]
+    sp.write_text(sp.read_text() + first + "\n")
+    assert any("listed 2 times" in p for p in _problems(ds.root))
+
+
+def test_check_overlapping_splits(ds):
+    sid = ds.split_ids("train")[0]
+    sp = ds.split_path("test")
+    sp.write_text(sp.read_text() + f"Images/{sid}.png\n")
+    assert any("also in split" in p for p in _problems(ds.root))
+
+
+def test_read_errors_name_the_file(ds, tmp_path):
+    bad = tmp_path / "x.npy"
+    bad.write_bytes(b"not numpy")
+    from racklay.data import read_layout_file
+    with pytest.raises(DataError, match="x.npy"):
+        read_layout_file(bad)
+    with pytest.raises(DataError, match="splits found"):
+        ds.split_ids("nosuch")
+
+
+def test_write_sample_encodes_and_is_atomic(tmp_path):
+    ds = RackLayRoot(tmp_path / "w")
+    top = np.zeros((4, 16, 16), np.uint8)
+    top[0, 4:8, 4:8] = L.BOX
+    ds.write_sample("000000", image=np.zeros((10, 12, 3), np.uint8), top=top, meta={"a": 1})
+    assert np.load(ds.layout_path("top", "000000")).max() == 255
+    np.testing.assert_array_equal(ds.read_layouts("top", "000000"), top)
+    assert ds.read_meta("000000") == {"a": 1}
+    assert not list((tmp_path / "w").rglob("*.tmp"))
+    with pytest.raises(L.LayoutError):
+        ds.write_sample("000001", top=np.full((4, 16, 16), 7, np.uint8))
+
+
+def test_torch_dataset_sizes_and_values(toy_root):
+    d = RackLayDataset(toy_root, split="train", image_size=(48, 80), layout_size=32, cache=True)
+    item = d[0]
+    assert item["image"].shape == (3, 48, 80) and item["image"].dtype == torch.float32
+    assert item["top"].shape == (4, 32, 32) and item["top"].dtype == torch.int64
+    assert set(item["front"].unique().tolist()) <= {0, 1, 2}
+    assert len(d) == len(RackLayRoot(toy_root).split_ids("train"))
+
+
+def test_torch_dataset_transform_hook(toy_root):
+    def flip(img, lays):
+        return img[:, ::-1], {v: L.hflip_layouts(a) for v, a in lays.items()}
+
+    plain = RackLayDataset(toy_root, split="val", layout_size=32, image_size=32)
+    flipped = RackLayDataset(toy_root, split="val", layout_size=32, image_size=32, transform=flip)
+    torch.testing.assert_close(flipped[0]["top"], plain[0]["top"].flip(-1))
+    torch.testing.assert_close(flipped[0]["image"], plain[0]["image"].flip(-1))

@@ -1,0 +1,79 @@
+import numpy as np
+import pytest
+
+from racklay import layout as L
+from racklay.metrics import LayoutMetrics, average_precision_from_hist, confusion, format_tables, paper_scores
+
+
+def test_paper_scores_hand_computed():
+    gt = np.zeros((1, 4, 4), np.uint8)
+    pred = np.zeros((1, 4, 4), np.uint8)
+    gt[0, :2, :2] = L.BOX      # 4 box pixels
+    pred[0, :2, :3] = L.BOX    # 6 predicted, 4 correct
+    iou, prec = paper_scores(pred, gt, L.BOX)
+    assert iou[0] == pytest.approx(4 / 6) and prec[0] == pytest.approx(4 / 6)
+    pred2 = np.zeros_like(pred)
+    pred2[0, 0, 0] = L.BOX     # 1 predicted, correct
+    iou, prec = paper_scores(pred2, gt, L.BOX)
+    assert iou[0] == pytest.approx(1 / 4) and prec[0] == 1.0
+
+
+def test_empty_in_both_counts_one_and_empty_prediction_zero():
+    gt = np.zeros((2, 8, 8), np.uint8)
+    pred = np.zeros((2, 8, 8), np.uint8)
+    gt[1, 0, 0] = L.SHELF
+    iou, prec = paper_scores(pred, gt, L.SHELF)
+    np.testing.assert_array_equal(iou, [1.0, 0.0])
+    np.testing.assert_array_equal(prec, [1.0, 0.0])
+
+
+def test_all_background_floor_vs_dataset_level():
+    # 4 channels, 1 visible shelf: the paper protocol gives an empty prediction 3/4, the
+    # dataset-level IoU gives it 0.
+    gt = np.zeros((1, 4, 8, 8), np.uint8)
+    gt[0, 0, 2:6, :] = L.SHELF
+    gt[0, 0, 3:5, 2:4] = L.BOX
+    m = LayoutMetrics()
+    m.update("top", np.zeros_like(gt), gt)
+    r = m.result()["top"]
+    assert r["paper"]["rack"]["mIoU"] == pytest.approx(0.75)
+    assert r["paper"]["box"]["mIoU"] == pytest.approx(0.75)
+    assert r["dataset"]["box"]["IoU"] == 0.0 and r["dataset"]["shelf"]["IoU"] == 0.0
+
+
+def test_perfect_prediction_and_confusion():
+    rng = np.random.default_rng(0)
+    gt = rng.integers(0, 3, size=(3, 4, 16, 16)).astype(np.uint8)
+    m = LayoutMetrics()
+    probs = np.eye(3, dtype=np.float32)[gt].transpose(0, 1, 4, 2, 3)  # (N, R, 3, D, D) one-hot
+    m.update("front", gt, gt, probs=probs)
+    r = m.result()["front"]
+    for k in ("rack", "box"):
+        assert r["paper"][k]["mIoU"] == 1.0 and r["paper"][k]["pixel_precision"] == 1.0
+    for c in ("shelf", "box"):
+        assert r["dataset"][c]["IoU"] == 1.0 and r["dataset"][c]["AP"] == pytest.approx(1.0)
+    cm = np.array(r["confusion"])
+    assert cm.sum() == gt.size and np.count_nonzero(cm - np.diag(np.diag(cm))) == 0
+    np.testing.assert_array_equal(confusion(np.array([0, 1, 2, 2]), np.array([0, 2, 2, 1])),
+                                  [[1, 0, 0], [0, 0, 1], [0, 1, 1]])
+
+
+def test_average_precision_hand_computed():
+    # scores: positives in bins 9 and 5, negatives in bins 7 and 1
+    pos = np.zeros(10, np.int64); pos[[9, 5]] = 1
+    neg = np.zeros(10, np.int64); neg[[7, 1]] = 1
+    # ranking: P(9) N(7) P(5) N(1): AP = 1*0.5 + 2/3*0.5
+    assert average_precision_from_hist(pos, neg) == pytest.approx(0.5 + 1 / 3)
+
+
+def test_shape_mismatch_is_an_error():
+    with pytest.raises(ValueError, match="shape"):
+        LayoutMetrics().update("top", np.zeros((4, 8, 8)), np.zeros((4, 16, 16)))
+
+
+def test_tables_label_precision_honestly():
+    gt = np.zeros((1, 4, 8, 8), np.uint8)
+    m = LayoutMetrics()
+    m.update("top", gt, gt)
+    txt = format_tables(m.result())
+    assert "pixel precision" in txt and "mAP" in txt and "| top rack |" in txt
