@@ -12,6 +12,9 @@ COMMANDS = [
     "racklay.commands.score",
     "racklay.commands.show",
     "racklay.commands.demo",
+    "racklay.commands.eval",
+    "racklay.commands.predict",
+    "racklay.commands.export",
 ]
 
 

@@ -1,0 +1,55 @@
+"""racklay export --weights W --onnx out.onnx"""
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "export", help="export a trained model to ONNX (checked against torch)",
+        description="Export a checkpoint to ONNX: input `image` (N, 3, H, W) float32 ImageNet-normalised, "
+                    "one logits output per view (N, R, 3, S, S), dynamic batch, the model config in the "
+                    "file's metadata. The file is then run with onnxruntime beside torch on the same input "
+                    "and the maximum absolute logit difference is printed (and checked against --tol). "
+                    "Use it with `racklay predict --weights out.onnx` or `--backend onnx`.")
+    p.add_argument("--weights", required=True, help="model checkpoint (.safetensors)")
+    p.add_argument("--onnx", required=True, help="output .onnx file")
+    p.add_argument("--opset", type=int, default=17, help="ONNX opset (default 17)")
+    p.add_argument("--image", default=None, help="check parity on this photo instead of a random batch")
+    p.add_argument("--tol", type=float, default=1e-3,
+                   help="fail (exit 1) when the max abs logit difference exceeds this (default 1e-3)")
+    p.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from racklay.checkpoint import load_model
+    from racklay.cli import CLIError
+    from racklay.export import export_onnx, parity
+
+    if not Path(args.weights).is_file():
+        raise CLIError(f"{args.weights}: weights file not found")
+    if Path(args.onnx).suffix.lower() != ".onnx":
+        raise CLIError(f"{args.onnx}: output name must end in .onnx")
+    model, cfg, _ = load_model(args.weights, map_location="cpu")
+    model.eval()
+    path = export_onnx(model, cfg, args.onnx, opset=args.opset)
+    size_mb = path.stat().st_size / 1e6
+    print(f"exported {args.weights} -> {path} ({size_mb:.1f} MB, opset {args.opset}, views {'/'.join(cfg.views)})")
+    if args.no_check:
+        return 0
+    image = None
+    if args.image:
+        from racklay.data import read_image
+        image = read_image(args.image)
+    res = parity(model, path, cfg, image=image)
+    worst = max(res["max_abs_diff"].values())
+    for v in cfg.views:
+        print(f"  {v}: max abs logit difference onnxruntime vs torch = {res['max_abs_diff'][v]:.3g}, "
+              f"argmax differs on {100 * res['class_mismatch'][v]:.4f}% of pixels")
+    print(f"  batch {res['batch']}: torch {res['torch_ms']:.0f} ms, onnxruntime {res['onnx_ms']:.0f} ms (one call, cold)")
+    if worst > args.tol:
+        print(f"parity check FAILED: {worst:.3g} > --tol {args.tol}")
+        return 1
+    print(f"parity OK (<= {args.tol})")
+    return 0

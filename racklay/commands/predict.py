@@ -1,0 +1,46 @@
+"""racklay predict IMAGES_OR_FOLDER... --weights W --out DIR"""
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "predict", help="predict per-shelf layouts for photos",
+        description="Predict every shelf's top- and front-view layout for each photo (files, or every "
+                    "file in a folder; any image size, resized to the model's input). OUT becomes a "
+                    "RackLay-format dataset: Images/ID.png, topLayouts/topID.npy, "
+                    "frontLayouts/frontID.npy (0/115/255), meta/ID.json, so `racklay score --pred OUT` "
+                    "and `racklay show OUT` read it; plus colour PNGs per shelf (png/ID_VIEW_shelfK.png) "
+                    "and a paper-style figure per photo (figures/ID.png). ID is the file stem. A file "
+                    "that is not a readable image gets a one-line error and the rest still run; the exit "
+                    "code is 1 if any input failed.")
+    p.add_argument("inputs", nargs="+", metavar="IMAGES_OR_FOLDER", help="image files and/or folders")
+    p.add_argument("--weights", required=True, help="model checkpoint (.safetensors) or exported .onnx")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--backend", choices=("torch", "onnx"), default="torch",
+                   help="torch (default) or onnxruntime (a checkpoint is exported in memory)")
+    p.add_argument("--threads", type=int, default=None, help="intra-op threads (default: library default)")
+    p.add_argument("--no-figure", action="store_true", help="skip the paper-style figures")
+    p.add_argument("--no-png", action="store_true", help="skip the per-shelf colour PNGs")
+    p.add_argument("--full", action="store_true", help="figures show the whole grid, not a crop")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from racklay.cli import CLIError
+    from racklay.predict import Predictor, list_inputs, predict_folder
+
+    if not Path(args.weights).is_file():
+        raise CLIError(f"{args.weights}: weights file not found")
+    out = Path(args.out).resolve()
+    for f in list_inputs(args.inputs):
+        if f.resolve().parent == out / "Images":
+            raise CLIError(f"{f}: input lies in the output's Images/ folder; choose another --out "
+                           "(predictions would overwrite that dataset)")
+    pred = Predictor(args.weights, backend=args.backend, threads=args.threads)
+    rep = predict_folder(pred, args.inputs, args.out, figure=not args.no_figure, png=not args.no_png,
+                         crop=not args.full)
+    print(f"{rep.summary()} -> {args.out} (backend {pred.backend}, "
+          f"{pred.image_size[1]}x{pred.image_size[0]} input, {pred.layout_size}x{pred.layout_size} layouts)")
+    return 0 if rep.ok else 1

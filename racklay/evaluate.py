@@ -1,0 +1,103 @@
+"""Evaluate a trained model on a RackLay-format split: the paper's Table-1 numbers (paper
+protocol) and dataset-level IoU / precision / recall / AP, via `racklay.metrics.LayoutMetrics`.
+
+By default layouts are compared at the model's layout size S (ground truth resized with
+`racklay.layout.resize_layouts`, as in training). `native=True` instead upsamples the
+predictions (nearest, at pixel centres) to the dataset's own resolution D and scores there, which
+is what the paper's numbers at D = 512 mean when the model predicts at a smaller S.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from . import layout as L
+
+
+def _predictor(weights, backend: str, threads: int | None):
+    from .predict import Predictor
+
+    if isinstance(weights, Predictor):
+        return weights
+    if isinstance(weights, tuple) and len(weights) == 2:  # (model, cfg) in memory
+        return Predictor.from_model(*weights)
+    return Predictor(weights, backend=backend, threads=threads)
+
+
+def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, backend: str = "torch",
+             workers: int = 0, progress: bool = True, limit: int | None = None, native: bool = False,
+             with_probs: bool = True, threads: int | None = None, pred_out: str | os.PathLike | None = None) -> dict:
+    """Score `weights` (checkpoint path, ONNX path, a `Predictor`, or `(model, cfg)`) on the
+    `split` of the dataset at `data`. Returns the `LayoutMetrics.result()` dict
+    ({view: {"paper", "dataset", "confusion", "images"}}).
+
+    limit: score only the first `limit` ids of the split. with_probs: pass softmax probabilities
+    so the result carries average precision. pred_out: also write the predicted layouts as a
+    RackLay dataset there (so `racklay score` / `racklay show` can read them)."""
+    import torch
+    from torch.utils.data import DataLoader
+
+    from .data import RackLayRoot
+    from .metrics import LayoutMetrics
+    from .torchdata import RackLayDataset
+
+    pred = _predictor(weights, backend, threads)
+    root = RackLayRoot(data)
+    if not root.root.is_dir():
+        raise FileNotFoundError(f"{root.root}: dataset folder not found")
+    ids = root.resolve(split)
+    if limit is not None:
+        ids = ids[: int(limit)]
+    if not ids:
+        raise ValueError(f"{root.root}: split {split!r} has no samples")
+    views = [v for v in pred.views if v in root.views()]
+    if not views:
+        raise ValueError(f"{root.root}: no layouts for the model's views {'/'.join(pred.views)} "
+                         f"(dataset has {'/'.join(root.views()) or 'none'})")
+    S = pred.layout_size
+    ds = RackLayDataset(root.root, ids=ids, image_size=pred.image_size, layout_size=S, views=views, R=pred.R)
+    loader = DataLoader(ds, batch_size=batch_size, shuffle=False, num_workers=workers)
+    metrics = LayoutMetrics()
+    out_root = RackLayRoot(pred_out) if pred_out is not None else None
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(ds), desc=f"eval {split or 'all'}", unit="img", leave=False)
+    with torch.inference_mode():
+        for batch in loader:
+            classes, probs = pred.predict_batch(batch["image"])
+            for v in views:
+                c, p = classes[v], (probs[v] if with_probs else None)
+                if native:
+                    gt = np.stack([root.read_layouts(v, sid, R=pred.R) for sid in batch["id"]])
+                    D = gt.shape[-1]
+                    c = L.resize_layouts(c, D)
+                    p = None if p is None else L.resize_layouts(p, D)
+                else:
+                    gt = batch[v].numpy()
+                metrics.update(v, c, gt, probs=p)
+                if out_root is not None:
+                    for sid, lay in zip(batch["id"], c):
+                        out_root.write_sample(sid, **{v: lay})
+            if bar is not None:
+                bar.update(len(batch["id"]))
+    if bar is not None:
+        bar.close()
+    return metrics.result()
+
+
+def eval_report(result: dict, weights, data, split, cfg=None, native: bool = False) -> dict:
+    """The JSON `racklay eval --json` writes: run description + the metrics dict."""
+    from .predict import config_to_dict
+
+    views = [v for v in L.VIEWS if v in result]
+    return {
+        "weights": str(weights), "data": str(Path(data)), "split": split,
+        "images": max((result[v]["images"] for v in views), default=0),
+        "resolution": "dataset" if native else "model",
+        "model": config_to_dict(cfg) if cfg is not None else None,
+        "metrics": result,
+    }

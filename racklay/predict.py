@@ -1,0 +1,315 @@
+"""Run a trained RackLay model on photos: per-shelf top- and front-view layouts.
+
+`Predictor(weights, backend="torch"|"onnx")` loads a checkpoint (safetensors, see
+`racklay.checkpoint`) or an exported ONNX file (`racklay export`, which stores the model
+config in the file's metadata) and turns an RGB uint8 photo of any size into
+
+    {"top": (R, S, S) uint8 class ids, "front": ..., "probs": {view: (R, 3, S, S) float32},
+     "grid": racklay.layout.Grid(S, extent)}
+
+for the views the model has. The photo is resized to the model's input size with
+`racklay.torchdata.prepare_image` and ImageNet-normalised with `image_to_tensor`, exactly as in
+training. `predict_folder` is the engine behind `racklay predict`.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field, is_dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from . import layout as L
+
+BACKENDS = ("torch", "onnx")
+#: metadata key under which `racklay export` stores the model config in the ONNX file
+ONNX_CONFIG_KEY = "racklay_model_config"
+
+
+def softmax_classes(logits: np.ndarray, axis: int = -3) -> np.ndarray:
+    """Numerically stable softmax over the class axis of (..., 3, S, S) logits (float32)."""
+    z = np.asarray(logits, dtype=np.float32)
+    z = z - z.max(axis=axis, keepdims=True)
+    np.exp(z, out=z)
+    z /= z.sum(axis=axis, keepdims=True)
+    return z
+
+
+def config_to_dict(cfg) -> dict:
+    """A model config (dataclass) as a JSON-able dict (tuples become lists)."""
+    d = asdict(cfg) if is_dataclass(cfg) else dict(cfg)
+    return json.loads(json.dumps(d, default=list))
+
+
+def config_from_dict(d: dict):
+    """Rebuild a `racklay.model.ModelConfig` from `config_to_dict` output, ignoring unknown keys
+    (a file written by a newer version) and restoring tuples."""
+    import dataclasses
+
+    from .model import ModelConfig
+
+    names = {f.name for f in dataclasses.fields(ModelConfig)}
+    kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names}
+    return ModelConfig(**kw)
+
+
+def image_hw(cfg) -> tuple[int, int]:
+    s = cfg.image_size
+    return (int(s), int(s)) if isinstance(s, (int, np.integer)) else (int(s[0]), int(s[1]))
+
+
+def as_rgb_uint8(image: np.ndarray, source: str = "image") -> np.ndarray:
+    """Accept (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA uint8; return (H, W, 3) RGB uint8."""
+    a = np.asarray(image)
+    if a.dtype != np.uint8:
+        raise ValueError(f"{source}: expected a uint8 image, got dtype {a.dtype}")
+    if a.ndim == 2:
+        a = np.repeat(a[:, :, None], 3, axis=2)
+    if a.ndim != 3 or a.shape[2] not in (3, 4) or min(a.shape[:2]) < 1:
+        raise ValueError(f"{source}: expected an (H, W, 3) RGB image, got shape {a.shape}")
+    return np.ascontiguousarray(a[:, :, :3])
+
+
+class Predictor:
+    """A loaded model, ready to turn photos into layouts.
+
+    weights: a checkpoint (`.safetensors`, from `racklay train`) or an ONNX file from
+    `racklay export` (backend "onnx" is implied by the suffix). With backend="onnx" and a
+    checkpoint, the model is exported in memory and run by onnxruntime.
+    threads: torch / onnxruntime intra-op threads (default: library default).
+    """
+
+    def __init__(self, weights, backend: str = "torch", threads: int | None = None):
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        self.weights = Path(weights)
+        if self.weights.suffix.lower() == ".onnx":
+            backend = "onnx"
+        self.backend = backend
+        self.threads = threads
+        self.model = None
+        self.session = None
+        if backend == "onnx" and self.weights.suffix.lower() == ".onnx":
+            self.session, self.cfg = _onnx_session(self.weights, threads=threads)
+            self.meta = {}
+        else:
+            from .checkpoint import load_model
+
+            model, self.cfg, self.meta = load_model(self.weights, map_location="cpu")
+            self._set_model(model)
+            if backend == "onnx":
+                from .export import export_onnx_bytes
+
+                data = export_onnx_bytes(self.model, self.cfg)
+                self.session, _ = _onnx_session(data, threads=threads, source=str(self.weights))
+        if threads and backend == "torch":
+            import torch
+
+            torch.set_num_threads(int(threads))
+
+    @classmethod
+    def from_model(cls, model, cfg) -> "Predictor":
+        """Wrap an in-memory model (e.g. during training) without a checkpoint file."""
+        self = cls.__new__(cls)
+        self.weights, self.backend, self.threads, self.session, self.meta = None, "torch", None, None, {}
+        self.cfg = cfg
+        self._set_model(model)
+        return self
+
+    def _set_model(self, model) -> None:
+        model.eval()
+        self.model = model
+
+    # --- model facts ---
+    @property
+    def views(self) -> tuple[str, ...]:
+        return tuple(self.cfg.views)
+
+    @property
+    def R(self) -> int:
+        return int(self.cfg.R)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return image_hw(self.cfg)
+
+    @property
+    def layout_size(self) -> int:
+        return int(self.cfg.layout_size)
+
+    @property
+    def grid(self) -> L.Grid:
+        return L.Grid(size=self.layout_size, extent=float(getattr(self.cfg, "extent", L.DEFAULT_EXTENT_M)))
+
+    # --- inference ---
+    def logits(self, x) -> dict[str, np.ndarray]:
+        """Raw logits {view: (N, R, 3, S, S) float32} for a normalised batch (N, 3, H, W)
+        (torch tensor or numpy array)."""
+        if self.session is not None:
+            arr = x.numpy() if hasattr(x, "numpy") else np.asarray(x)
+            outs = self.session.run(list(self.views), {"image": np.ascontiguousarray(arr, dtype=np.float32)})
+            return dict(zip(self.views, outs))
+        import torch
+
+        t = x if isinstance(x, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
+        with torch.inference_mode():
+            out = self.model(t)
+        return {v: out[v].float().numpy() for v in self.views}
+
+    def predict_batch(self, x) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """(classes {view: (N, R, S, S) uint8}, probs {view: (N, R, 3, S, S) float32})."""
+        probs = {v: softmax_classes(z, axis=2) for v, z in self.logits(x).items()}
+        classes = {v: p.argmax(axis=2).astype(np.uint8) for v, p in probs.items()}
+        return classes, probs
+
+    def prepare(self, image: np.ndarray, source: str = "image"):
+        """RGB uint8 photo of any size -> normalised (1, 3, H, W) tensor at the model's input size."""
+        from .torchdata import image_to_tensor, prepare_image
+
+        img = prepare_image(as_rgb_uint8(image, source), self.image_size)
+        return image_to_tensor(img)[None]
+
+    def predict(self, image: np.ndarray) -> dict:
+        """One RGB uint8 (H, W, 3) photo -> {"top", "front" (views the model has): (R, S, S)
+        class ids; "probs": {view: (R, 3, S, S)}; "grid": Grid}."""
+        classes, probs = self.predict_batch(self.prepare(image))
+        out: dict = {v: classes[v][0] for v in self.views}
+        out["probs"] = {v: probs[v][0] for v in self.views}
+        out["grid"] = self.grid
+        return out
+
+
+def _onnx_session(model, threads: int | None = None, source: str | None = None):
+    """An onnxruntime session and the model config stored in the file's metadata."""
+    import onnxruntime as ort
+
+    src = source or str(model)
+    opts = ort.SessionOptions()
+    if threads:
+        opts.intra_op_num_threads = int(threads)
+    opts.log_severity_level = 3
+    try:
+        payload = model if isinstance(model, (bytes, bytearray)) else str(model)
+        if not isinstance(model, (bytes, bytearray)) and not Path(model).is_file():
+            raise FileNotFoundError(f"{src}: ONNX file not found")
+        sess = ort.InferenceSession(payload, sess_options=opts, providers=["CPUExecutionProvider"])
+    except FileNotFoundError:
+        raise
+    except Exception as e:  # onnxruntime raises its own exception types
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(f"{src}: not a loadable ONNX model ({msg})") from None
+    meta = sess.get_modelmeta().custom_metadata_map
+    if ONNX_CONFIG_KEY not in meta:
+        raise ValueError(f"{src}: ONNX file has no RackLay model config (export it with `racklay export`)")
+    cfg = config_from_dict(json.loads(meta[ONNX_CONFIG_KEY]))
+    return sess, cfg
+
+
+# --- folders of photos -------------------------------------------------------------------
+@dataclass
+class PredictReport:
+    done: list[str] = field(default_factory=list)
+    failed: list[tuple[str, str]] = field(default_factory=list)  # (path, one-line message)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed
+
+    def summary(self) -> str:
+        n = len(self.done) + len(self.failed)
+        if self.ok:
+            return f"{len(self.done)} image(s) predicted"
+        return f"{len(self.failed)} of {n} input(s) failed, {len(self.done)} predicted"
+
+
+def list_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
+    """Files named on the command line, and every non-hidden file inside named folders (sorted).
+    A non-image file in a folder is kept: it gets a one-line error, not silence."""
+    files: list[Path] = []
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            files += sorted(q for q in p.iterdir() if q.is_file() and not q.name.startswith("."))
+        else:
+            files.append(p)  # a missing file is reported by the reader, naming it
+    return files
+
+
+def unique_ids(paths: Iterable[Path]) -> list[str]:
+    """Sample id per input: the file stem, with _2, _3, ... when two inputs share a stem."""
+    seen: dict[str, int] = {}
+    ids = []
+    for p in paths:
+        stem = p.stem or p.name
+        n = seen.get(stem, 0) + 1
+        seen[stem] = n
+        ids.append(stem if n == 1 else f"{stem}_{n}")
+    return ids
+
+
+def write_prediction(out_root, sid: str, image: np.ndarray, pred: dict, views: Sequence[str],
+                     source: str = "", figure: bool = True, png: bool = True, crop: bool = True,
+                     extra_meta: dict | None = None) -> None:
+    """Write one prediction as a RackLay sample (Images/, topLayouts/, frontLayouts/, meta/),
+    colour PNGs per shelf (png/ID_VIEW_shelfK.png) and a paper-style figure (figures/ID.png)."""
+    from .atomic import atomic_save_png
+    from .data import RackLayRoot
+    from .viz import colorize, layout_figure
+
+    root = RackLayRoot(out_root)
+    g = pred["grid"]
+    meta = {"source": str(source), "input_size": [int(image.shape[1]), int(image.shape[0])],
+            "grid": {"D": g.size, "extent_m": g.extent}, "prediction": True, **(extra_meta or {})}
+    root.write_sample(sid, image=image, top=pred.get("top"), front=pred.get("front"), meta=meta)
+    if png:
+        for v in views:
+            for k, ch in enumerate(pred[v]):
+                atomic_save_png(root.root / "png" / f"{sid}_{v}_shelf{k + 1}.png", colorize(ch))
+    if figure:
+        layout_figure(image, pred.get("top"), pred.get("front"), out=root.root / "figures" / f"{sid}.png",
+                      title=f"{Path(source).name or sid}: predicted layouts", grid=g, crop=crop)
+
+
+def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], out, figure: bool = True,
+                   png: bool = True, crop: bool = True, progress: bool = True, log=None) -> PredictReport:
+    """Predict every input file; a file that cannot be read gets one line via `log` (default:
+    stderr) and the rest still run."""
+    import sys
+
+    from .data import read_image
+
+    files = list_inputs(inputs)
+    ids = unique_ids(files)
+    rep = PredictReport()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(files), desc="predict", unit="img", leave=False)
+    if log is None:
+        def log(msg: str) -> None:
+            if bar is not None:
+                bar.write(msg, file=sys.stderr)
+            else:
+                print(msg, file=sys.stderr)
+    extra = {"weights": str(predictor.weights) if predictor.weights else None, "backend": predictor.backend}
+    for path, sid in zip(files, ids):
+        try:
+            image = read_image(path)
+            pred = predictor.predict(image)
+            write_prediction(out, sid, image, pred, predictor.views, source=str(path), figure=figure,
+                             png=png, crop=crop, extra_meta=extra)
+            rep.done.append(sid)
+        except (ValueError, OSError) as e:  # DataError is a ValueError and names the file
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            if str(path) not in msg:
+                msg = f"{path}: {msg}"
+            rep.failed.append((str(path), msg))
+            log(f"error: {msg}")
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    return rep
