@@ -1,0 +1,157 @@
+"""Checkpoints as safetensors: tensors plus JSON metadata, no pickle anywhere on the load path.
+
+Layout of one file:
+- tensors `model.<name>` (RackLayNet state dict), `disc.<name>` (discriminators, "-disc" runs),
+  `optim.<opt>.<index>.<key>` (optimiser state tensors, for --resume);
+- metadata key `racklay` = JSON {"format", "version", "config" (ModelConfig), "meta" (free-form:
+  epoch, step, metrics, train config ...), "optim" ({opt: {"param_groups", "scalars"}})}.
+
+    save_checkpoint(path, model, cfg, optimizer=None, extra=None, disc=None)
+    model, cfg, meta = load_model(path)
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from .atomic import atomic_write_bytes
+from .model import Discriminators, ModelConfig, RackLayNet
+
+FORMAT = "racklay-checkpoint"
+VERSION = 1
+
+
+def _optimizers(optimizer) -> dict:
+    if optimizer is None:
+        return {}
+    if isinstance(optimizer, dict):
+        return optimizer
+    return {"main": optimizer}
+
+
+def _plain(t: torch.Tensor) -> torch.Tensor:
+    return t.detach().to("cpu").contiguous().clone()
+
+
+def save_checkpoint(path: str | os.PathLike, model: torch.nn.Module, cfg: ModelConfig, optimizer=None,
+                    extra: dict | None = None, disc: torch.nn.Module | None = None) -> Path:
+    """Write model (+ discriminators, + optimiser state) atomically. `optimizer` is an
+    Optimizer or a dict name -> Optimizer; `extra` must be JSON-serialisable."""
+    from safetensors.torch import save
+
+    model = getattr(model, "module", model)          # unwrap DDP
+    tensors = {f"model.{k}": _plain(v) for k, v in model.state_dict().items()}
+    if disc is not None:
+        disc = getattr(disc, "module", disc)
+        tensors.update({f"disc.{k}": _plain(v) for k, v in disc.state_dict().items()})
+    optim_meta = {}
+    for name, opt in _optimizers(optimizer).items():
+        sd = opt.state_dict()
+        scalars = {}
+        for idx, st in sd["state"].items():
+            for key, val in st.items():
+                if isinstance(val, torch.Tensor):
+                    tensors[f"optim.{name}.{idx}.{key}"] = _plain(val)
+                else:
+                    scalars[f"{idx}.{key}"] = val
+        optim_meta[name] = {"param_groups": sd["param_groups"], "scalars": scalars}
+    header = {"format": FORMAT, "version": VERSION, "config": cfg.to_dict(), "meta": extra or {},
+              "optim": optim_meta}
+    data = save(tensors, metadata={"racklay": json.dumps(header)})
+    return atomic_write_bytes(path, data)
+
+
+@dataclass
+class Checkpoint:
+    path: Path
+    cfg: ModelConfig
+    meta: dict
+    tensors: dict
+    optim: dict
+
+    def section(self, prefix: str) -> dict:
+        p = prefix + "."
+        return {k[len(p):]: v for k, v in self.tensors.items() if k.startswith(p)}
+
+    def has_optimizer(self, name: str = "main") -> bool:
+        return name in self.optim
+
+    def load_optimizer(self, optimizer: torch.optim.Optimizer, name: str = "main") -> None:
+        if name not in self.optim:
+            raise ValueError(f"{self.path}: checkpoint has no optimiser state {name!r} (cannot resume)")
+        om = self.optim[name]
+        state: dict = {}
+        pre = f"optim.{name}."
+        for k, v in self.tensors.items():
+            if k.startswith(pre):
+                idx, key = k[len(pre):].split(".", 1)
+                state.setdefault(int(idx), {})[key] = v
+        for k, v in om["scalars"].items():
+            idx, key = k.split(".", 1)
+            state.setdefault(int(idx), {})[key] = v
+        try:
+            optimizer.load_state_dict({"state": state, "param_groups": om["param_groups"]})
+        except (ValueError, KeyError) as e:
+            raise ValueError(f"{self.path}: optimiser state {name!r} does not fit this model ({e})") from None
+
+    def load_discriminators(self, disc: Discriminators) -> None:
+        sd = self.section("disc")
+        if not sd:
+            raise ValueError(f"{self.path}: checkpoint has no discriminator weights")
+        _load_strict(disc, sd, self.path, "discriminator")
+
+
+def _load_strict(module: torch.nn.Module, sd: dict, path, what: str) -> None:
+    own = module.state_dict()
+    missing = [k for k in own if k not in sd]
+    extra = [k for k in sd if k not in own]
+    shape = [k for k in own if k in sd and sd[k].shape != own[k].shape]
+    if missing or extra or shape:
+        raise ValueError(f"{path}: {what} weights do not match its config "
+                         f"({len(missing)} missing, {len(extra)} unexpected, {len(shape)} wrong shape"
+                         f"{', e.g. ' + (missing + extra + shape)[0]})")
+    module.load_state_dict(sd, strict=True)
+
+
+def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> Checkpoint:
+    """Read a checkpoint file (tensors + header). ValueError naming the file if it is not one."""
+    from safetensors import safe_open
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: checkpoint not found")
+    try:
+        with safe_open(str(path), framework="pt", device=str(map_location)) as f:
+            header = (f.metadata() or {}).get("racklay")
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except Exception as e:  # noqa: BLE001 - safetensors raises several types on bad input
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ValueError(f"{path}: not a readable safetensors checkpoint ({msg})") from None
+    if header is None:
+        raise ValueError(f"{path}: safetensors file without RackLay metadata (not a racklay checkpoint)")
+    try:
+        h = json.loads(header)
+        if h.get("format") != FORMAT:
+            raise ValueError(f"format {h.get('format')!r}")
+        if int(h.get("version", 0)) > VERSION:
+            raise ValueError(f"version {h.get('version')} is newer than this toolkit ({VERSION})")
+        cfg = ModelConfig.from_dict(h["config"])
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: bad RackLay checkpoint header ({e})") from None
+    return Checkpoint(path=path, cfg=cfg, meta=h.get("meta", {}), tensors=tensors, optim=h.get("optim", {}))
+
+
+def load_model(path: str | os.PathLike, map_location: str | torch.device = "cpu"):
+    """-> (RackLayNet in eval mode, ModelConfig, meta dict)."""
+    ck = load_checkpoint(path, map_location)
+    model = RackLayNet(ck.cfg)
+    _load_strict(model, ck.section("model"), ck.path, "model")
+    model.to(map_location).eval()
+    return model, ck.cfg, ck.meta
+
+
+__all__ = ["save_checkpoint", "load_checkpoint", "load_model", "Checkpoint"]

@@ -1,0 +1,334 @@
+"""RackLay networks in one file: a ResNet-18 context encoder, per-view multi-channel decoders and
+patch discriminators.
+
+    cfg = ModelConfig(R=4, image_size=256, layout_size=256, views=("top", "front"), decoder="light")
+    net = RackLayNet(cfg)
+    out = net(x)            # x: (N, 3, H, W) ImageNet-normalised -> {"top": (N, R, 3, S, S) logits, ...}
+
+Variants (paper names): one view -> RackLay-S, both views from the shared encoder -> RackLay-D;
+`disc=True` -> "-disc": a `Discriminators` module (one patch discriminator per view) is trained
+beside the network (see racklay.train). It is a separate module, not part of `RackLayNet`, so
+inference, export and DDP see only the layout network.
+
+Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3, S, S)):
+- `paper`: a re-creation of the authors' decoder: from the 1/32 feature map, six stages of
+  [conv3x3-BN-ReLU, nearest x2 upsample, conv3x3-BN-ReLU] reach 2·S, then a 2x2 max-pool brings
+  it to S and a 3x3 conv gives the logits. Kept for reproduction and as the speed baseline.
+- `light` (default): a skip-connected decoder (channels 128/64/32/16) that adds 1x1 projections of
+  the encoder stages, never works above the output resolution S, and ends in a 1x1 head.
+
+The encoder uses torchvision's ResNet-18 parameter names (conv1, bn1, layer1.0.conv1, ...; no fc)
+so a user's local torchvision weight file loads with `load_imagenet_weights`.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from .layout import DEFAULT_EXTENT_M, DEFAULT_R, NUM_CLASSES, VIEWS
+
+DECODERS = ("light", "paper")
+
+
+@dataclass
+class ModelConfig:
+    R: int = DEFAULT_R                  # shelves (output channels per class)
+    image_size: int = 256               # square network input (photos are resized to it)
+    layout_size: int = 256              # S: output layout grid S x S
+    views: tuple = ("top", "front")     # one view -> RackLay-S, both -> RackLay-D
+    decoder: str = "light"              # "light" | "paper"
+    disc: bool = False                  # trained with patch discriminators ("-disc")
+    extent: float = DEFAULT_EXTENT_M    # metres covered by the layout grid (for consumers)
+
+    def __post_init__(self):
+        self.views = tuple(self.views)
+        bad = [v for v in self.views if v not in VIEWS]
+        if not self.views or bad or len(set(self.views)) != len(self.views):
+            raise ValueError(f"views must be a non-empty subset of {VIEWS}, got {self.views}")
+        if self.decoder not in DECODERS:
+            raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
+        if self.R < 1:
+            raise ValueError(f"R must be >= 1, got {self.R}")
+        if self.image_size % 32 or self.image_size < 32:
+            raise ValueError(f"image_size must be a positive multiple of 32, got {self.image_size}")
+        if self.layout_size < 8:
+            raise ValueError(f"layout_size must be >= 8, got {self.layout_size}")
+
+    def variant(self) -> str:
+        """Paper name of the variant, e.g. RackLay-D-disc."""
+        return "RackLay-" + ("D" if len(self.views) == 2 else "S") + ("-disc" if self.disc else "")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["views"] = list(self.views)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ModelConfig":
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown model config keys: {sorted(unknown)}")
+        return cls(**d)
+
+
+# ----------------------------------------------------------------------------- encoder
+
+
+class BasicBlock(nn.Module):
+    def __init__(self, cin: int, cout: int, stride: int = 1):
+        super().__init__()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(cout)
+        self.conv2 = nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
+        self.bn2 = nn.BatchNorm2d(cout)
+        self.downsample = None
+        if stride != 1 or cin != cout:
+            self.downsample = nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
+
+    def forward(self, x):
+        idt = x if self.downsample is None else self.downsample(x)
+        y = F.relu(self.bn1(self.conv1(x)), inplace=True)
+        y = self.bn2(self.conv2(y))
+        return F.relu(y + idt, inplace=True)
+
+
+class ResNet18Encoder(nn.Module):
+    """ResNet-18 without avgpool/fc. Returns features at 1/2, 1/4, 1/8, 1/16, 1/32
+    (64, 64, 128, 256, 512 channels)."""
+
+    channels = (64, 64, 128, 256, 512)
+
+    def __init__(self):
+        super().__init__()
+        self.conv1 = nn.Conv2d(3, 64, 7, 2, 3, bias=False)
+        self.bn1 = nn.BatchNorm2d(64)
+        self.maxpool = nn.MaxPool2d(3, 2, 1)
+        self.layer1 = nn.Sequential(BasicBlock(64, 64), BasicBlock(64, 64))
+        self.layer2 = nn.Sequential(BasicBlock(64, 128, 2), BasicBlock(128, 128))
+        self.layer3 = nn.Sequential(BasicBlock(128, 256, 2), BasicBlock(256, 256))
+        self.layer4 = nn.Sequential(BasicBlock(256, 512, 2), BasicBlock(512, 512))
+
+    def forward(self, x):
+        c1 = F.relu(self.bn1(self.conv1(x)), inplace=True)
+        f1 = self.layer1(self.maxpool(c1))
+        f2 = self.layer2(f1)
+        f3 = self.layer3(f2)
+        f4 = self.layer4(f3)
+        return [c1, f1, f2, f3, f4]
+
+
+def load_imagenet_weights(encoder: ResNet18Encoder, path: str | os.PathLike) -> None:
+    """Load a torchvision resnet18 state dict (.pth/.pt via torch.load(weights_only=True), or
+    .safetensors) into the encoder. Strict: every encoder tensor must be present with the same
+    shape; only the classifier (fc.*) may be extra. Raises ValueError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: ImageNet weight file not found")
+    try:
+        if path.suffix == ".safetensors":
+            from safetensors.torch import load_file
+            sd = load_file(str(path))
+        else:
+            sd = torch.load(str(path), map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any failure to parse means a wrong file
+        raise ValueError(f"{path}: not a readable torch/safetensors weight file ({type(e).__name__}: "
+                         f"{str(e).splitlines()[0] if str(e) else ''})") from None
+    if isinstance(sd, dict) and "state_dict" in sd and isinstance(sd["state_dict"], dict):
+        sd = sd["state_dict"]
+    if not isinstance(sd, dict) or not all(isinstance(v, torch.Tensor) for v in sd.values()):
+        raise ValueError(f"{path}: expected a resnet18 state dict (name -> tensor)")
+    sd = {k[len("module."):] if k.startswith("module.") else k: v for k, v in sd.items()}
+    own = encoder.state_dict()
+    missing = [k for k in own if k not in sd]
+    extra = [k for k in sd if k not in own and not k.startswith("fc.")]
+    shape = [f"{k} {tuple(sd[k].shape)} != {tuple(v.shape)}" for k, v in own.items()
+             if k in sd and sd[k].shape != v.shape]
+    if missing or extra or shape:
+        parts = []
+        if missing:
+            parts.append(f"{len(missing)} missing (e.g. {missing[0]})")
+        if extra:
+            parts.append(f"{len(extra)} unexpected (e.g. {extra[0]})")
+        if shape:
+            parts.append(f"{len(shape)} shape mismatches (e.g. {shape[0]})")
+        raise ValueError(f"{path}: not a torchvision resnet18 state dict: " + "; ".join(parts))
+    encoder.load_state_dict({k: sd[k].to(own[k].dtype) for k in own}, strict=True)
+
+
+# ----------------------------------------------------------------------------- decoders
+
+
+def conv_bn_relu(cin: int, cout: int, k: int = 3) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, k, 1, k // 2, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class PaperDecoder(nn.Module):
+    """The authors' design: stages of [conv3x3-BN-ReLU, nearest x2 upsample, conv3x3-BN] from
+    the 1/32 feature map to 2·S (channels 256 at 1/16 ... 8 at 2·S, as the reference uses at
+    those resolutions), then 2x2 max-pool to S and a 3x3 conv to 3·R logits."""
+
+    def __init__(self, out_channels: int, layout_size: int, image_size: int,
+                 channels=(256, 128, 64, 32, 16, 8)):
+        super().__init__()
+        self.layout_size = layout_size
+        self.image_size = image_size
+        cin = ResNet18Encoder.channels[-1]
+        self.stages = nn.ModuleList()
+        for c in channels:
+            # as in the reference: the second conv of a stage has BN but no ReLU
+            self.stages.append(nn.ModuleDict({"conv0": conv_bn_relu(cin, c), "conv1": nn.Sequential(
+                nn.Conv2d(c, c, 3, 1, 1, bias=False), nn.BatchNorm2d(c))}))
+            cin = c
+        self.pool = nn.MaxPool2d(2)
+        self.head = nn.Conv2d(cin, out_channels, 3, 1, 1)
+
+    def forward(self, feats):
+        x = feats[-1]
+        for st in self.stages:
+            x = F.interpolate(st["conv0"](x), scale_factor=2, mode="nearest")
+            x = st["conv1"](x)
+        target = 2 * self.layout_size
+        if x.shape[-1] != target or x.shape[-2] != target:   # layout size != image size
+            x = F.interpolate(x, size=(target, target), mode="nearest")
+        return self.head(self.pool(x))
+
+
+class LightDecoder(nn.Module):
+    """Skip-connected decoder: 1/32 -> 1/16 -> 1/8 -> 1/4 -> 1/2 (channels 128/64/32/16), each
+    stage = nearest x2 upsample, conv3x3-BN-ReLU, plus a 1x1 projection of the encoder feature at
+    that scale; then straight to S x S (no over-resolution), conv3x3-BN-ReLU and a 1x1 head."""
+
+    def __init__(self, out_channels: int, layout_size: int, channels=(128, 64, 32, 16)):
+        super().__init__()
+        self.layout_size = layout_size
+        enc = ResNet18Encoder.channels          # (c1, f1, f2, f3, f4)
+        skips = (enc[3], enc[2], enc[1], enc[0])  # features at 1/16, 1/8, 1/4, 1/2
+        self.stem = conv_bn_relu(enc[4], channels[0], 1)
+        self.convs = nn.ModuleList()
+        self.laterals = nn.ModuleList()
+        cin = channels[0]
+        for c, s in zip(channels, skips):
+            self.convs.append(conv_bn_relu(cin, c))
+            self.laterals.append(nn.Conv2d(s, c, 1))
+            cin = c
+        self.final = conv_bn_relu(cin, cin)
+        self.head = nn.Conv2d(cin, out_channels, 1)
+
+    def forward(self, feats):
+        c1, f1, f2, f3, f4 = feats
+        x = self.stem(f4)
+        for conv, lat, skip in zip(self.convs, self.laterals, (f3, f2, f1, c1)):
+            x = conv(F.interpolate(x, size=skip.shape[-2:], mode="nearest")) + lat(skip)
+        S = self.layout_size
+        x = F.interpolate(x, size=(S, S), mode="bilinear", align_corners=False)
+        return self.head(self.final(x))
+
+
+class RackLayNet(nn.Module):
+    """Shared ResNet-18 encoder + one decoder per view. forward(x) -> {view: (N, R, 3, S, S)}."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = ResNet18Encoder()
+        out = NUM_CLASSES * cfg.R
+
+        def make():
+            if cfg.decoder == "paper":
+                return PaperDecoder(out, cfg.layout_size, cfg.image_size)
+            return LightDecoder(out, cfg.layout_size)
+
+        self.decoders = nn.ModuleDict({v: make() for v in cfg.views})
+        init_weights(self)
+
+    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        feats = self.encoder(x)
+        out = {}
+        for v, dec in self.decoders.items():
+            y = dec(feats)
+            out[v] = y.reshape(y.shape[0], self.cfg.R, NUM_CLASSES, y.shape[-2], y.shape[-1])
+        return out
+
+
+# ----------------------------------------------------------------------------- discriminator
+
+
+class PatchDiscriminator(nn.Module):
+    """Least-squares patch discriminator over a view's layout stack given as class probabilities
+    (N, 3·R, S, S) (real layouts: one-hot). Four stride-2 convs + LeakyReLU, no normalisation, a
+    1-channel linear score per patch (S/16 x S/16)."""
+
+    def __init__(self, in_channels: int, width: int = 32):
+        super().__init__()
+        c = [in_channels, width, 2 * width, 4 * width, 4 * width]
+        layers = []
+        for a, b in zip(c[:-1], c[1:]):
+            layers += [nn.Conv2d(a, b, 4, 2, 1), nn.LeakyReLU(0.2, inplace=True)]
+        layers.append(nn.Conv2d(c[-1], 1, 3, 1, 1))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, probs: torch.Tensor) -> torch.Tensor:
+        if probs.dim() == 5:                      # (N, R, 3, S, S) -> (N, 3R, S, S)
+            probs = probs.flatten(1, 2)
+        return self.net(probs)
+
+
+class Discriminators(nn.Module):
+    """One patch discriminator per view (the "-disc" variants)."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.nets = nn.ModuleDict({v: PatchDiscriminator(NUM_CLASSES * cfg.R) for v in cfg.views})
+        init_weights(self)
+
+    def forward(self, view: str, probs: torch.Tensor) -> torch.Tensor:
+        return self.nets[view](probs)
+
+
+def one_hot_layouts(target: torch.Tensor) -> torch.Tensor:
+    """(N, R, S, S) class ids -> (N, R, 3, S, S) float one-hot (the discriminator's "real")."""
+    return F.one_hot(target.long(), NUM_CLASSES).permute(0, 1, 4, 2, 3).float()
+
+
+def lsgan_generator_loss(d_fake: torch.Tensor) -> torch.Tensor:
+    """L_adv = E[(D(T̂) - 1)^2]."""
+    return ((d_fake - 1) ** 2).mean()
+
+
+def lsgan_discriminator_loss(d_real: torch.Tensor, d_fake: torch.Tensor) -> torch.Tensor:
+    """L_discr = E[(D(T) - 1)^2] + E[D(T̂)^2]."""
+    return ((d_real - 1) ** 2).mean() + (d_fake ** 2).mean()
+
+
+def init_weights(module: nn.Module) -> None:
+    for m in module.modules():
+        if isinstance(m, nn.Conv2d):
+            nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, nn.BatchNorm2d):
+            nn.init.ones_(m.weight)
+            nn.init.zeros_(m.bias)
+
+
+def build_model(cfg: ModelConfig, imagenet_weights: str | os.PathLike | None = None) -> RackLayNet:
+    """A RackLayNet with random init, or with the encoder loaded from a torchvision file."""
+    net = RackLayNet(cfg)
+    if imagenet_weights:
+        load_imagenet_weights(net.encoder, imagenet_weights)
+    return net
+
+
+def count_parameters(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+__all__ = ["ModelConfig", "RackLayNet", "Discriminators", "PatchDiscriminator", "ResNet18Encoder",
+           "PaperDecoder", "LightDecoder", "load_imagenet_weights", "build_model", "one_hot_layouts",
+           "lsgan_generator_loss", "lsgan_discriminator_loss", "DECODERS", "count_parameters"]
