@@ -107,6 +107,24 @@ class Grid:
     def pixel_area_m2(self) -> float:
         return self.res * self.res
 
+    # --- pixel spans <-> metric spans (used to read shapes back out of layouts) ---
+    def col_span_to_x(self, c0: int, c1: int) -> tuple[float, float]:
+        """Metric x-range [x0, x1) covered by the pixel columns c0 .. c1 - 1 (pixel edges)."""
+        return float(self.col_to_x(c0)), float(self.col_to_x(c1))
+
+    def row_span_to_v(self, r0: int, r1: int) -> tuple[float, float]:
+        """Metric (lo, hi) range of y (top view) or z (front view) covered by the pixel rows
+        r0 .. r1 - 1. Rows grow downward, so lo comes from r1 and hi from r0."""
+        return float(self.row_to_y(r1)), float(self.row_to_y(r0))
+
+    def px_to_m(self, n_pixels):
+        """A length of `n_pixels` pixels in metres."""
+        return np.asarray(n_pixels, dtype=np.float64) * self.res
+
+    def m_to_px(self, metres) -> int:
+        """A metric length as a whole number of pixels (rounded, at least 1)."""
+        return max(1, int(round(float(metres) / self.res)))
+
 
 def _span_mask(centres: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return (centres >= lo) & (centres < hi)

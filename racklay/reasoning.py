@@ -1,0 +1,441 @@
+"""Rack reasoning (paper §5.6): box-stack counts, metric free space and a 3D reconstruction
+from each shelf's top-view T_i and front-view F_i class-id layouts.
+
+Per shelf (one channel of the R x D x D stacks, predicted or ground truth):
+
+1. Shelf extent. Top view: the largest connected region of shelf+box pixels gives the
+   footprint (length along x x depth along y, from its bounding box). Front view: the largest
+   region of shelf+box pixels gives the clear height (its z extent minus
+   `racklay.layout.FRONT_CLEARANCE_PAD_M`, the 5 cm that WareSynth — and our own layouts,
+   `rasterize_shelf` — add above the inter-shelf distance) and the board top (its lowest edge;
+   z = 0 by the convention). A view with no region of at least `min_shelf_area_m2` counts as
+   missing; a channel missing in both views is no shelf.
+2. Box masks. BOX pixels inside the shelf region, cleaned by a morphological opening (a square
+   kernel of `open_m` metres; at 1 pixel it does nothing, so coarse grids are left untouched),
+   then split into connected components (`cv2.connectedComponentsWithStats`); components smaller
+   than `min_box_area_m2` (metric area) are noise and dropped.
+3. Fusion along the shared x axis. Front components whose columns overlap are one *front
+   entity* (a stack seen with a gap). Each top component is matched with the front entities
+   its columns overlap:
+   - it overlaps several (two stacks that touch in the top view but not the front view, e.g.
+     bridged by a prediction): it is split by the entities' column occupancy, one piece per
+     entity, pixels in gap columns are dropped, pieces below the minimum area too;
+   - several top pieces share one entity (stacks that touch in the front view but not in the
+     top view, or a stack hidden behind another): each piece takes the entity's height over the
+     columns only it covers; a piece with no such column (fully hidden behind/in front of
+     another) takes the height over all its columns and is flagged `hidden` (its height is an
+     upper bound: the front view cannot see it).
+   A box stack is then x-range (columns seen in both views), y-range (its top-view rows), z-range
+   (median top and bottom edge of the front entity over its height columns, clipped to the
+   clear height); its volume is its top-view footprint area times its height, so rotated boxes
+   are not over-counted by their bounding box. Top components with no front partner and front
+   entities with no top partner are reported (`unmatched_top`/`unmatched_front`), not counted.
+4. Capacity = footprint (length x depth) x clear height; occupied = sum of the fused stacks'
+   volumes; free = capacity - occupied, per shelf and for the rack, in m^3 and as a fraction.
+
+Every metre <-> pixel conversion goes through `racklay.layout.Grid`.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from . import layout as L
+
+
+@dataclass(frozen=True)
+class ReasoningConfig:
+    """Knobs of the analysis. Metric, so they mean the same thing at every grid size."""
+
+    #: side of the square opening kernel that cleans box masks (metres; <= 1 pixel: no-op)
+    open_m: float = 0.04
+    #: box components (either view) smaller than this are noise (m^2)
+    min_box_area_m2: float = 0.01
+    #: a view whose largest shelf+box region is smaller than this has no shelf (m^2)
+    min_shelf_area_m2: float = 0.04
+    #: pad above the clear height in front views (WareSynth convention)
+    front_pad_m: float = L.FRONT_CLEARANCE_PAD_M
+    #: pixel connectivity of components (4 keeps diagonally touching boxes apart)
+    connectivity: int = 4
+
+    def __post_init__(self):
+        if self.connectivity not in (4, 8):
+            raise ValueError(f"connectivity must be 4 or 8, got {self.connectivity}")
+        for name in ("open_m", "min_box_area_m2", "min_shelf_area_m2", "front_pad_m"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass
+class BoxStack:
+    """One fused box stack in its shelf's frame (metres): x along the rack, y depth, z up from
+    the board top."""
+
+    x: tuple[float, float]
+    y: tuple[float, float]
+    z: tuple[float, float]
+    footprint_m2: float
+    volume_m3: float
+    #: no front-view column shows only this stack: its height is that of what hides it
+    hidden: bool = False
+    #: cut out of a larger top-view component along the front view's x gaps
+    split: bool = False
+
+    @property
+    def size(self) -> tuple[float, float, float]:
+        return (self.x[1] - self.x[0], self.y[1] - self.y[0], self.z[1] - self.z[0])
+
+    def to_dict(self) -> dict:
+        d = {k: _r(v) for k, v in asdict(self).items()}
+        d["size"] = [_r(v) for v in self.size]
+        return d
+
+
+@dataclass
+class ShelfResult:
+    index: int  # layout channel (0 = lowest visible shelf)
+    complete: bool  # both views present
+    length_m: float = 0.0
+    depth_m: float = 0.0
+    clear_height_m: float = 0.0
+    x: tuple[float, float] = (0.0, 0.0)  # shelf x-range, shelf frame
+    y: tuple[float, float] = (0.0, 0.0)
+    boxes: list[BoxStack] = field(default_factory=list)
+    unmatched_top: int = 0
+    unmatched_front: int = 0
+    missing_view: str | None = None
+
+    @property
+    def capacity_m3(self) -> float:
+        return self.length_m * self.depth_m * self.clear_height_m if self.complete else 0.0
+
+    @property
+    def occupied_m3(self) -> float:
+        return float(sum(b.volume_m3 for b in self.boxes))
+
+    @property
+    def free_m3(self) -> float:
+        return max(self.capacity_m3 - self.occupied_m3, 0.0)
+
+    @property
+    def free_fraction(self) -> float | None:
+        return self.free_m3 / self.capacity_m3 if self.capacity_m3 > 0 else None
+
+    def to_dict(self) -> dict:
+        return {
+            "index": self.index, "complete": self.complete, "missing_view": self.missing_view,
+            "length_m": _r(self.length_m), "depth_m": _r(self.depth_m),
+            "clear_height_m": _r(self.clear_height_m), "x": _r(self.x), "y": _r(self.y),
+            "capacity_m3": _r(self.capacity_m3), "occupied_m3": _r(self.occupied_m3),
+            "free_m3": _r(self.free_m3), "free_fraction": _r(self.free_fraction),
+            "n_box_stacks": len(self.boxes), "unmatched_top": self.unmatched_top,
+            "unmatched_front": self.unmatched_front,
+            "boxes": [b.to_dict() for b in self.boxes],
+        }
+
+
+@dataclass
+class RackResult:
+    shelves: list[ShelfResult]
+    grid: L.Grid
+    config: ReasoningConfig = field(default_factory=ReasoningConfig)
+    source: str = ""
+
+    @property
+    def n_shelves(self) -> int:
+        return len(self.shelves)
+
+    @property
+    def n_box_stacks(self) -> int:
+        return sum(len(s.boxes) for s in self.shelves)
+
+    @property
+    def capacity_m3(self) -> float:
+        return float(sum(s.capacity_m3 for s in self.shelves))
+
+    @property
+    def occupied_m3(self) -> float:
+        return float(sum(s.occupied_m3 for s in self.shelves if s.complete))
+
+    @property
+    def free_m3(self) -> float:
+        return float(sum(s.free_m3 for s in self.shelves))
+
+    @property
+    def free_fraction(self) -> float | None:
+        return self.free_m3 / self.capacity_m3 if self.capacity_m3 > 0 else None
+
+    def warnings(self) -> list[str]:
+        out = []
+        for s in self.shelves:
+            if not s.complete:
+                out.append(f"shelf {s.index + 1}: no {s.missing_view}-view layout; its boxes are counted "
+                           f"from one view and its volume is left out of the totals")
+            if s.unmatched_top or s.unmatched_front:
+                out.append(f"shelf {s.index + 1}: {s.unmatched_top} top-view and {s.unmatched_front} "
+                           f"front-view box region(s) with no partner in the other view (not counted)")
+        return out
+
+    def report(self) -> str:
+        """One line, as in the paper: 'Rack has 4 shelves, 12 box stacks, and 0.83 m³ of free
+        space available (41%)'."""
+        ns, nb = self.n_shelves, self.n_box_stacks
+        frac = self.free_fraction
+        pct = f" ({frac * 100:.0f}%)" if frac is not None else ""
+        line = (f"Rack has {ns} {'shelf' if ns == 1 else 'shelves'}, {nb} box stack{'' if nb == 1 else 's'}, "
+                f"and {self.free_m3:.2f} m³ of free space available{pct}")
+        incomplete = sum(not s.complete for s in self.shelves)
+        if incomplete:
+            line += f" [{incomplete} shelf view(s) missing: volume of those shelves not included]"
+        return line
+
+    def to_dict(self) -> dict:
+        return {
+            "source": self.source, "report": self.report(),
+            "n_shelves": self.n_shelves, "n_box_stacks": self.n_box_stacks,
+            "capacity_m3": _r(self.capacity_m3), "occupied_m3": _r(self.occupied_m3),
+            "free_m3": _r(self.free_m3), "free_fraction": _r(self.free_fraction),
+            "grid": {"D": self.grid.size, "extent_m": self.grid.extent, "res_m": self.grid.res},
+            "config": asdict(self.config), "warnings": self.warnings(),
+            "shelves": [s.to_dict() for s in self.shelves],
+        }
+
+    def to_json(self, indent: int | None = 2) -> str:
+        return json.dumps(self.to_dict(), indent=indent, ensure_ascii=False)
+
+
+def _r(v, nd: int = 6):
+    if v is None:
+        return None
+    if isinstance(v, (tuple, list)):
+        return [_r(x, nd) for x in v]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    return round(float(v), nd)
+
+
+# --- pixel helpers ----------------------------------------------------------------------------
+def clean_mask(mask: np.ndarray, grid: L.Grid, open_m: float) -> np.ndarray:
+    """Morphological opening with a square kernel of `open_m` metres (no-op at <= 1 pixel)."""
+    import cv2
+
+    k = int(round(open_m / grid.res)) if open_m > 0 else 0
+    m = mask.astype(np.uint8)
+    if k > 1:
+        m = cv2.morphologyEx(m, cv2.MORPH_OPEN, np.ones((k, k), np.uint8))
+    return m.astype(bool)
+
+
+def components(mask: np.ndarray, grid: L.Grid, min_area_m2: float, connectivity: int = 4) -> list[np.ndarray]:
+    """Boolean masks of the connected components of `mask` with a metric area >= min_area_m2,
+    largest first."""
+    import cv2
+
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=connectivity)
+    min_px = min_area_m2 / grid.pixel_area_m2()
+    keep = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= min_px]
+    keep.sort(key=lambda i: -stats[i, cv2.CC_STAT_AREA])
+    return [lab == i for i in keep]
+
+
+def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """(r0, r1, c0, c1) half-open bounding box of a non-empty mask."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def _region(view: np.ndarray, grid: L.Grid, cfg: ReasoningConfig) -> np.ndarray | None:
+    """Largest shelf+box region of one view (cleaned), or None when there is none."""
+    comps = components(clean_mask(view > 0, grid, cfg.open_m), grid, cfg.min_shelf_area_m2, 8)
+    return comps[0] if comps else None
+
+
+def _column_profile(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per column: first row (top edge) and one past the last row (bottom edge) of `mask`;
+    -1 where the column is empty."""
+    D = mask.shape[0]
+    any_ = mask.any(axis=0)
+    top = np.where(any_, mask.argmax(axis=0), -1)
+    bot = np.where(any_, D - mask[::-1].argmax(axis=0), -1)
+    return top, bot
+
+
+def _union_overlapping(col_sets: list[np.ndarray]) -> list[list[int]]:
+    """Group indices whose boolean column sets overlap (transitively)."""
+    parent = list(range(len(col_sets)))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(len(col_sets)):
+        for j in range(i + 1, len(col_sets)):
+            if (col_sets[i] & col_sets[j]).any():
+                parent[find(i)] = find(j)
+    groups: dict[int, list[int]] = {}
+    for i in range(len(col_sets)):
+        groups.setdefault(find(i), []).append(i)
+    return list(groups.values())
+
+
+# --- one shelf --------------------------------------------------------------------------------
+def analyze_shelf(top: np.ndarray | None, front: np.ndarray | None, grid: L.Grid,
+                  cfg: ReasoningConfig = ReasoningConfig(), index: int = 0) -> ShelfResult | None:
+    """Analyse one shelf from its D x D class-id top and front layouts (either may be None).
+    Returns None when neither view shows a shelf (a missing channel)."""
+    D = grid.size
+    for name, v in (("top", top), ("front", front)):
+        if v is not None and np.asarray(v).shape != (D, D):
+            raise L.LayoutError(f"{name} layout of shelf {index + 1}: shape {np.asarray(v).shape}, "
+                                f"expected ({D}, {D}) for the grid")
+    t_reg = _region(np.asarray(top), grid, cfg) if top is not None else None
+    f_reg = _region(np.asarray(front), grid, cfg) if front is not None else None
+    if t_reg is None and f_reg is None:
+        return None
+    res = ShelfResult(index=index, complete=t_reg is not None and f_reg is not None)
+    if not res.complete:
+        res.missing_view = "front" if f_reg is None else "top"
+
+    t_boxes: list[np.ndarray] = []
+    if t_reg is not None:
+        r0, r1, c0, c1 = _bbox(t_reg)
+        res.x = grid.col_span_to_x(c0, c1)
+        res.y = grid.row_span_to_v(r0, r1)
+        res.length_m = res.x[1] - res.x[0]
+        res.depth_m = res.y[1] - res.y[0]
+        inside = np.zeros((D, D), bool)
+        inside[r0:r1, c0:c1] = True
+        t_boxes = components(clean_mask((np.asarray(top) == L.BOX) & inside, grid, cfg.open_m), grid,
+                             cfg.min_box_area_m2, cfg.connectivity)
+    f_boxes: list[np.ndarray] = []
+    z_base = 0.0
+    if f_reg is not None:
+        r0, r1, c0, c1 = _bbox(f_reg)
+        z_lo, z_hi = grid.row_span_to_v(r0, r1)
+        z_base = z_lo
+        res.clear_height_m = max(z_hi - z_lo - cfg.front_pad_m, 0.0)
+        if t_reg is None:
+            res.x = grid.col_span_to_x(c0, c1)
+            res.length_m = res.x[1] - res.x[0]
+        inside = np.zeros((D, D), bool)
+        inside[r0:r1, c0:c1] = True
+        f_boxes = components(clean_mask((np.asarray(front) == L.BOX) & inside, grid, cfg.open_m), grid,
+                             cfg.min_box_area_m2, cfg.connectivity)
+
+    if not res.complete:
+        # one view only: count its components as stacks, no volume
+        res.boxes = [_one_view_box(m, grid, res, top_view=t_reg is not None, z_base=z_base) for m in
+                     (t_boxes or f_boxes)]
+        return res
+
+    res.boxes, res.unmatched_top, res.unmatched_front = fuse_views(t_boxes, f_boxes, grid, cfg, z_base,
+                                                                   res.clear_height_m)
+    return res
+
+
+def _one_view_box(mask, grid, shelf: ShelfResult, top_view: bool, z_base: float) -> BoxStack:
+    r0, r1, c0, c1 = _bbox(mask)
+    x = grid.col_span_to_x(c0, c1)
+    if top_view:
+        return BoxStack(x=x, y=grid.row_span_to_v(r0, r1), z=(0.0, 0.0),
+                        footprint_m2=L.layout_area_m2(mask, grid), volume_m3=0.0)
+    z = grid.row_span_to_v(r0, r1)
+    return BoxStack(x=x, y=(0.0, 0.0), z=(z[0] - z_base, z[1] - z_base), footprint_m2=0.0, volume_m3=0.0)
+
+
+def fuse_views(t_boxes: Sequence[np.ndarray], f_boxes: Sequence[np.ndarray], grid: L.Grid,
+               cfg: ReasoningConfig = ReasoningConfig(), z_base: float = 0.0,
+               clear_height: float = np.inf) -> tuple[list[BoxStack], int, int]:
+    """Fuse top-view and front-view box components of one shelf into 3D box stacks along the
+    shared x axis (see the module docstring). Returns (stacks, unmatched_top, unmatched_front)."""
+    D = grid.size
+    min_px = cfg.min_box_area_m2 / grid.pixel_area_m2()
+    # front entities: front components whose columns overlap
+    f_cols = [m.any(axis=0) for m in f_boxes]
+    entities = []
+    for group in _union_overlapping(f_cols):
+        m = np.zeros((D, D), bool)
+        for j in group:
+            m |= f_boxes[j]
+        top_row, bot_row = _column_profile(m)
+        entities.append({"cols": m.any(axis=0), "top": top_row, "bot": bot_row, "pieces": []})
+
+    unmatched_top = 0
+    for t in t_boxes:
+        tc = t.any(axis=0)
+        hits = [e for e in entities if (e["cols"] & tc).any()]
+        if not hits:
+            unmatched_top += 1
+            continue
+        for e in hits:
+            piece = t & e["cols"][None, :] if len(hits) > 1 else t
+            if len(hits) > 1 and piece.sum() < min_px:
+                continue  # a bridge or sliver in a gap of the front view
+            e["pieces"].append((piece, len(hits) > 1))
+
+    stacks: list[BoxStack] = []
+    unmatched_front = 0
+    for e in entities:
+        if not e["pieces"]:
+            unmatched_front += 1
+            continue
+        piece_cols = [p.any(axis=0) & e["cols"] for p, _ in e["pieces"]]
+        for k, (piece, split) in enumerate(e["pieces"]):
+            cols = piece_cols[k]
+            others = np.zeros(D, bool)
+            for j, oc in enumerate(piece_cols):
+                if j != k:
+                    others |= oc
+            own = cols & ~others
+            hidden = not own.any()
+            hcols = cols if hidden else own
+            idx = np.flatnonzero(hcols)
+            # median edges over the height columns (robust to ragged predicted tops)
+            top_row = int(np.floor(np.median(e["top"][idx])))
+            bot_row = int(np.ceil(np.median(e["bot"][idx])))
+            z0, z1 = grid.row_span_to_v(top_row, bot_row)
+            z0, z1 = max(z0 - z_base, 0.0), min(z1 - z_base, clear_height)
+            fp = piece & cols[None, :]
+            r0, r1, c0, c1 = _bbox(fp)
+            area = L.layout_area_m2(fp, grid)
+            height = max(z1 - z0, 0.0)
+            stacks.append(BoxStack(x=grid.col_span_to_x(c0, c1), y=grid.row_span_to_v(r0, r1),
+                                   z=(z0, z0 + height), footprint_m2=area, volume_m3=area * height,
+                                   hidden=hidden, split=split))
+    stacks.sort(key=lambda b: (b.x[0], b.y[0]))
+    return stacks, unmatched_top, unmatched_front
+
+
+# --- a whole rack -----------------------------------------------------------------------------
+def analyze_layouts(top: np.ndarray | None, front: np.ndarray | None, grid: L.Grid | None = None,
+                    cfg: ReasoningConfig = ReasoningConfig(), source: str = "") -> RackResult:
+    """Analyse R x D x D class-id layout stacks (channel 0 = lowest shelf; either may be None).
+    `grid` defaults to Grid(D) with the default 8 m extent."""
+    stacks = [np.asarray(s) for s in (top, front) if s is not None]
+    if not stacks:
+        raise ValueError(f"{source or 'layouts'}: need a top and/or a front layout stack")
+    for name, s in (("top", top), ("front", front)):
+        if s is not None:
+            L.check_stack(np.asarray(s), encoded=False, source=f"{source or 'layouts'} ({name})")
+    if top is not None and front is not None and np.shape(top) != np.shape(front):
+        raise L.LayoutError(f"{source or 'layouts'}: top {np.shape(top)} and front {np.shape(front)} differ in shape")
+    R, D = stacks[0].shape[0], stacks[0].shape[-1]
+    grid = grid or L.Grid(D)
+    if grid.size != D:
+        raise L.LayoutError(f"{source or 'layouts'}: {D}x{D} layouts but the grid has D={grid.size}")
+    shelves = []
+    for i in range(R):
+        s = analyze_shelf(None if top is None else top[i], None if front is None else front[i], grid, cfg, i)
+        if s is not None:
+            shelves.append(s)
+    return RackResult(shelves=shelves, grid=grid, config=cfg, source=source)
+
+
+__all__ = ["ReasoningConfig", "BoxStack", "ShelfResult", "RackResult", "clean_mask", "components",
+           "analyze_shelf", "fuse_views", "analyze_layouts"]
