@@ -1,0 +1,301 @@
+"""From clicks in the photo to metric shelves and boxes, and back.
+
+The rack's front face is a plane. Four clicked corners and the rack's width W and height H give
+the homography between image pixels and plane coordinates (u, v) in metres: u from the rack's
+left edge to the right (0..W), v from the rack's bottom up (0..H). Oblique photos work because a
+homography is exact for a plane.
+
+* Shelf: a click on a board's front edge -> its height v on the plane. Shelves are ordered
+  bottom-up; the clear height of each is the distance to the next one, the top one's is up to
+  the rack's top.
+* Box: two opposite corners of the box's (or stack's) front face -> a metric x-range and
+  z-range on the plane -> the shelf it stands on (the highest board at or below its bottom, with
+  a snap tolerance) -> a racklay.layout.Box in that shelf's frame: x_shelf = u - W/2, and a
+  box with front offset o and depth d spans y in [-depth/2 + o, -depth/2 + o + d].
+* Layouts: racklay.layout.rasterize_shelf and stack_shelves only; nothing is re-drawn here.
+* Back-projection: metric boxes and shelves -> polygon outlines in the photo.
+* Model proposals: connected components of predicted front-view boxes -> metric rectangles
+  (racklay.layout.Grid) -> pixel rectangles on the photo.
+
+Assumption: a box's front face lies in the rack's front plane (front offset 0). A box set back
+by o metres appears slightly smaller/higher in the photo; the error is about o / camera distance.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from racklay import layout as L
+
+
+class GeometryError(ValueError):
+    """Clicks that do not define a rack (too few corners, degenerate quadrilateral, ...)."""
+
+
+def order_corners(pts) -> np.ndarray:
+    """Four clicked corners in any order -> (top-left, top-right, bottom-right, bottom-left) in
+    image coordinates (y down)."""
+    p = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    if p.shape[0] != 4:
+        raise GeometryError(f"need 4 rack corners, have {p.shape[0]}")
+    c = p.mean(axis=0)
+    ang = np.arctan2(p[:, 1] - c[1], p[:, 0] - c[0])
+    p = p[np.argsort(ang)]  # clockwise on screen (y down), starting anywhere
+    start = int(np.argmin(p[:, 0] + p[:, 1]))  # top-left: smallest x + y
+    return np.roll(p, -start, axis=0)
+
+
+def _area(q: np.ndarray) -> float:
+    x, y = q[:, 0], q[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+@dataclass
+class RackPlane:
+    """Homographies between image pixels and the rack's front plane (metres)."""
+
+    corners: np.ndarray  # (4, 2) TL, TR, BR, BL in pixels
+    width: float
+    height: float
+    H: np.ndarray = field(repr=False)  # image -> plane
+    Hinv: np.ndarray = field(repr=False)  # plane -> image
+
+    @classmethod
+    def from_corners(cls, corners, width: float, height: float) -> "RackPlane":
+        import cv2
+
+        if not (width and width > 0 and height and height > 0):
+            raise GeometryError(f"rack width and height must be positive metres, got {width} x {height}")
+        q = order_corners(corners)
+        if abs(_area(q)) < 25.0:
+            raise GeometryError("the 4 rack corners are (nearly) on one line: click the corners of the rack's front face")
+        dst = np.array([[0, height], [width, height], [width, 0], [0, 0]], dtype=np.float64)
+        H = cv2.getPerspectiveTransform(q.astype(np.float32), dst.astype(np.float32)).astype(np.float64)
+        # a self-intersecting quadrilateral maps some corner behind the camera: refuse it
+        hom = np.c_[q, np.ones(4)] @ H.T
+        if np.any(np.sign(hom[:, 2]) != np.sign(hom[0, 2])):
+            raise GeometryError("the 4 rack corners do not form a convex quadrilateral")
+        return cls(q, float(width), float(height), H, np.linalg.inv(H))
+
+    def to_plane(self, pts) -> np.ndarray:
+        return _apply(self.H, pts)
+
+    def to_image(self, pts) -> np.ndarray:
+        return _apply(self.Hinv, pts)
+
+
+def _apply(H: np.ndarray, pts) -> np.ndarray:
+    p = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    h = np.c_[p, np.ones(len(p))] @ H.T
+    return h[:, :2] / h[:, 2:3]
+
+
+# --- the metric scene ----------------------------------------------------------------------
+@dataclass
+class MetricBox:
+    """A box in rack-plane metres: x-range [u0, u1) from the rack's left edge, bottom and top
+    heights v0 < v1 from the rack's bottom, depth and front offset, and the shelf index it
+    stands on (bottom-up, None when below every shelf)."""
+
+    id: int
+    u0: float
+    u1: float
+    v0: float
+    v1: float
+    depth: float
+    front_offset: float
+    shelf: int | None
+    z0: float = 0.0  # height of its bottom above the shelf's board
+
+
+@dataclass
+class Scene:
+    plane: RackPlane
+    depth: float
+    shelf_v: list[float]  # board heights, bottom-up
+    shelf_ids: list[int]  # annotation ids in the same order
+    clear: list[float]  # clear heights, bottom-up
+    boxes: list[MetricBox]
+    warnings: list[str]
+
+    @property
+    def width(self) -> float:
+        return self.plane.width
+
+    def shelves(self) -> list[L.Shelf]:
+        return [L.Shelf(self.width, self.depth, c) for c in self.clear]
+
+    def layout_boxes(self, i: int) -> list[L.Box]:
+        """racklay.layout.Box objects standing on shelf i (bottom-up index), in its frame."""
+        out = []
+        for b in self.boxes:
+            if b.shelf != i:
+                continue
+            y0 = -self.depth / 2 + b.front_offset
+            out.append(L.Box(cx=(b.u0 + b.u1) / 2 - self.width / 2, cy=y0 + b.depth / 2,
+                             sx=b.u1 - b.u0, sy=b.depth, sz=b.v1 - b.v0, z0=b.z0))
+        return out
+
+    def layouts(self, R: int, grid: L.Grid) -> tuple[np.ndarray, np.ndarray]:
+        """Class-id stacks (R, D, D) for top and front views, lowest shelf first."""
+        shelves = self.shelves()
+        if len(shelves) > R:
+            raise GeometryError(f"{len(shelves)} shelves marked but the project has R={R} channels")
+        per = [L.rasterize_shelf(s, self.layout_boxes(i), grid) for i, s in enumerate(shelves)]
+        return L.stack_shelves(per, R, grid)
+
+
+MIN_CLEAR_M = 0.02
+
+
+def shelf_heights(plane: RackPlane, points) -> tuple[np.ndarray, np.ndarray]:
+    """Board heights of clicked shelf-edge points, and the order that sorts them bottom-up."""
+    if len(points) == 0:
+        return np.zeros(0), np.zeros(0, dtype=int)
+    v = plane.to_plane(points)[:, 1]
+    order = np.argsort(v, kind="stable")
+    return v, order
+
+
+def build_scene(ann: dict, settings: dict) -> Scene:
+    """The metric scene of an annotation (needs 4 corners and rack width/height/depth)."""
+    rack = ann["rack"]
+    if len(rack["corners"]) != 4:
+        raise GeometryError(f"{len(rack['corners'])} of 4 rack corners set")
+    if not rack.get("depth"):
+        raise GeometryError("rack depth not set")
+    plane = RackPlane.from_corners(rack["corners"], rack["width"], rack["height"])
+    warnings: list[str] = []
+    v, order = shelf_heights(plane, [s["point"] for s in ann["shelves"]])
+    shelf_v = [float(v[i]) for i in order]
+    shelf_ids = [ann["shelves"][i]["id"] for i in order]
+    clear = []
+    for k, z in enumerate(shelf_v):
+        top = shelf_v[k + 1] if k + 1 < len(shelf_v) else plane.height
+        c = top - z
+        if c < MIN_CLEAR_M:
+            warnings.append(f"shelf {k + 1}: clear height {c:.3f} m is too small (shelf at/above the next one or the rack top)")
+            c = MIN_CLEAR_M
+        clear.append(c)
+    default_depth = settings.get("default_depth") or rack["depth"]
+    snap = settings.get("box_snap", 0.05) or 0.0
+    boxes = [metric_box(plane, b, shelf_v, rack["depth"], default_depth, snap, warnings) for b in ann["boxes"]]
+    return Scene(plane, float(rack["depth"]), shelf_v, shelf_ids, clear, boxes, warnings)
+
+
+def metric_box(plane: RackPlane, b: dict, shelf_v, rack_depth: float, default_depth: float,
+               snap: float = 0.05, warnings: list | None = None) -> MetricBox:
+    """A box annotation (two opposite pixel corners of its front face) -> MetricBox."""
+    uv = plane.to_plane([b["p0"], b["p1"]])
+    u0, u1 = sorted(np.clip(uv[:, 0], 0.0, plane.width))
+    v0, v1 = sorted(uv[:, 1])
+    depth = float(b.get("depth") or default_depth)
+    off = float(b.get("front_offset") or 0.0)
+    if off + depth > rack_depth + 1e-9:
+        depth = max(rack_depth - off, 0.01)
+        if warnings is not None:
+            warnings.append(f"box {b['id']}: front offset + depth exceed the rack depth; depth cut to {depth:.2f} m")
+    shelf = None
+    z0 = 0.0
+    for i in range(len(shelf_v) - 1, -1, -1):
+        if v0 >= shelf_v[i] - snap:
+            shelf = i
+            z0 = max(v0 - shelf_v[i], 0.0)
+            if z0 <= snap:
+                z0 = 0.0
+            break
+    if shelf is None and warnings is not None:
+        warnings.append(f"box {b['id']}: below every marked shelf; not in any layout")
+    if u1 - u0 <= 0 or v1 - v0 <= 0:
+        if warnings is not None:
+            warnings.append(f"box {b['id']}: empty rectangle")
+        shelf = None
+    # the box's height counts from where it stands
+    return MetricBox(int(b["id"]), float(u0), float(u1), float(v0) if shelf is None else shelf_v[shelf] + z0,
+                     float(v1), depth, off, shelf, z0)
+
+
+# --- back to the photo ---------------------------------------------------------------------
+def box_outline(plane: RackPlane, b: MetricBox) -> np.ndarray:
+    """(4, 2) pixel polygon of a metric box's front face."""
+    return plane.to_image([[b.u0, b.v0], [b.u1, b.v0], [b.u1, b.v1], [b.u0, b.v1]])
+
+
+def shelf_line(plane: RackPlane, v: float) -> np.ndarray:
+    """(2, 2) pixel end points of the board edge at height v."""
+    return plane.to_image([[0.0, v], [plane.width, v]])
+
+
+def rect_outline(plane: RackPlane, u0: float, u1: float, v0: float, v1: float) -> np.ndarray:
+    return plane.to_image([[u0, v0], [u1, v0], [u1, v1], [u0, v1]])
+
+
+# --- model proposals / imported layouts -> metric rectangles --------------------------------
+@dataclass
+class Proposal:
+    shelf: int
+    u0: float
+    u1: float
+    v0: float
+    v1: float
+    depth: float | None
+    front_offset: float
+    score: float | None = None
+
+
+def front_box_rects(front: np.ndarray, top: np.ndarray | None, grid: L.Grid, shelf_v, width: float,
+                    rack_depth: float, probs_box: np.ndarray | None = None,
+                    min_px: int = 4) -> list[Proposal]:
+    """Turn every connected component of BOX pixels in each shelf's front layout into a metric
+    rectangle on the rack plane. Only shelves with a marked board height (shelf_v) are used.
+    Depth and front offset come from the top layout's BOX rows in the same columns, if given."""
+    import cv2
+
+    out = []
+    for i, v in enumerate(shelf_v):
+        if i >= front.shape[0]:
+            break
+        mask = (front[i] == L.BOX).astype(np.uint8)
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=4)
+        for k in range(1, n):
+            x, y, w, h, area = (int(t) for t in stats[k])
+            if area < min_px:
+                continue
+            xa, xb = float(grid.col_to_x(x)), float(grid.col_to_x(x + w))
+            za, zb = float(grid.row_to_z(y + h)), float(grid.row_to_z(y))
+            depth, off = None, 0.0
+            if top is not None:
+                rows = np.nonzero((top[i][:, x:x + w] == L.BOX).any(axis=1))[0]
+                if rows.size:
+                    ya, yb = float(grid.row_to_y(rows.max() + 1)), float(grid.row_to_y(rows.min()))
+                    off = float(np.clip(ya + rack_depth / 2, 0.0, rack_depth))
+                    depth = float(np.clip(yb - ya, grid.res, rack_depth - off)) if rack_depth - off > 0 else None
+            score = float(probs_box[i][lab == k].mean()) if probs_box is not None else None
+            u0, u1 = np.clip([xa + width / 2, xb + width / 2], 0.0, width)
+            if u1 <= u0:
+                continue
+            out.append(Proposal(i, float(u0), float(u1), v + max(za, 0.0), v + zb, depth, off, score))
+    return out
+
+
+def proposal_to_box(plane: RackPlane, p: Proposal, box_id: int) -> dict:
+    """A proposal as a box annotation dict (pixel corners bottom-left / top-right)."""
+    px = plane.to_image([[p.u0, p.v0], [p.u1, p.v1]])
+    d = {"id": int(box_id), "p0": [round(float(px[0, 0]), 2), round(float(px[0, 1]), 2)],
+         "p1": [round(float(px[1, 0]), 2), round(float(px[1, 1]), 2)], "front_offset": round(p.front_offset, 4),
+         "source": "model"}
+    if p.depth is not None:
+        d["depth"] = round(p.depth, 4)
+    if p.score is not None:
+        d["score"] = round(min(max(p.score, 0.0), 1.0), 4)
+    return d
+
+
+def rect_iou(a, b) -> float:
+    """IoU of two axis-aligned rectangles (u0, u1, v0, v1)."""
+    iw = max(0.0, min(a[1], b[1]) - max(a[0], b[0]))
+    ih = max(0.0, min(a[3], b[3]) - max(a[2], b[2]))
+    inter = iw * ih
+    ua = (a[1] - a[0]) * (a[3] - a[2]) + (b[1] - b[0]) * (b[3] - b[2]) - inter
+    return inter / ua if ua > 0 else 0.0

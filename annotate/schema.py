@@ -1,0 +1,269 @@
+"""The annotation file format (one JSON per image) and the project settings file, with strict
+validation on load, the labelme way: a file that does not match the schema is refused with one
+line naming the file and the field, and is never overwritten by the tool.
+
+Everything the labeller clicks is stored in *image pixels* (corners, shelf-edge points, box
+rectangles), so moving a rack corner later re-maps every shelf and box through the new
+homography. Metric values (shelf heights, box ranges) are derived by `annotate.geometry`, never
+stored as the source of truth. The format is documented in docs/annotation-format.md.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+SCHEMA_VERSION = 1
+SETTINGS_VERSION = 1
+STATUSES = ("todo", "in progress", "done", "needs review", "approved")
+BOX_SOURCES = ("manual", "model")
+
+#: rack presets shipped with a new project: width (along the rack) x height x depth in metres
+DEFAULT_PRESETS = [
+    {"name": "boltless 2.0 × 2.0 × 0.6 m", "width": 2.0, "height": 2.0, "depth": 0.6},
+    {"name": "boltless 1.5 × 1.8 × 0.5 m", "width": 1.5, "height": 1.8, "depth": 0.5},
+    {"name": "longspan 2.4 × 2.4 × 0.8 m", "width": 2.4, "height": 2.4, "depth": 0.8},
+    {"name": "pallet rack bay 2.7 × 3.0 × 1.1 m", "width": 2.7, "height": 3.0, "depth": 1.1},
+]
+
+
+class SchemaError(ValueError):
+    """An annotation or settings file that breaks the schema; the message names file and field."""
+
+
+# --- small validators ------------------------------------------------------------------------
+def _fail(source: str, field: str, msg: str):
+    raise SchemaError(f"{source}: field '{field}': {msg}")
+
+
+def _num(v, source, field, lo=None, hi=None, lo_open=False) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        _fail(source, field, f"expected a finite number, got {v!r}")
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        _fail(source, field, f"must be {'>' if lo_open else '>='} {lo}, got {v}")
+    if hi is not None and v > hi:
+        _fail(source, field, f"must be <= {hi}, got {v}")
+    return float(v)
+
+
+def _int(v, source, field, lo=None, hi=None) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        _fail(source, field, f"expected an integer, got {v!r}")
+    if lo is not None and v < lo:
+        _fail(source, field, f"must be >= {lo}, got {v}")
+    if hi is not None and v > hi:
+        _fail(source, field, f"must be <= {hi}, got {v}")
+    return v
+
+
+def _str(v, source, field, choices=None, allow_empty=False) -> str:
+    if not isinstance(v, str) or (not allow_empty and not v):
+        _fail(source, field, f"expected a non-empty string, got {v!r}")
+    if choices is not None and v not in choices:
+        _fail(source, field, f"must be one of {', '.join(map(repr, choices))}; got {v!r}")
+    return v
+
+
+def _point(v, source, field) -> list[float]:
+    if not isinstance(v, (list, tuple)) or len(v) != 2:
+        _fail(source, field, f"expected [x, y] pixel coordinates, got {v!r}")
+    return [_num(v[0], source, f"{field}[0]"), _num(v[1], source, f"{field}[1]")]
+
+
+def _obj(v, source, field, required: dict, optional: dict = ()) -> dict:
+    if not isinstance(v, dict):
+        _fail(source, field, f"expected an object, got {type(v).__name__}")
+    allowed = set(required) | set(optional)
+    extra = sorted(set(v) - allowed)
+    if extra:
+        _fail(source, f"{field}.{extra[0]}" if field else extra[0], "unknown field")
+    for k in required:
+        if k not in v:
+            _fail(source, f"{field}.{k}" if field else k, "missing")
+    return v
+
+
+_SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._ -]{0,150}$")
+
+
+def check_image_name(name: str, source: str = "image name", field: str = "image") -> str:
+    """A plain file name (no folders, no '..', no hidden files): the only kind the tool stores."""
+    if not isinstance(name, str) or not _SAFE_NAME.match(name) or ".." in name or "/" in name or "\\" in name:
+        _fail(source, field, f"not a plain file name: {name!r}")
+    return name
+
+
+# --- annotation -------------------------------------------------------------------------------
+def new_annotation(image: str, width: int, height: int) -> dict:
+    """A fresh annotation for an image of width x height pixels."""
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "image": image,
+        "image_size": [int(width), int(height)],
+        "version": 0,
+        "status": "todo",
+        "rack": {"corners": [], "width": None, "height": None, "depth": None, "preset": None},
+        "shelves": [],
+        "boxes": [],
+        "proposals": [],
+        "rejected": [],
+        "imported": None,
+        "updated_by": None,
+    }
+
+
+_ANN_FIELDS = {"schema_version", "image", "image_size", "version", "status", "rack", "shelves", "boxes"}
+_ANN_OPTIONAL = {"proposals", "rejected", "imported", "updated_by", "updated_at"}
+_BOX_FIELDS = {"id", "p0", "p1"}
+_BOX_OPTIONAL = {"depth", "front_offset", "source", "score"}
+
+
+def _validate_box(b, source, field) -> dict:
+    _obj(b, source, field, _BOX_FIELDS, _BOX_OPTIONAL)
+    _int(b["id"], source, f"{field}.id", lo=0)
+    _point(b["p0"], source, f"{field}.p0")
+    _point(b["p1"], source, f"{field}.p1")
+    if b.get("depth") is not None:
+        _num(b["depth"], source, f"{field}.depth", lo=0, hi=100, lo_open=True)
+    if b.get("front_offset") is not None:
+        _num(b["front_offset"], source, f"{field}.front_offset", lo=0, hi=100)
+    if "source" in b:
+        _str(b["source"], source, f"{field}.source", BOX_SOURCES)
+    if b.get("score") is not None:
+        _num(b["score"], source, f"{field}.score", lo=0, hi=1)
+    return b
+
+
+def validate_annotation(d: Any, source: str = "annotation") -> dict:
+    """Check an annotation dict against the schema; return it unchanged or raise SchemaError."""
+    _obj(d, source, "", _ANN_FIELDS, _ANN_OPTIONAL)
+    sv = d["schema_version"]
+    if sv != SCHEMA_VERSION:
+        _fail(source, "schema_version", f"this tool reads version {SCHEMA_VERSION}, the file has {sv!r}")
+    check_image_name(d["image"], source)
+    sz = d["image_size"]
+    if not isinstance(sz, list) or len(sz) != 2:
+        _fail(source, "image_size", f"expected [width, height], got {sz!r}")
+    _int(sz[0], source, "image_size[0]", lo=1)
+    _int(sz[1], source, "image_size[1]", lo=1)
+    _int(d["version"], source, "version", lo=0)
+    _str(d["status"], source, "status", STATUSES)
+    rack = _obj(d["rack"], source, "rack", {"corners", "width", "height", "depth"}, {"preset"})
+    if not isinstance(rack["corners"], list) or len(rack["corners"]) > 4:
+        _fail(source, "rack.corners", "expected a list of at most 4 [x, y] points")
+    for i, p in enumerate(rack["corners"]):
+        _point(p, source, f"rack.corners[{i}]")
+    for k in ("width", "height", "depth"):
+        if rack[k] is not None:
+            _num(rack[k], source, f"rack.{k}", lo=0, hi=100, lo_open=True)
+    if rack.get("preset") is not None:
+        _str(rack["preset"], source, "rack.preset")
+    if not isinstance(d["shelves"], list):
+        _fail(source, "shelves", "expected a list")
+    for i, s in enumerate(d["shelves"]):
+        _obj(s, source, f"shelves[{i}]", {"id", "point"})
+        _int(s["id"], source, f"shelves[{i}].id", lo=0)
+        _point(s["point"], source, f"shelves[{i}].point")
+    for key in ("boxes", "proposals"):
+        items = d.get(key, [])
+        if not isinstance(items, list):
+            _fail(source, key, "expected a list")
+        for i, b in enumerate(items):
+            _validate_box(b, source, f"{key}[{i}]")
+    ids = [b["id"] for b in d["boxes"]]
+    if len(set(ids)) != len(ids):
+        _fail(source, "boxes", "box ids must be unique")
+    rej = d.get("rejected", [])
+    if not isinstance(rej, list):
+        _fail(source, "rejected", "expected a list")
+    for i, r in enumerate(rej):
+        if not isinstance(r, list) or len(r) != 5:
+            _fail(source, f"rejected[{i}]", "expected [shelf, x0, x1, z0, z1]")
+        for j, v in enumerate(r):
+            _num(v, source, f"rejected[{i}][{j}]")
+    imp = d.get("imported")
+    if imp is not None:
+        _obj(imp, source, "imported", {"top", "front"}, {"dataset", "id"})
+        for k in ("top", "front"):
+            if imp[k] is not None:
+                p = _str(imp[k], source, f"imported.{k}")
+                if p.startswith(("/", "\\")) or ".." in Path(p).parts:
+                    _fail(source, f"imported.{k}", f"must be a path inside the project, got {p!r}")
+    if d.get("updated_by") is not None:
+        _str(d["updated_by"], source, "updated_by", allow_empty=True)
+    return d
+
+
+def load_annotation(path: str | os.PathLike) -> dict:
+    """Read and validate an annotation file. Raises SchemaError naming the file."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        raise SchemaError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}, column {e.colno})") from None
+    except UnicodeDecodeError:
+        raise SchemaError(f"{path}: not UTF-8 text") from None
+    return validate_annotation(d, str(path))
+
+
+# --- project settings -------------------------------------------------------------------------
+def default_settings() -> dict:
+    return {
+        "schema_version": SETTINGS_VERSION,
+        "R": 4,
+        "D": 512,
+        "extent": 8.0,
+        "default_depth": None,  # None: a box is as deep as its shelf
+        "box_snap": 0.05,  # a box bottom within this many metres of a board stands on it
+        "presets": copy.deepcopy(DEFAULT_PRESETS),
+        "default_preset": DEFAULT_PRESETS[0]["name"],
+    }
+
+
+def validate_settings(d: Any, source: str = "project settings") -> dict:
+    _obj(d, source, "", {"schema_version", "R", "D", "extent", "presets"},
+         {"default_depth", "default_preset", "box_snap"})
+    if d["schema_version"] != SETTINGS_VERSION:
+        _fail(source, "schema_version", f"this tool reads version {SETTINGS_VERSION}, the file has {d['schema_version']!r}")
+    _int(d["R"], source, "R", lo=1, hi=32)
+    D = _int(d["D"], source, "D", lo=16, hi=4096)
+    if D % 2:
+        _fail(source, "D", f"must be even, got {D}")
+    _num(d["extent"], source, "extent", lo=0, hi=1000, lo_open=True)
+    if d.get("default_depth") is not None:
+        _num(d["default_depth"], source, "default_depth", lo=0, hi=100, lo_open=True)
+    if d.get("box_snap") is not None:
+        _num(d["box_snap"], source, "box_snap", lo=0, hi=1)
+    if not isinstance(d["presets"], list):
+        _fail(source, "presets", "expected a list")
+    names = []
+    for i, p in enumerate(d["presets"]):
+        _obj(p, source, f"presets[{i}]", {"name", "width", "height", "depth"})
+        names.append(_str(p["name"], source, f"presets[{i}].name"))
+        for k in ("width", "height", "depth"):
+            _num(p[k], source, f"presets[{i}].{k}", lo=0, hi=100, lo_open=True)
+    if len(set(names)) != len(names):
+        _fail(source, "presets", "preset names must be unique")
+    if d.get("default_preset") is not None and d["default_preset"] not in names:
+        _fail(source, "default_preset", f"{d['default_preset']!r} is not one of the presets")
+    return d
+
+
+def load_settings(path: str | os.PathLike) -> dict:
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        raise SchemaError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}, column {e.colno})") from None
+    return validate_settings(d, str(path))
+
+
+def preset(settings: dict, name: str | None) -> dict | None:
+    for p in settings["presets"]:
+        if p["name"] == name:
+            return p
+    return None

@@ -1,0 +1,244 @@
+"""The annotation project on disk: the only code that reads or writes a project folder.
+
+    PROJECT_DIR/
+      *.jpg | *.jpeg | *.png        the photos (top level; plain file names only)
+      project.json                  settings: R, D, grid extent, rack presets (annotate.schema)
+      annotations/NAME.json         one annotation per photo (written on every action)
+      annotations/.locks/NAME.lock  advisory locks held only while a save compares versions
+      imported/NAME.top.npy ...     read-only layouts brought in by `annotate import`
+
+Every write is atomic (racklay.atomic: temp file + rename), so a killed server leaves each file
+either at its previous or at its new state. Saves carry the version the labeller started from;
+if the file on disk moved on meanwhile (another labeller, another tab), the save is refused with
+a ConflictError that says who changed it, and nothing is overwritten. A file that fails
+validation is never overwritten either: fix or delete it by hand.
+"""
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import io
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from racklay.atomic import atomic_write_bytes, atomic_write_json
+
+from . import schema as S
+
+IMAGE_EXTS = (".jpg", ".jpeg", ".png")
+SETTINGS_FILE = "project.json"
+ANN_DIR = "annotations"
+IMPORT_DIR = "imported"
+#: upload limits: bytes on the wire, decoded pixels (width x height), and each side
+MAX_UPLOAD_BYTES = 40 * 1024 * 1024
+MAX_PIXELS = 40_000_000
+MAX_SIDE = 12_000
+DONE_STATUSES = ("done", "approved")
+
+
+class StoreError(ValueError):
+    """A request the project cannot serve (bad name, outside the folder, bad upload)."""
+
+
+class ConflictError(StoreError):
+    """The annotation changed on disk since this labeller loaded it."""
+
+
+class Project:
+    """A project folder. Creates `project.json` with default settings when it is missing."""
+
+    def __init__(self, root: str | os.PathLike, create: bool = True):
+        self.root = Path(root).resolve()
+        if not self.root.is_dir():
+            if not create:
+                raise StoreError(f"{self.root}: project folder not found")
+            self.root.mkdir(parents=True)
+        sp = self.root / SETTINGS_FILE
+        if sp.exists():
+            self.settings = S.load_settings(sp)
+        elif create:
+            self.settings = S.default_settings()
+            atomic_write_json(sp, self.settings)
+        else:
+            raise StoreError(f"{sp}: project settings not found")
+
+    # --- paths, all confined to the project folder ---
+    def _inside(self, p: Path) -> Path:
+        p = p.resolve()
+        if p != self.root and self.root not in p.parents:
+            raise StoreError(f"{p}: outside the project folder {self.root}")
+        return p
+
+    def image_path(self, name: str) -> Path:
+        S.check_image_name(name, str(self.root))
+        if Path(name).suffix.lower() not in IMAGE_EXTS:
+            raise StoreError(f"{name}: not an image name ({', '.join(IMAGE_EXTS)})")
+        return self._inside(self.root / name)
+
+    def annotation_path(self, name: str) -> Path:
+        S.check_image_name(name, str(self.root))
+        return self._inside(self.root / ANN_DIR / f"{name}.json")
+
+    def project_file(self, rel: str) -> Path:
+        """A file of the project given by a relative path (imported layouts)."""
+        return self._inside(self.root / rel)
+
+    def images(self) -> list[str]:
+        return sorted(p.name for p in self.root.iterdir()
+                      if p.is_file() and p.suffix.lower() in IMAGE_EXTS and not p.name.startswith("."))
+
+    # --- images ---
+    def image_size(self, name: str) -> tuple[int, int]:
+        from PIL import Image
+
+        with Image.open(self.image_path(name)) as im:
+            return im.size
+
+    def read_image(self, name: str) -> np.ndarray:
+        from racklay.data import read_image
+
+        p = self.image_path(name)
+        check_image_bytes(p.read_bytes(), str(p))
+        return read_image(p)
+
+    def add_image(self, filename: str, data: bytes, overwrite: bool = False) -> str:
+        """Store an uploaded photo after checking it is a real PNG/JPEG within the limits.
+        Returns the stored file name (the upload's base name, sanitised)."""
+        base = os.path.basename(str(filename).replace("\\", "/")).strip()
+        base = "".join(c if c.isalnum() or c in "._-" else "_" for c in base).lstrip("._-") or "upload"
+        fmt = check_image_bytes(data, base)
+        stem, ext = os.path.splitext(base)
+        ext = ext.lower()
+        want = {"PNG": (".png",), "JPEG": (".jpg", ".jpeg")}[fmt]
+        if ext not in want:
+            ext = want[0]
+        name = f"{stem[:100]}{ext}"
+        path = self.image_path(name)
+        if path.exists() and not overwrite:
+            raise StoreError(f"{name}: an image of that name is already in the project")
+        atomic_write_bytes(path, data)
+        return name
+
+    # --- annotations ---
+    def load(self, name: str) -> dict:
+        """The image's annotation (a fresh one if none was saved). SchemaError if the file is bad."""
+        p = self.annotation_path(name)
+        if p.exists():
+            ann = S.load_annotation(p)
+            if ann["image"] != name:
+                raise S.SchemaError(f"{p}: field 'image': says {ann['image']!r}, expected {name!r}")
+            return ann
+        w, h = self.image_size(name)
+        return S.new_annotation(name, w, h)
+
+    def disk_version(self, name: str) -> int:
+        p = self.annotation_path(name)
+        return S.load_annotation(p)["version"] if p.exists() else 0
+
+    @contextlib.contextmanager
+    def _lock(self, name: str):
+        lock_dir = self.root / ANN_DIR / ".locks"
+        lock_dir.mkdir(parents=True, exist_ok=True)
+        with open(self._inside(lock_dir / f"{name}.lock"), "a+") as f:
+            fcntl.flock(f, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(f, fcntl.LOCK_UN)
+
+    def save(self, ann: dict, user: str | None = None) -> dict:
+        """Save `ann`, which was edited starting from version ann['version']. Returns the saved
+        annotation (version + 1). Raises ConflictError if the file moved on meanwhile, SchemaError
+        if `ann` or the file on disk is invalid (the file is then left alone)."""
+        name = ann["image"]
+        p = self.annotation_path(name)
+        new = dict(ann)
+        with self._lock(name):
+            on_disk = S.load_annotation(p) if p.exists() else None
+            have = on_disk["version"] if on_disk else 0
+            if have != ann["version"]:
+                who = (on_disk or {}).get("updated_by") or "another session"
+                raise ConflictError(
+                    f"{name}: not saved - {who} changed this image meanwhile (version {have} on disk, "
+                    f"your edit started from version {ann['version']}); reload the image to see their work")
+            new["version"] = have + 1
+            new["updated_by"] = user
+            new["updated_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+            S.validate_annotation(new, str(p))
+            atomic_write_json(p, new)
+        return new
+
+    def save_settings(self, settings: dict) -> None:
+        S.validate_settings(settings, str(self.root / SETTINGS_FILE))
+        atomic_write_json(self.root / SETTINGS_FILE, settings)
+        self.settings = settings
+
+    # --- progress ---
+    def statuses(self) -> dict[str, str]:
+        """Status of every image ('todo' when never saved, 'invalid' when its file is bad)."""
+        out = {}
+        for name in self.images():
+            p = self.annotation_path(name)
+            if not p.exists():
+                out[name] = "todo"
+                continue
+            try:
+                out[name] = S.load_annotation(p)["status"]
+            except S.SchemaError:
+                out[name] = "invalid"
+        return out
+
+    def progress(self) -> tuple[int, int]:
+        """(n done or approved, N images)."""
+        st = self.statuses()
+        return sum(s in DONE_STATUSES for s in st.values()), len(st)
+
+    def resume_image(self) -> str | None:
+        """The image to open first: the most recently saved one still in progress, else the first
+        image not done, else the first."""
+        names = self.images()
+        if not names:
+            return None
+        st = self.statuses()
+        busy = [n for n in names if st[n] == "in progress"]
+        if busy:
+            return max(busy, key=lambda n: self.annotation_path(n).stat().st_mtime)
+        for n in names:
+            if st[n] not in DONE_STATUSES:
+                return n
+        return names[0]
+
+
+def check_image_bytes(data: bytes, source: str) -> str:
+    """Refuse anything but a complete PNG/JPEG within the size and pixel limits; decompression
+    bombs are refused from the header, before any pixel is decoded. Returns 'PNG' or 'JPEG'."""
+    from PIL import Image
+
+    if len(data) > MAX_UPLOAD_BYTES:
+        raise StoreError(f"{source}: {len(data) / 2**20:.1f} MB is over the {MAX_UPLOAD_BYTES // 2**20} MB limit")
+    if not data:
+        raise StoreError(f"{source}: empty file")
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            fmt, (w, h) = im.format, im.size
+            if fmt not in ("PNG", "JPEG"):
+                raise StoreError(f"{source}: {fmt} images are not accepted (PNG or JPEG only)")
+            if w * h > MAX_PIXELS or max(w, h) > MAX_SIDE:
+                raise StoreError(f"{source}: {w}x{h} pixels is over the limit ({MAX_PIXELS // 10**6} Mpx, "
+                                 f"{MAX_SIDE} px a side): refused as a possible decompression bomb")
+            im.verify()
+    except StoreError:
+        raise
+    except Image.DecompressionBombError:
+        raise StoreError(f"{source}: refused as a decompression bomb (declared size over "
+                         f"{MAX_PIXELS // 10**6} Mpx)") from None
+    except Exception as e:  # PIL raises many types for junk
+        raise StoreError(f"{source}: not a readable PNG/JPEG image ({type(e).__name__})") from None
+    import cv2
+
+    if cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) is None:
+        raise StoreError(f"{source}: image data could not be decoded")
+    return fmt

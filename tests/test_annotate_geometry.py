@@ -1,0 +1,159 @@
+"""annotate.geometry against ground truth: a synthetic rack seen by a pinhole camera with known
+K and [R|t]. The true rack corners, shelf edges and box front faces are projected into pixels,
+fed to the geometry as clicks would be, and the resulting layouts are compared with
+racklay.layout's rasterisation of the true scene."""
+import numpy as np
+import pytest
+
+from racklay import layout as L
+from annotate import geometry as G
+from annotate import schema as S
+
+W, H, DEPTH = 2.0, 2.0, 0.6
+BOARDS = [0.10, 0.75, 1.40]  # board top heights, bottom-up
+# (shelf, x0, x1, z0 above board, z1 above board, front offset, depth)
+BOXES = [
+    (0, 0.10, 0.55, 0.0, 0.40, 0.0, 0.45),
+    (0, 0.70, 1.30, 0.0, 0.30, 0.0, 0.60),
+    (0, 1.30, 1.70, 0.30, 0.50, 0.0, 0.35),  # resting on something 30 cm up
+    (1, 0.20, 0.90, 0.0, 0.50, 0.0, 0.50),
+    (1, 1.20, 1.90, 0.0, 0.35, 0.05, 0.40),  # set back 5 cm: a little parallax
+    (2, 0.50, 1.50, 0.0, 0.45, 0.0, 0.55),
+]
+GRID = L.Grid(256, 4.0)
+
+
+def look_at(C, target):
+    f = np.asarray(target, float) - C
+    f /= np.linalg.norm(f)
+    r = np.cross(f, [0, 0, 1.0])
+    r /= np.linalg.norm(r)
+    d = np.cross(f, r)
+    return np.stack([r, d, f])
+
+
+class Camera:
+    def __init__(self, C, target, f=520.0, size=(640, 480)):
+        self.C = np.asarray(C, float)
+        self.R = look_at(self.C, target)
+        self.K = np.array([[f, 0, size[0] / 2], [0, f, size[1] / 2], [0, 0, 1]])
+
+    def project(self, P):
+        """World (X right along the rack from its left edge, Y depth away, Z up) -> pixels."""
+        P = np.atleast_2d(np.asarray(P, float))
+        pc = (P - self.C) @ self.R.T
+        assert np.all(pc[:, 2] > 0)
+        uv = pc @ self.K.T
+        return uv[:, :2] / uv[:, 2:3]
+
+
+def true_layouts():
+    clear = [BOARDS[1] - BOARDS[0], BOARDS[2] - BOARDS[1], H - BOARDS[2]]
+    per = []
+    for i, c in enumerate(clear):
+        boxes = [L.Box(cx=(x0 + x1) / 2 - W / 2, cy=-DEPTH / 2 + o + d / 2, sx=x1 - x0, sy=d, sz=z1 - z0, z0=z0)
+                 for s, x0, x1, z0, z1, o, d in BOXES if s == i]
+        per.append(L.rasterize_shelf(L.Shelf(W, DEPTH, c), boxes, GRID))
+    return L.stack_shelves(per, 4, GRID)
+
+
+def clicks(cam):
+    ann = S.new_annotation("x.png", 640, 480)
+    corners = cam.project([[0, 0, H], [W, 0, H], [W, 0, 0], [0, 0, 0]])
+    ann["rack"] = {"corners": corners[[2, 0, 3, 1]].tolist(), "width": W, "height": H, "depth": DEPTH, "preset": None}
+    # one click somewhere along each board's front edge, given top-down to check the ordering
+    for k, z in enumerate(reversed(BOARDS)):
+        ann["shelves"].append({"id": k, "point": cam.project([[0.3 + 0.5 * k, 0, z]])[0].tolist()})
+    for k, (s, x0, x1, z0, z1, o, d) in enumerate(BOXES):
+        zb = BOARDS[s]
+        p = cam.project([[x0, o, zb + z0], [x1, o, zb + z1]])  # bottom-left and top-right of its front face
+        ann["boxes"].append({"id": k, "p0": p[0].tolist(), "p1": p[1].tolist(), "depth": d, "front_offset": o})
+    S.validate_annotation(ann)
+    return ann
+
+
+def iou(a, b):
+    u = np.logical_or(a, b).sum()
+    return np.logical_and(a, b).sum() / u if u else 1.0
+
+
+SETTINGS = dict(S.default_settings(), R=4, D=256, extent=4.0)
+
+
+@pytest.mark.parametrize("cam", [
+    Camera([1.0, -3.2, 1.0], [1.0, 0, 1.0]),  # frontal
+    Camera([-1.2, -2.4, 1.6], [1.0, 0.0, 0.9]),  # oblique: ~40 degrees from the left, from above
+    Camera([3.4, -2.0, 0.4], [1.0, 0.0, 1.1]),  # oblique from the right, from below
+], ids=["frontal", "oblique-left", "oblique-right-low"])
+def test_layouts_match_ground_truth(cam):
+    ann = clicks(cam)
+    scene = G.build_scene(ann, SETTINGS)
+    assert not scene.warnings
+    np.testing.assert_allclose(scene.shelf_v, BOARDS, atol=1e-6)
+    assert [b.shelf for b in scene.boxes] == [b[0] for b in BOXES]
+    top, front = scene.layouts(4, GRID)
+    ttop, tfront = true_layouts()
+    for i in range(3):
+        for view, a, b in (("top", top, ttop), ("front", front, tfront)):
+            for cls in (L.SHELF, L.BOX):
+                m = iou(a[i] == cls, b[i] == cls)
+                assert m >= 0.9, f"shelf {i} {view} class {cls}: IoU {m:.3f}"
+    assert not top[3].any() and not front[3].any()
+
+
+def test_exact_when_fronts_on_plane():
+    """With every front face in the rack plane the mapping is exact (up to pixel rounding)."""
+    cam = Camera([-1.2, -2.4, 1.6], [1.0, 0.0, 0.9])
+    ann = clicks(cam)
+    scene = G.build_scene(ann, SETTINGS)
+    b = scene.boxes[0]
+    assert b.u0 == pytest.approx(0.10, abs=1e-6) and b.u1 == pytest.approx(0.55, abs=1e-6)
+    assert b.v1 - b.v0 == pytest.approx(0.40, abs=1e-6)
+    assert scene.boxes[2].z0 == pytest.approx(0.30, abs=1e-6)
+
+
+def test_back_projection_round_trip():
+    cam = Camera([3.4, -2.0, 0.4], [1.0, 0.0, 1.1])
+    ann = clicks(cam)
+    scene = G.build_scene(ann, SETTINGS)
+    out = G.box_outline(scene.plane, scene.boxes[3])
+    s, x0, x1, z0, z1, _, _ = BOXES[3]
+    want = cam.project([[x0, 0, BOARDS[s] + z0], [x1, 0, BOARDS[s] + z0], [x1, 0, BOARDS[s] + z1], [x0, 0, BOARDS[s] + z1]])
+    np.testing.assert_allclose(out, want, atol=1e-6)
+    line = G.shelf_line(scene.plane, BOARDS[1])
+    np.testing.assert_allclose(line, cam.project([[0, 0, BOARDS[1]], [W, 0, BOARDS[1]]]), atol=1e-6)
+
+
+def test_front_components_to_proposals_round_trip():
+    """Predicted layouts = the true ones -> proposals whose rectangles match the true boxes."""
+    cam = Camera([1.0, -3.2, 1.0], [1.0, 0, 1.0])
+    ann = clicks(cam)
+    scene = G.build_scene(ann, SETTINGS)
+    top, front = true_layouts()
+    props = G.front_box_rects(front, top, GRID, scene.shelf_v, W, DEPTH)
+    # every true box comes back as its own component (box 2 only touches box 1 diagonally)
+    got = sorted((p.shelf, p.u0, p.u1) for p in props)
+    want = sorted((s, x0, x1) for s, x0, x1, *_ in BOXES)
+    assert [g[0] for g in got] == [w[0] for w in want]
+    np.testing.assert_allclose([g[1:] for g in got], [w[1:] for w in want], atol=GRID.res)
+    p = [p for p in props if p.shelf == 2][0]
+    assert p.v0 == pytest.approx(BOARDS[2], abs=0.02) and p.v1 == pytest.approx(BOARDS[2] + 0.45, abs=0.02)
+    assert p.depth == pytest.approx(0.55, abs=0.02) and p.front_offset == pytest.approx(0, abs=0.02)
+    box = G.proposal_to_box(scene.plane, p, 99)
+    mb = G.metric_box(scene.plane, box, scene.shelf_v, DEPTH, DEPTH)
+    assert mb.shelf == 2 and mb.u0 == pytest.approx(p.u0, abs=1e-3)
+
+
+def test_bad_corners_refused():
+    with pytest.raises(G.GeometryError, match="4 rack corners"):
+        G.RackPlane.from_corners([[0, 0], [1, 1], [2, 2]], 2, 2)
+    with pytest.raises(G.GeometryError, match="one line"):
+        G.RackPlane.from_corners([[0, 0], [10, 10], [20, 20], [30, 30]], 2, 2)
+
+
+def test_too_many_shelves_for_R():
+    cam = Camera([1.0, -3.2, 1.0], [1.0, 0, 1.0])
+    ann = clicks(cam)
+    scene = G.build_scene(ann, SETTINGS)
+    with pytest.raises(G.GeometryError, match="R=2"):
+        scene.layouts(2, GRID)
