@@ -15,6 +15,7 @@ COMMANDS = [
     "racklay.commands.eval",
     "racklay.commands.predict",
     "racklay.commands.export",
+    "racklay.commands.analyze",
 ]
 
 

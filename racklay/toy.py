@@ -6,6 +6,8 @@ substitute for WareSynth's rendered images: the picture is a schematic, and it s
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from . import layout as L
@@ -77,7 +79,11 @@ def build_toy_dataset(root, n: int = 24, seed: int = 0, R: int = L.DEFAULT_R, D:
         sid = f"{i:06d}"
         ds.write_sample(sid, image=schematic_image(length, heights, shelves, rng=rng), top=top, front=front,
                         meta={"source": "toy schematic", "shelf_heights": heights, "rack_length": length,
-                              "rack_depth": depth, "grid": {"D": D, "extent_m": extent}})
+                              "rack_depth": depth, "grid": {"D": D, "extent_m": extent},
+                        # 3D truth per visible shelf (lowest first), for validating rack reasoning
+                        "shelves": [{"length": length, "depth": depth, "clear_height": h,
+                                     "boxes": [dataclasses.asdict(b) for b in boxes]}
+                                    for h, boxes in zip(heights, shelves)]})
         ids.append(sid)
     for name, part in make_splits(ids, splits or {"train": 0.6, "val": 0.2, "test": 0.2}, seed).items():
         ds.write_split(name, part)
