@@ -6,7 +6,11 @@ import sys
 
 from racklay.cli import build_parser, run
 
-COMMANDS: list[str] = []
+COMMANDS: list[str] = [
+    "transfer.commands.pretrain",
+    "transfer.commands.finetune",
+    "transfer.commands.compare",
+]
 DESCRIPTION = ("Sim-to-real transfer for RackLay: pretrain on synthetic data, fine-tune on a small real "
                "set with colour-jitter and flip augmentation, and compare synthetic / real / fine-tuned.")
 

@@ -1,0 +1,59 @@
+"""`transfer` sub-commands. Shared argparse options for the training-based commands."""
+from __future__ import annotations
+
+import argparse
+
+
+def add_model_args(p: argparse.ArgumentParser, from_checkpoint: bool = False) -> None:
+    g = p.add_argument_group("model" + (" (default: the checkpoint's)" if from_checkpoint else ""))
+    g.add_argument("--image-size", type=int, help="square network input size in pixels (multiple of 32)")
+    g.add_argument("--layout-size", type=int, help="layout grid size D the model predicts")
+    g.add_argument("--R", type=int, help="shelves per image (layout channels); must match the data")
+    if not from_checkpoint:
+        g.add_argument("--decoder", choices=("light", "paper"), help="decoder: light (fast, default) or paper")
+        g.add_argument("--disc", action="store_true", default=None,
+                       help="train with patch discriminators (the paper's '-disc' variant)")
+
+
+def add_train_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("training (defaults: racklay.train.TrainConfig's)")
+    g.add_argument("--epochs", type=int)
+    g.add_argument("--batch-size", type=int)
+    g.add_argument("--lr", type=float, help="learning rate")
+    g.add_argument("--patience", type=int, help="early stopping: epochs without validation improvement")
+    g.add_argument("--workers", type=int, help="DataLoader workers (0 is often fastest on 2 cores)")
+    g.add_argument("--max-minutes", type=float, help="time budget for the run; stops cleanly and keeps the best")
+    g.add_argument("--seed", type=int, default=0, help="seed for init, data order and augmentation (default 0)")
+
+
+def model_kwargs(args) -> dict:
+    kw = dict(image_size=args.image_size, layout_size=args.layout_size, R=args.R)
+    for k in ("decoder", "disc"):
+        if getattr(args, k, None) is not None:
+            kw[k] = getattr(args, k)
+    return kw
+
+
+def train_kwargs(args) -> dict:
+    return dict(epochs=args.epochs, batch_size=args.batch_size, patience=args.patience, workers=args.workers,
+                max_minutes=args.max_minutes)
+
+
+def split_out(out: str):
+    """--out runs/NAME -> (runs, NAME): the run folder is exactly what the user named."""
+    from pathlib import Path
+
+    p = Path(out)
+    return p.parent, p.name
+
+
+def print_run(run) -> None:
+    from pathlib import Path
+
+    run = Path(run)
+    print(f"run folder: {run}")
+    for n in ("best.safetensors", "last.safetensors", "config.yaml", "metrics.csv"):
+        if (run / n).exists():
+            print(f"  {n:18s} {run / n}")
+    for png in sorted(run.glob("*.png")):
+        print(f"  {png.name:18s} {png}")

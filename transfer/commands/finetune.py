@@ -1,0 +1,49 @@
+"""transfer finetune: fine-tune a pretrain checkpoint on a small real set."""
+from __future__ import annotations
+
+from . import add_model_args, add_train_args, print_run, split_out, train_kwargs
+
+
+def register(sub) -> None:
+    from ..workflow import FINETUNE_LR_RATIO, REAL_VAL_FRACTION
+
+    p = sub.add_parser(
+        "finetune", help="fine-tune a pretrained checkpoint on real data (step 2)",
+        description="Fine-tune a checkpoint (from `transfer pretrain`) on a real RackLay-format dataset "
+                    "(the authors' real-world set, or `annotate export` output) with the paper's "
+                    "augmentation: colour jitter (brightness/contrast/saturation in [0.8, 1.2], hue "
+                    "+-0.1, p=0.5) and horizontal flip (p=0.5) applied to the image and every layout "
+                    "channel (albumentations). Lower learning rate than from scratch (default "
+                    f"{FINETUNE_LR_RATIO:g}x TrainConfig's), optional encoder freezing for the first "
+                    "epochs, early stopping on a validation set carved from the training split. The "
+                    "architecture (R, layout size, input size, decoder) comes from the checkpoint; a "
+                    "checkpoint whose R or layout size does not fit is refused with a clear error.")
+    p.add_argument("--init", required=True, metavar="CHECKPOINT", help="pretrain checkpoint (.safetensors)")
+    p.add_argument("--real", required=True, metavar="ROOT", help="real RackLay-format dataset root with split files")
+    p.add_argument("--out", default="runs/finetune", help="run folder (default runs/finetune)")
+    p.add_argument("--train-split", default="train", help="split to fine-tune on (default train)")
+    p.add_argument("--fraction", type=float, default=None,
+                   help="use only this fraction of the training split (reproducible by seed)")
+    p.add_argument("--val-fraction", type=float, default=REAL_VAL_FRACTION,
+                   help=f"share of the training split held out for early stopping (default {REAL_VAL_FRACTION:g})")
+    p.add_argument("--freeze-encoder-epochs", type=int, default=0,
+                   help="keep the ResNet encoder frozen for the first N epochs (default 0)")
+    p.add_argument("--no-augment", action="store_true", help="disable the paper's augmentation")
+    add_model_args(p, from_checkpoint=True)
+    add_train_args(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..workflow import finetune
+
+    if args.fraction is not None and not 0 < args.fraction <= 1:
+        raise ValueError(f"--fraction must be in (0, 1], got {args.fraction}")
+    out, name = split_out(args.out)
+    run_dir = finetune(args.init, args.real, out, name=name, seed=args.seed, lr=args.lr,
+                       train_split=args.train_split, train_fraction=args.fraction,
+                       val_fraction=args.val_fraction, freeze_encoder_epochs=args.freeze_encoder_epochs,
+                       augment=not args.no_augment, image_size=args.image_size, layout_size=args.layout_size,
+                       R=args.R, **train_kwargs(args))
+    print_run(run_dir)
+    return 0
