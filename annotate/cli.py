@@ -6,7 +6,11 @@ import sys
 
 from racklay.cli import build_parser, run
 
-COMMANDS: list[str] = []
+COMMANDS: list[str] = [
+    "annotate.commands.serve",
+    "annotate.commands.export",
+    "annotate.commands.import_dataset",
+]
 DESCRIPTION = ("Annotate real rack photos into per-shelf top- and front-view layouts in the browser "
                "(gradio), and export them as a RackLay-format dataset.")
 

@@ -1,0 +1,1 @@
+"""`annotate` sub-commands: one module each, with `register(subparsers)`."""

@@ -1,0 +1,33 @@
+"""annotate serve PROJECT_DIR"""
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "serve", help="open the annotation tool in the browser",
+        description="Serve the annotation tool for the photos in PROJECT_DIR (a folder of .jpg/.png "
+                    "files; the tool keeps project.json and annotations/ there). Every click is saved at "
+                    "once. Binds to 127.0.0.1 unless --host says otherwise; nothing is fetched from the "
+                    "internet. Open the printed address in a browser.")
+    p.add_argument("project", help="project folder (created if missing)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=int, default=7860, help="port (default 7860)")
+    p.add_argument("--model", default=None, help="checkpoint for model-assisted pre-labels (racklay.predict.Predictor)")
+    p.add_argument("--backend", default="torch", choices=("torch", "onnx"), help="prediction backend for --model")
+    p.add_argument("--auth", default=None, metavar="USER:PASSWORD", help="require this login")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from racklay.cli import CLIError
+
+    from annotate.app import serve
+
+    auth = None
+    if args.auth:
+        user, sep, pw = args.auth.partition(":")
+        if not sep or not user or not pw:
+            raise CLIError("--auth: expected USER:PASSWORD")
+        auth = (user, pw)
+    serve(args.project, host=args.host, port=args.port, model=args.model, backend=args.backend, auth=auth)
+    return 0

@@ -1,0 +1,85 @@
+"""annotate export / import: a project exported is a clean RackLay dataset whose layouts are the
+geometry's, and importing it back attaches the same layouts read-only."""
+import json
+
+import numpy as np
+import pytest
+
+from annotate.cli import main as annotate_main
+from annotate.dataset import read_imported, split_ids
+from annotate.store import Project
+from racklay import layout as L
+from racklay.atomic import encode_png
+from racklay.data import RackLayRoot, check_dataset
+
+from test_annotate_geometry import Camera, clicks, true_layouts, iou
+
+
+def make_project(tmp_path, n=5, statuses=None):
+    root = tmp_path / "proj"
+    root.mkdir()
+    cam = Camera([1.0, -3.2, 1.0], [1.0, 0, 1.0])
+    proj = Project(root)
+    proj.save_settings(dict(proj.settings, D=256, extent=4.0))
+    for k in range(n):
+        name = f"p{k}.png"
+        (root / name).write_bytes(encode_png(np.full((480, 640, 3), 40 * k, np.uint8)))
+        ann = clicks(cam)
+        ann["image"] = name
+        ann["status"] = (statuses or ["done"] * n)[k]
+        proj.save(ann)
+    return proj
+
+
+def test_export_check_data_clean(tmp_path, capsys):
+    proj = make_project(tmp_path, 5, ["done", "approved", "in progress", "done", "needs review"])
+    out = tmp_path / "ds"
+    rc = annotate_main(["export", str(proj.root), "--out", str(out), "--split", "train=2,test=1", "--seed", "3"])
+    assert rc == 0
+    assert "exported 3 image(s)" in capsys.readouterr().out
+    rep = check_dataset(out)
+    assert rep.ok, rep.problems
+    assert rep.samples == 3 and rep.splits == {"train": 2, "test": 1} and (rep.R, rep.D) == (4, 256)
+    ds = RackLayRoot(out)
+    ttop, tfront = true_layouts()
+    for view, t in (("top", ttop), ("front", tfront)):
+        got = ds.read_layouts(view, "000001")
+        for i in range(3):
+            assert iou(got[i] == L.BOX, t[i] == L.BOX) >= 0.9
+    meta = ds.read_meta("000001")
+    assert meta["source_image"] == "p1.png" and len(meta["shelf_heights_m"]) == 3
+    # same seed, same split; a non-empty output folder is refused
+    rc = annotate_main(["export", str(proj.root), "--out", str(out)])
+    assert rc == 2 and "not empty" in capsys.readouterr().err
+
+
+def test_export_refuses_incomplete_and_bad_split(tmp_path, capsys):
+    proj = make_project(tmp_path, 2)
+    ann = proj.load("p1.png")
+    ann["rack"]["corners"] = ann["rack"]["corners"][:3]
+    proj.save(ann)
+    rc = annotate_main(["export", str(proj.root), "--out", str(tmp_path / "o1")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "p1.png.json: cannot export (3 of 4 rack corners set)" in err
+    assert not (tmp_path / "o1").exists()
+    rc = annotate_main(["export", str(proj.root), "--out", str(tmp_path / "o2"), "--only-status", "todo", "--split", "train=5"])
+    assert rc == 2 and "no annotation with status todo" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="asks for 5 images but 2"):
+        split_ids(["a", "b"], counts={"train": 5})
+
+
+def test_import_round_trip(tmp_path, capsys):
+    proj = make_project(tmp_path, 2)
+    out = tmp_path / "ds"
+    assert annotate_main(["export", str(proj.root), "--out", str(out), "--split-fractions", "train=0.5,test=0.5"]) == 0
+    rev = tmp_path / "review"
+    assert annotate_main(["import", str(out), str(rev)]) == 0
+    p2 = Project(rev)
+    assert p2.images() == ["ds_000000.png", "ds_000001.png"]
+    assert (p2.settings["R"], p2.settings["D"]) == (4, 256)
+    ann = p2.load("ds_000000.png")
+    assert ann["status"] == "needs review"
+    lay = read_imported(p2, ann)
+    np.testing.assert_array_equal(lay["front"], RackLayRoot(out).read_layouts("front", "000000"))
+    assert annotate_main(["import", str(out), str(rev)]) == 2
+    assert "already in the project" in capsys.readouterr().err
