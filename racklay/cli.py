@@ -12,6 +12,7 @@ COMMANDS = [
     "racklay.commands.score",
     "racklay.commands.show",
     "racklay.commands.demo",
+    "racklay.commands.train",
     "racklay.commands.eval",
     "racklay.commands.predict",
     "racklay.commands.export",

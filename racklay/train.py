@@ -1,0 +1,673 @@
+"""Training engine: `train(TrainConfig(...)) -> run directory`.
+
+One run lives in `OUT/NAME/`: `config.yaml` (the resolved TrainConfig + ModelConfig),
+`metrics.csv` (one row per epoch), `loss.png` and `metrics.png` (curves), `last.safetensors`
+(model + discriminators + optimiser state + progress, for `resume`) and `best.safetensors` (the
+epoch with the best validation score, weights only).
+
+Loss: per-shelf pixel cross-entropy with class weights (default [1, 5, 5] for background, shelf,
+box) summed over views; in "-disc" runs, from epoch `disc_start` on, + λ·L_adv with one
+least-squares patch discriminator per view that sees the decoder's softmax probabilities (so its
+gradient reaches the decoder) and the one-hot ground truth. Adam, linear warm-up + cosine decay
+per step, early stopping on the validation score = mean over views of the dataset-level IoU of
+shelf and box (`racklay.metrics.LayoutMetrics`).
+
+Determinism and resume: the order of samples in epoch e is a pure function of (seed, e) (a
+DistributedSampler seeded with `seed`, `set_epoch(e)`); a transform gets, per sample, global RNGs
+(and its own `reseed(int)` / `set_random_seed(int)` if it has one) seeded from (seed, e, index).
+`last.safetensors` is written every `checkpoint_every` steps and at each epoch end with the step
+within the epoch; `resume` reloads it and skips the batches already done. Killed at any point
+(SIGKILL included: files are written atomically), a resumed run repeats the same computation and
+ends with the same weights and metrics as an uninterrupted one (bit-for-bit on the same machine,
+thread count and world size; see docs/training.md).
+
+Multi-process: started under `torchrun`, RANK/WORLD_SIZE/LOCAL_RANK select a process group (gloo
+on CPU, nccl on GPU), the model is wrapped in DistributedDataParallel, each process reads its
+shard of every epoch, and only rank 0 validates and writes files.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import random
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .layout import CLASS_NAMES, VIEWS
+from .model import (DECODERS, Discriminators, ModelConfig, RackLayNet, load_imagenet_weights,
+                    lsgan_discriminator_loss, lsgan_generator_loss, one_hot_layouts)
+
+# fields a resumed run must share with the run it continues (others, e.g. epochs or
+# max_minutes, may change on resume)
+_RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder",
+                 "disc", "disc_weight", "disc_start", "class_weights", "seed", "train_split",
+                 "val_split", "val_fraction", "train_fraction", "init", "freeze_encoder_epochs",
+                 "imagenet_weights", "amp", "warmup_steps", "weight_decay", "disc_lr")
+
+
+@dataclass
+class TrainConfig:
+    data: str = ""                       # RackLay-format dataset root
+    out: str = "runs"                    # runs live in OUT/NAME/
+    name: str | None = None              # default: the variant name, e.g. racklay-d-disc
+    epochs: int = 30
+    batch_size: int = 8
+    lr: float = 1e-3                     # Adam, peak learning rate (warm-up + cosine decay)
+    weight_decay: float = 0.0
+    warmup_steps: int = 100
+    image_size: int = 256                # CPU default (paper: 512), see docs/training.md
+    layout_size: int = 256
+    R: int = 4
+    views: tuple = ("top", "front")      # both -> RackLay-D, one -> RackLay-S
+    decoder: str = "light"               # light | paper
+    disc: bool = True                    # patch discriminators: RackLay-D-disc by default
+    disc_weight: float = 0.01            # λ
+    disc_start: int = 5                  # first epoch (0-based) with the adversarial terms
+    disc_lr: float = 1e-4
+    class_weights: tuple = (1.0, 5.0, 5.0)
+    seed: int = 0
+    workers: int = 0                     # DataLoader workers (0 is fastest on 2 cores + cache)
+    cache: bool = True                   # keep decoded, resized samples in memory
+    threads: int | None = None           # torch threads per process (default: cores / processes)
+    resume: bool = False                 # continue OUT/NAME/last.safetensors
+    patience: int | None = 8             # early stopping: epochs without improvement (None: off)
+    train_split: str = "train"
+    val_split: str = "val"
+    val_fraction: float | None = None    # carve validation from the train split instead
+    train_fraction: float = 1.0          # reproducible subset of the training split
+    init: str | None = None              # checkpoint to fine-tune from
+    freeze_encoder_epochs: int = 0
+    imagenet_weights: str | None = None  # local torchvision resnet18 state dict
+    max_minutes: float | None = None     # time budget over the whole run (resumes included)
+    amp: str = "none"                    # none | bf16 (CPU autocast)
+    checkpoint_every: int = 200          # also write last.safetensors every N steps (0: epoch ends)
+    device: str = "auto"                 # auto | cpu | cuda
+    progress: bool = True                # tqdm bars
+
+    def __post_init__(self):
+        self.views = tuple(self.views)
+        self.class_weights = tuple(float(w) for w in self.class_weights)
+        if len(self.class_weights) != len(CLASS_NAMES):
+            raise ValueError(f"class_weights needs {len(CLASS_NAMES)} values, got {list(self.class_weights)}")
+        if self.decoder not in DECODERS:
+            raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
+        if self.amp not in ("none", "bf16"):
+            raise ValueError(f"amp must be 'none' or 'bf16', got {self.amp!r}")
+        if not 0 < self.train_fraction <= 1:
+            raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
+        if self.val_fraction is not None and not 0 < self.val_fraction < 1:
+            raise ValueError(f"val_fraction must be in (0, 1), got {self.val_fraction}")
+        if self.epochs < 1 or self.batch_size < 1:
+            raise ValueError("epochs and batch_size must be >= 1")
+        self.model_config()  # validates views, sizes, R
+
+    def model_config(self) -> ModelConfig:
+        return ModelConfig(R=self.R, image_size=self.image_size, layout_size=self.layout_size,
+                           views=self.views, decoder=self.decoder, disc=self.disc)
+
+    def run_name(self) -> str:
+        return self.name or self.model_config().variant().lower()
+
+    def run_dir(self) -> Path:
+        return Path(self.out) / self.run_name()
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["views"] = list(self.views)
+        d["class_weights"] = list(self.class_weights)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "config") -> "TrainConfig":
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"{source}: unknown training option(s) {', '.join(unknown)}")
+        return cls(**d)
+
+    @classmethod
+    def from_yaml(cls, path, overrides: dict | None = None) -> "TrainConfig":
+        import yaml
+
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: config file not found")
+        try:
+            d = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as e:
+            raise ValueError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+        if not isinstance(d, dict):
+            raise ValueError(f"{path}: expected a mapping of training options")
+        d.pop("model", None)   # config.yaml of a run also records the model config
+        d.update(overrides or {})
+        return cls.from_dict(d, str(path))
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+class _Dist:
+    """Process-group facts from torchrun's environment (a single process without it)."""
+
+    def __init__(self, device_pref: str):
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = int(os.environ.get("RANK", "0"))
+        self.local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+        cuda = torch.cuda.is_available() and device_pref in ("auto", "cuda")
+        if device_pref == "cuda" and not torch.cuda.is_available():
+            raise ValueError("device 'cuda' requested but torch sees no GPU")
+        self.device = torch.device(f"cuda:{self.local_rank}" if cuda else "cpu")
+        self.enabled = self.world > 1
+        if self.enabled and not torch.distributed.is_initialized():
+            if cuda:
+                torch.cuda.set_device(self.device)
+            torch.distributed.init_process_group("nccl" if cuda else "gloo")
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    def barrier(self):
+        if self.enabled:
+            torch.distributed.barrier()
+
+    def broadcast_flag(self, flag: bool) -> bool:
+        """Rank 0's decision, shared with every process."""
+        if not self.enabled:
+            return flag
+        t = torch.tensor([1 if flag else 0], dtype=torch.int64, device=self.device if self.device.type == "cuda" else "cpu")
+        torch.distributed.broadcast(t, 0)
+        return bool(t.item())
+
+    def mean(self, values: list[float]) -> list[float]:
+        if not self.enabled:
+            return values
+        t = torch.tensor(values, dtype=torch.float64, device=self.device if self.device.type == "cuda" else "cpu")
+        torch.distributed.all_reduce(t)
+        return (t / self.world).tolist()
+
+    def close(self):
+        if self.enabled and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
+
+
+def sample_seed(seed: int, epoch: int, index: int) -> int:
+    return int(np.random.SeedSequence([seed, epoch, index]).generate_state(1)[0])
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+class _Seeded(torch.utils.data.Dataset):
+    """Items addressed as (index, epoch); the transform's randomness is seeded per item."""
+
+    def __init__(self, base, seed: int):
+        self.base, self.seed = base, seed
+
+    def __len__(self):
+        return len(self.base)
+
+    def __getitem__(self, key):
+        i, epoch = key
+        s = sample_seed(self.seed, epoch, i)
+        t = self.base.transform
+        if t is not None:
+            seed_everything(s)
+            for meth in ("reseed", "set_random_seed"):
+                if callable(getattr(t, meth, None)):
+                    getattr(t, meth)(s)
+                    break
+        return self.base[i]
+
+
+class _Batches:
+    """A batch sampler whose batches are replaced before each epoch (lets persistent workers
+    live across epochs)."""
+
+    def __init__(self):
+        self.batches: list = []
+
+    def __iter__(self):
+        return iter(list(self.batches))
+
+    def __len__(self):
+        return len(self.batches)
+
+
+def epoch_batches(n: int, batch_size: int, epoch: int, seed: int, world: int, rank: int) -> list[list[int]]:
+    """This process's batches of epoch `epoch`: a DistributedSampler permutation seeded by
+    (seed, epoch), cut into batches (a last batch of one sample is dropped: BatchNorm)."""
+    from torch.utils.data.distributed import DistributedSampler
+
+    sampler = DistributedSampler(range(n), num_replicas=world, rank=rank, shuffle=True, seed=seed)
+    sampler.set_epoch(epoch)
+    idx = list(sampler)
+    batches = [idx[i:i + batch_size] for i in range(0, len(idx), batch_size)]
+    if len(batches) > 1 and len(batches[-1]) < 2:
+        batches.pop()
+    return batches
+
+
+def lr_at(step: int, total: int, cfg: TrainConfig) -> float:
+    """Linear warm-up over `warmup_steps`, then cosine decay to 1% of the peak at `total`."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    t = min(1.0, (step - cfg.warmup_steps) / max(1, total - cfg.warmup_steps))
+    return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def layout_loss(logits: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Per-shelf weighted pixel cross-entropy. logits (N, R, 3, S, S), target (N, R, S, S)."""
+    return F.cross_entropy(logits.float().transpose(1, 2), target, weight=weight)
+
+
+def split_ids(cfg: TrainConfig) -> tuple[list[str], list[str]]:
+    from .data import RackLayRoot, make_splits
+
+    root = RackLayRoot(cfg.data)
+    if not root.root.is_dir():
+        raise FileNotFoundError(f"{root.root}: dataset folder not found")
+    train = root.resolve(cfg.train_split)
+    if cfg.val_fraction:
+        parts = make_splits(train, {"train": 1 - cfg.val_fraction, "val": cfg.val_fraction}, seed=cfg.seed)
+        train, val = parts["train"], parts["val"]
+    else:
+        if cfg.val_split not in root.splits():
+            raise ValueError(f"{root.split_path(cfg.val_split)}: no validation split "
+                             f"(splits: {', '.join(root.splits()) or 'none'}); use --val-fraction to carve one "
+                             f"from {cfg.train_split}")
+        val = root.resolve(cfg.val_split)
+    if cfg.train_fraction < 1:
+        order = list(train)
+        np.random.default_rng(cfg.seed + 1).shuffle(order)
+        train = sorted(order[:max(1, round(cfg.train_fraction * len(order)))])
+    if len(train) < 2:
+        raise ValueError(f"{root.root}: training split has {len(train)} sample(s); need at least 2")
+    if not val:
+        raise ValueError(f"{root.root}: validation set is empty")
+    return train, val
+
+
+@torch.no_grad()
+def validate(model, loader, cfg: TrainConfig, weight, device, progress=False) -> dict:
+    """Validation loss and LayoutMetrics result on a loader."""
+    from tqdm import tqdm
+
+    from .metrics import LayoutMetrics
+
+    was = model.training
+    model.eval()
+    m = LayoutMetrics()
+    loss, n = 0.0, 0
+    for batch in tqdm(loader, desc="val", leave=False, disable=not progress):
+        x = batch["image"].to(device)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.amp == "bf16"):
+            out = model(x)
+        for v, logits in out.items():
+            tgt = batch[v].to(device)
+            loss += float(layout_loss(logits, tgt, weight)) * x.shape[0]
+            m.update(v, logits.argmax(2).cpu().numpy().astype(np.uint8), tgt.cpu().numpy().astype(np.uint8))
+        n += x.shape[0]
+    model.train(was)
+    res = m.result()
+    return {"loss": loss / max(1, n), "result": res, "score": val_score(res)}
+
+
+def val_score(result: dict) -> float:
+    """Mean over views of the dataset-level IoU of shelf and box (nan classes count as 0)."""
+    vals = []
+    for v in result:
+        for c in ("shelf", "box"):
+            x = result[v]["dataset"][c]["IoU"]
+            vals.append(0.0 if x != x else x)
+    return float(np.mean(vals)) if vals else 0.0
+
+
+def _history_row(epoch, step, lr, tr: dict, val: dict | None, seconds, elapsed) -> dict:
+    row = {"epoch": epoch, "step": step, "lr": lr, **{f"train_{k}": v for k, v in tr.items()},
+           "seconds": round(seconds, 1), "elapsed_min": round(elapsed / 60, 2)}
+    if val is not None:
+        row["val_loss"] = val["loss"]
+        row["val_score"] = val["score"]
+        for v, r in val["result"].items():
+            for c in ("shelf", "box"):
+                row[f"{v}_{c}_iou"] = r["dataset"][c]["IoU"]
+            for k in ("rack", "box"):
+                row[f"{v}_{k}_paper_miou"] = r["paper"][k]["mIoU"]
+    return row
+
+
+def write_history(run_dir: Path, history: list[dict]) -> None:
+    """metrics.csv and the curve figures, regenerated from the history kept in the checkpoint."""
+    from .atomic import atomic_write_text
+
+    if not history:
+        return
+    keys: list[str] = []
+    for row in history:
+        keys += [k for k in row if k not in keys]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=keys)
+    w.writeheader()
+    for row in history:
+        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+    atomic_write_text(run_dir / "metrics.csv", buf.getvalue())
+    try:
+        plot_curves(run_dir, history)
+    except Exception as e:  # noqa: BLE001 - a figure must never stop training
+        print(f"warning: could not draw curves: {e}")
+
+
+def plot_curves(run_dir: Path, history: list[dict]) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .viz import save_figure
+
+    ep = [r["epoch"] + 1 for r in history]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k in ("train_loss", "train_ce", "val_loss"):
+        ys = [r.get(k, float("nan")) for r in history]
+        if any(y == y for y in ys):
+            ax.plot(ep, ys, marker="o", label=k)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("loss")
+    ax.set_title("losses")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, run_dir / "loss.png")
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    keys = [k for k in history[-1] if k.endswith("_iou") and not k.endswith("paper_miou")]
+    for k in keys + ["val_score"]:
+        ax.plot(ep, [r.get(k, float("nan")) for r in history], marker="o", label=k,
+                lw=2.5 if k == "val_score" else 1.2)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("dataset-level IoU (validation)")
+    ax.set_ylim(0, 1)
+    ax.set_title("validation metrics")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, run_dir / "metrics.png")
+
+
+def write_config(run_dir: Path, cfg: TrainConfig) -> None:
+    import yaml
+
+    from .atomic import atomic_write_text
+
+    d = cfg.to_dict()
+    d["model"] = cfg.model_config().to_dict()
+    atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(d, sort_keys=False))
+
+
+def _check_init(ck, cfg: TrainConfig) -> None:
+    c = ck.cfg
+    problems = [f"{k} {getattr(c, k)} (run: {getattr(cfg, k)})" for k in ("R", "layout_size", "decoder")
+                if getattr(c, k) != getattr(cfg, k)]
+    missing = [v for v in cfg.views if v not in c.views]
+    if missing:
+        problems.append(f"views {list(c.views)} lack {missing}")
+    if problems:
+        raise ValueError(f"{ck.path}: cannot fine-tune from this checkpoint: it has " + "; ".join(problems))
+
+
+# ----------------------------------------------------------------------------- train
+
+
+def train(cfg: TrainConfig, transform=None) -> Path:
+    """Train (or resume) a run; returns its directory."""
+    from torch.nn.parallel import DistributedDataParallel as DDP
+    from torch.utils.data import DataLoader
+    from tqdm import tqdm
+
+    from .checkpoint import load_checkpoint, save_checkpoint
+    from .torchdata import RackLayDataset
+
+    t_start = time.time()
+    dist = _Dist(cfg.device)
+    device = dist.device
+    try:
+        if device.type == "cpu":
+            torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // dist.world))
+        run_dir = cfg.run_dir()
+        last_path, best_path = run_dir / "last.safetensors", run_dir / "best.safetensors"
+        mcfg = cfg.model_config()
+
+        resume_ck = None
+        if cfg.resume:
+            if not last_path.is_file():
+                raise FileNotFoundError(f"{last_path}: nothing to resume (no last checkpoint)")
+            resume_ck = load_checkpoint(last_path)
+            saved = resume_ck.meta.get("train_config", {})
+            diff = [k for k in _RUN_DEFINING if k in saved and _norm(saved[k]) != _norm(getattr(cfg, k))]
+            if diff:
+                raise ValueError(f"{last_path}: resume must keep the run's settings; differs in "
+                                 + ", ".join(f"{k} ({saved[k]!r} vs {getattr(cfg, k)!r})" for k in diff))
+        elif last_path.exists():
+            raise ValueError(f"{run_dir}: run exists; pass resume to continue it or choose another name")
+
+        seed_everything(cfg.seed)
+        model = RackLayNet(mcfg)
+        disc = Discriminators(mcfg) if cfg.disc else None
+        if resume_ck is None:
+            if cfg.init:
+                ck = load_checkpoint(cfg.init)
+                _check_init(ck, cfg)
+                sd = ck.section("model")
+                own = model.state_dict()
+                model.load_state_dict({k: sd[k] for k in own}, strict=True)
+            elif cfg.imagenet_weights:
+                load_imagenet_weights(model.encoder, cfg.imagenet_weights)
+        model.to(device)
+        if disc is not None:
+            disc.to(device)
+        bf16 = cfg.amp == "bf16"
+        if bf16:
+            model.to(memory_format=torch.channels_last)
+
+        gen_opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        disc_opt = torch.optim.Adam(disc.parameters(), lr=cfg.disc_lr, betas=(0.5, 0.999)) if disc else None
+        optimizers = {"gen": gen_opt, **({"disc": disc_opt} if disc_opt else {})}
+
+        state = {"epoch": 0, "step": 0, "global_step": 0, "history": [], "best_score": -1.0,
+                 "best_epoch": -1, "bad_epochs": 0, "elapsed_s": 0.0, "finished": False, "stop_reason": ""}
+        if resume_ck is not None:
+            from .checkpoint import _load_strict
+            _load_strict(model, {k: v.to(device) for k, v in resume_ck.section("model").items()}, last_path, "model")
+            if disc is not None:
+                resume_ck.load_discriminators(disc)
+            for name, opt in optimizers.items():
+                resume_ck.load_optimizer(opt, name)
+            state.update({k: resume_ck.meta[k] for k in state if k in resume_ck.meta})
+            if state["finished"]:
+                if dist.main:
+                    print(f"{run_dir}: run already finished ({state['stop_reason']})")
+                return run_dir
+            del resume_ck
+
+        # data
+        train_ids, val_ids = split_ids(cfg)
+        kw = dict(image_size=cfg.image_size, layout_size=cfg.layout_size, views=cfg.views, R=cfg.R, cache=cfg.cache)
+        train_ds = RackLayDataset(cfg.data, ids=train_ids, transform=transform, **kw)
+        val_ds = RackLayDataset(cfg.data, ids=val_ids, **kw) if dist.main else None
+        batches = _Batches()
+        loader = DataLoader(_Seeded(train_ds, cfg.seed), batch_sampler=batches, num_workers=cfg.workers,
+                            persistent_workers=cfg.workers > 0)
+        val_loader = (DataLoader(val_ds, batch_size=cfg.batch_size, shuffle=False, num_workers=cfg.workers)
+                      if dist.main else None)
+        steps_per_epoch = len(epoch_batches(len(train_ds), cfg.batch_size, 0, cfg.seed, dist.world, dist.rank))
+        total_steps = steps_per_epoch * cfg.epochs
+        weight = torch.tensor(cfg.class_weights, dtype=torch.float32, device=device)
+
+        if dist.main:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            write_config(run_dir, cfg)
+            print(f"{mcfg.variant()} ({cfg.decoder} decoder), {len(train_ids)} train / {len(val_ids)} val images, "
+                  f"{cfg.image_size}->{cfg.layout_size}, {dist.world} process(es) on {device}, "
+                  f"{torch.get_num_threads()} thread(s) each -> {run_dir}")
+
+        def save_last():
+            if dist.main:
+                meta = {**state, "train_config": cfg.to_dict(), "variant": mcfg.variant()}
+                save_checkpoint(last_path, model, mcfg, optimizer=optimizers, extra=meta, disc=disc)
+
+        def budget_over() -> bool:
+            over = cfg.max_minutes is not None and state["elapsed_s"] + time.time() - t_start >= cfg.max_minutes * 60
+            return dist.broadcast_flag(over)
+
+        base_elapsed = state["elapsed_s"]
+        gen_ddp = None
+        frozen_mode = None
+        stop = False
+        while state["epoch"] < cfg.epochs and not stop:
+            epoch = state["epoch"]
+            frozen = epoch < cfg.freeze_encoder_epochs
+            if frozen != frozen_mode:   # (re)wrap when the trainable set changes
+                for p in model.encoder.parameters():
+                    p.requires_grad_(not frozen)
+                gen_ddp = DDP(model, device_ids=[device.index] if device.type == "cuda" else None) if dist.enabled else model
+                frozen_mode = frozen
+            disc_ddp = None
+            adv = disc is not None and epoch >= cfg.disc_start
+            if adv:
+                disc_ddp = DDP(disc, device_ids=[device.index] if device.type == "cuda" else None) if dist.enabled else disc
+            model.train()
+            if frozen:
+                model.encoder.eval()
+            all_batches = epoch_batches(len(train_ds), cfg.batch_size, epoch, cfg.seed, dist.world, dist.rank)
+            start = state["step"]
+            batches.batches = [[(i, epoch) for i in b] for b in all_batches[start:]]
+            sums = {k: 0.0 for k in ("loss", "ce", "adv", "disc")}
+            sums.update(state.get("epoch_sums") or {})
+            t_epoch = time.time()
+            bar = tqdm(total=len(all_batches), initial=start, desc=f"epoch {epoch + 1}/{cfg.epochs}",
+                       disable=not (cfg.progress and dist.main), dynamic_ncols=True)
+            for batch in loader:
+                lr = lr_at(state["global_step"], total_steps, cfg)
+                for g in gen_opt.param_groups:
+                    g["lr"] = lr
+                x = batch["image"].to(device)
+                if bf16:
+                    x = x.contiguous(memory_format=torch.channels_last)
+                targets = {v: batch[v].to(device) for v in cfg.views}
+                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+                    out = gen_ddp(x)
+                ce = sum(layout_loss(out[v], targets[v], weight) for v in cfg.views)
+                loss = ce
+                adv_loss = torch.zeros(())
+                probs = {}
+                if adv:
+                    disc.requires_grad_(False)
+                    for v in cfg.views:
+                        probs[v] = out[v].float().softmax(2)
+                        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+                            d_fake = disc(v, probs[v])
+                        adv_loss = adv_loss + lsgan_generator_loss(d_fake.float())
+                    disc.requires_grad_(True)
+                    loss = ce + cfg.disc_weight * adv_loss
+                gen_opt.zero_grad(set_to_none=True)
+                loss.backward()
+                gen_opt.step()
+                d_loss = torch.zeros(())
+                if adv:
+                    # one forward per view on [real; fake] so DDP sees a single pass
+                    for v in cfg.views:
+                        both = torch.cat([one_hot_layouts(targets[v]), probs[v].detach()])
+                        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+                            scores = disc_ddp(v, both).float()
+                        n = x.shape[0]
+                        d_loss = d_loss + lsgan_discriminator_loss(scores[:n], scores[n:])
+                    disc_opt.zero_grad(set_to_none=True)
+                    d_loss.backward()
+                    disc_opt.step()
+                for k, val in (("loss", loss), ("ce", ce), ("adv", adv_loss), ("disc", d_loss)):
+                    sums[k] += float(val.detach())
+                state["step"] += 1
+                state["global_step"] += 1
+                state["epoch_sums"] = dict(sums)
+                bar.update(1)
+                bar.set_postfix(loss=f"{sums['loss'] / state['step']:.4f}", lr=f"{lr:.2e}")
+                _maybe_crash(state["global_step"])
+                over = budget_over()
+                state["elapsed_s"] = base_elapsed + time.time() - t_start
+                if over:
+                    stop = True
+                    state["stop_reason"] = f"time budget of {cfg.max_minutes} min reached"
+                    break
+                if cfg.checkpoint_every and state["step"] % cfg.checkpoint_every == 0 and state["step"] < len(all_batches):
+                    save_last()
+            bar.close()
+            # epoch end (or budget stop mid-epoch): validate, record, checkpoint
+            n_steps = max(1, state["step"])
+            tr = dict(zip(sums, dist.mean([sums[k] / n_steps for k in sums])))
+            val = None
+            if dist.main:
+                val = validate(model, val_loader, cfg, weight, device, progress=cfg.progress)
+                row = _history_row(epoch, state["step"], lr_at(max(0, state["global_step"] - 1), total_steps, cfg),
+                                   tr, val, time.time() - t_epoch, state["elapsed_s"])
+                state["history"].append(row)
+                improved = val["score"] > state["best_score"]
+                if improved:
+                    state["best_score"], state["best_epoch"], state["bad_epochs"] = val["score"], epoch, 0
+                    meta = {"epoch": epoch, "val_score": val["score"], "val": val["result"],
+                            "train_config": cfg.to_dict(), "variant": mcfg.variant()}
+                    save_checkpoint(best_path, model, mcfg, extra=meta)
+                else:
+                    state["bad_epochs"] += 1
+                print(f"epoch {epoch + 1}: train loss {tr['loss']:.4f}, val loss {val['loss']:.4f}, "
+                      f"val score {val['score']:.4f}" + (" (best)" if improved else "")
+                      + f", {time.time() - t_epoch:.0f} s")
+            early = dist.broadcast_flag(bool(cfg.patience) and state["bad_epochs"] >= (cfg.patience or 0))
+            if early and not stop:
+                stop = True
+                state["stop_reason"] = f"early stop: no improvement for {cfg.patience} epochs"
+            state["epoch"] += 1
+            state["step"] = 0
+            state["epoch_sums"] = None
+            if state["epoch"] >= cfg.epochs and not stop:
+                stop = True
+                state["stop_reason"] = f"{cfg.epochs} epochs done"
+            state["finished"] = stop
+            state["elapsed_s"] = base_elapsed + time.time() - t_start
+            save_last()
+            if dist.main:
+                write_history(run_dir, state["history"])
+            dist.barrier()
+        if dist.main:
+            print(f"{run_dir}: {state['stop_reason']}; best val score {state['best_score']:.4f} "
+                  f"(epoch {state['best_epoch'] + 1}), {state['elapsed_s'] / 60:.1f} min")
+        return run_dir
+    finally:
+        dist.close()
+
+
+def _norm(v):
+    if isinstance(v, (list, tuple)):
+        return [_norm(x) for x in v]
+    return v
+
+
+def _maybe_crash(global_step: int) -> None:
+    """Test hook: RACKLAY_TEST_SIGKILL_AT_STEP=N kills this process (SIGKILL) after step N, to
+    test that --resume recovers from a hard crash."""
+    at = os.environ.get("RACKLAY_TEST_SIGKILL_AT_STEP")
+    if at and int(at) == global_step:
+        import signal
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+__all__ = ["TrainConfig", "train", "validate", "val_score", "epoch_batches", "lr_at", "layout_loss", "split_ids"]
