@@ -12,6 +12,7 @@ import io
 import json
 import os
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +50,8 @@ def export_onnx_bytes(model, cfg, opset: int = DEFAULT_OPSET, batch: int = 1) ->
     buf = io.BytesIO()
     kw = dict(input_names=["image"], output_names=list(views), opset_version=opset,
               dynamic_axes={"image": {0: "batch"}, **{v: {0: "batch"} for v in views}})
-    with torch.inference_mode(False), torch.no_grad():
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # TracerWarnings about shape checks that are constant here
         try:
             torch.onnx.export(wrapped, (x,), buf, dynamo=False, **kw)
         except TypeError:  # a torch without the legacy exporter switch
@@ -74,8 +76,9 @@ def export_onnx(model, cfg, out: str | os.PathLike, opset: int = DEFAULT_OPSET) 
 
 
 def parity(model, onnx_model, cfg, batch: int = 2, seed: int = 0, image: np.ndarray | None = None) -> dict:
-    """Run torch and onnxruntime on the same input; return {view: max |logit difference|}, the
-    share of pixels whose argmax class differs, and both latencies (ms per call).
+    """Run torch and onnxruntime on the same input; return per view the max |logit difference|,
+    the largest |logit| (the scale that difference is relative to), the share of pixels whose
+    argmax class differs, and both latencies (ms per call).
 
     The input is `image` (RGB uint8, any size) if given, else a seeded random normalised batch."""
     import torch
@@ -95,9 +98,10 @@ def parity(model, onnx_model, cfg, batch: int = 2, seed: int = 0, image: np.ndar
     t0 = time.perf_counter()
     got = dict(zip(cfg.views, sess.run(list(cfg.views), {"image": x.numpy()})))
     t_onnx = time.perf_counter() - t0
-    out: dict = {"max_abs_diff": {}, "class_mismatch": {}, "torch_ms": 1000 * t_torch, "onnx_ms": 1000 * t_onnx,
+    out: dict = {"max_abs_diff": {}, "logit_scale": {}, "class_mismatch": {}, "torch_ms": 1000 * t_torch, "onnx_ms": 1000 * t_onnx,
                  "batch": int(x.shape[0])}
     for v in cfg.views:
         out["max_abs_diff"][v] = float(np.abs(want[v] - got[v]).max())
+        out["logit_scale"][v] = float(np.abs(want[v]).max())
         out["class_mismatch"][v] = float((want[v].argmax(2) != got[v].argmax(2)).mean())
     return out

@@ -272,10 +272,23 @@ def write_prediction(out_root, sid: str, image: np.ndarray, pred: dict, views: S
                       title=f"{Path(source).name or sid}: predicted layouts", grid=g, crop=crop)
 
 
+def resize_prediction(pred: dict, size: int) -> dict:
+    """The prediction's class layouts resized (nearest, at pixel centres) to size x size, with
+    the matching Grid (same metric extent). Probabilities are left at the model's resolution."""
+    g = pred["grid"]
+    if size == g.size:
+        return pred
+    out = {k: (L.resize_layouts(v, size) if k in L.VIEWS else v) for k, v in pred.items()}
+    out["grid"] = L.Grid(size=size, extent=g.extent)
+    return out
+
+
 def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], out, figure: bool = True,
-                   png: bool = True, crop: bool = True, progress: bool = True, log=None) -> PredictReport:
+                   png: bool = True, crop: bool = True, progress: bool = True, log=None,
+                   layout_size: int | None = None) -> PredictReport:
     """Predict every input file; a file that cannot be read gets one line via `log` (default:
-    stderr) and the rest still run."""
+    stderr) and the rest still run. layout_size: write layouts at this D (nearest resize of the
+    model's S x S output), e.g. a ground-truth dataset's D so `racklay score` can compare."""
     import sys
 
     from .data import read_image
@@ -299,6 +312,8 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
         try:
             image = read_image(path)
             pred = predictor.predict(image)
+            if layout_size:
+                pred = resize_prediction(pred, layout_size)
             write_prediction(out, sid, image, pred, predictor.views, source=str(path), figure=figure,
                              png=png, crop=crop, extra_meta=extra)
             rep.done.append(sid)

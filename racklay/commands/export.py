@@ -14,8 +14,9 @@ def register(sub) -> None:
     p.add_argument("--onnx", required=True, help="output .onnx file")
     p.add_argument("--opset", type=int, default=17, help="ONNX opset (default 17)")
     p.add_argument("--image", default=None, help="check parity on this photo instead of a random batch")
-    p.add_argument("--tol", type=float, default=1e-3,
-                   help="fail (exit 1) when the max abs logit difference exceeds this (default 1e-3)")
+    p.add_argument("--tol", type=float, default=1e-4,
+                   help="fail (exit 1) when max |logit difference| exceeds TOL x max(1, max |logit|) "
+                        "(default 1e-4: float32 rounding over a deep network, not a real mismatch)")
     p.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
     p.set_defaults(func=run)
 
@@ -43,13 +44,14 @@ def run(args) -> int:
         from racklay.data import read_image
         image = read_image(args.image)
     res = parity(model, path, cfg, image=image)
-    worst = max(res["max_abs_diff"].values())
+    worst = max(res["max_abs_diff"][v] / max(1.0, res["logit_scale"][v]) for v in cfg.views)
     for v in cfg.views:
-        print(f"  {v}: max abs logit difference onnxruntime vs torch = {res['max_abs_diff'][v]:.3g}, "
-              f"argmax differs on {100 * res['class_mismatch'][v]:.4f}% of pixels")
+        print(f"  {v}: max abs logit difference onnxruntime vs torch = {res['max_abs_diff'][v]:.3g} "
+              f"(logits up to {res['logit_scale'][v]:.3g}), argmax differs on "
+              f"{100 * res['class_mismatch'][v]:.4f}% of pixels")
     print(f"  batch {res['batch']}: torch {res['torch_ms']:.0f} ms, onnxruntime {res['onnx_ms']:.0f} ms (one call, cold)")
     if worst > args.tol:
-        print(f"parity check FAILED: {worst:.3g} > --tol {args.tol}")
+        print(f"parity check FAILED: relative difference {worst:.3g} > --tol {args.tol}")
         return 1
-    print(f"parity OK (<= {args.tol})")
+    print(f"parity OK (relative difference {worst:.3g} <= {args.tol})")
     return 0

@@ -18,6 +18,9 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--backend", choices=("torch", "onnx"), default="torch",
                    help="torch (default) or onnxruntime (a checkpoint is exported in memory)")
+    p.add_argument("--layout-size", type=int, default=None, metavar="D",
+                   help="write layouts at D x D (nearest resize of the model's output, same metric extent), "
+                        "e.g. 512 to score against the original RackLay data (default: the model's size)")
     p.add_argument("--threads", type=int, default=None, help="intra-op threads (default: library default)")
     p.add_argument("--no-figure", action="store_true", help="skip the paper-style figures")
     p.add_argument("--no-png", action="store_true", help="skip the per-shelf colour PNGs")
@@ -38,9 +41,12 @@ def run(args) -> int:
         if f.resolve().parent == out / "Images":
             raise CLIError(f"{f}: input lies in the output's Images/ folder; choose another --out "
                            "(predictions would overwrite that dataset)")
+    if args.layout_size is not None and args.layout_size < 1:
+        raise CLIError(f"--layout-size must be >= 1, got {args.layout_size}")
     pred = Predictor(args.weights, backend=args.backend, threads=args.threads)
     rep = predict_folder(pred, args.inputs, args.out, figure=not args.no_figure, png=not args.no_png,
-                         crop=not args.full)
+                         crop=not args.full, layout_size=args.layout_size)
+    D = args.layout_size or pred.layout_size
     print(f"{rep.summary()} -> {args.out} (backend {pred.backend}, "
-          f"{pred.image_size[1]}x{pred.image_size[0]} input, {pred.layout_size}x{pred.layout_size} layouts)")
+          f"{pred.image_size[1]}x{pred.image_size[0]} input, {D}x{D} layouts)")
     return 0 if rep.ok else 1

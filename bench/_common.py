@@ -1,0 +1,58 @@
+"""Shared helpers for the speed benchmarks in bench/ (not part of the installed package).
+
+glibc's allocator dominates torch on this kind of VM (racklay-facts.md: a reference training
+step at 256 px fell from 7.2 s to 3.7 s with these settings). The variables are read by glibc
+when the process starts, so setting them from Python is too late: `ensure_malloc_env()`
+re-executes the script with them set unless they already are (the Makefile exports them too).
+"""
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import sys
+import time
+
+MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": "4294967296", "MALLOC_TRIM_THRESHOLD_": "4294967296"}
+
+
+def ensure_malloc_env() -> None:
+    """Re-exec this script with the MALLOC_* variables set (once), unless disabled with
+    RACKLAY_BENCH_NO_MALLOC=1 (to measure the difference)."""
+    if os.environ.get("RACKLAY_BENCH_NO_MALLOC") == "1":
+        return
+    missing = {k: v for k, v in MALLOC_ENV.items() if k not in os.environ}
+    if missing:
+        os.environ.update(missing)
+        os.execv(sys.executable, [sys.executable] + sys.argv)
+
+
+def conditions() -> str:
+    """One line describing the machine and load, printed with every result."""
+    import torch
+
+    load = os.getloadavg()
+    malloc = "set" if all(k in os.environ for k in MALLOC_ENV) else "NOT set"
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
+            f"{torch.get_num_threads()} threads, MALLOC_* {malloc}, nice {os.nice(0)}, "
+            f"load average {load[0]:.1f}/{load[1]:.1f}/{load[2]:.1f} (CPU shared with other jobs)")
+
+
+def time_calls(fn, n: int) -> list[float]:
+    """Wall-clock seconds of n calls of fn()."""
+    out = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def median(xs) -> float:
+    return statistics.median(xs)
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(lines)

@@ -1,0 +1,115 @@
+"""Batch-1 inference latency of RackLay-D (both views): the default `light` decoder vs the
+authors' `paper` decoder, in the same run, at 256->256 and 512->512 (input -> layout size).
+
+    MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=4294967296 \
+        nice -n 5 .venv/bin/python bench/inference_speed.py [--sizes 256 512] [--bf16] [--onnx]
+
+(the script re-executes itself with those MALLOC_* variables if they are missing: glibc reads
+them at process start). Models are randomly initialised (weights do not change the cost).
+Timing interleaves the models in rounds so that load from other processes hits all of them alike;
+the reported number is the median over all timed calls (ms). Columns: torch fp32; with --bf16,
+torch autocast bfloat16 + channels_last; with --onnx, onnxruntime fp32 (CPU provider). Prints
+numbers only; nothing is asserted.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _common import conditions, ensure_malloc_env, markdown_table, median, time_calls  # noqa: E402
+
+
+def build_runners(decoder: str, size: int, bf16: bool, onnx: bool) -> dict:
+    import numpy as np
+    import torch
+
+    from racklay.model import ModelConfig, RackLayNet
+
+    torch.manual_seed(0)
+    cfg = ModelConfig(image_size=size, layout_size=size, views=("top", "front"), decoder=decoder)
+    model = RackLayNet(cfg).eval()
+    x = torch.randn(1, 3, size, size)
+    runners = {}
+
+    def fp32():
+        with torch.inference_mode():
+            model(x)
+
+    runners["torch fp32"] = fp32
+    if bf16:
+        model_cl = RackLayNet(cfg).eval().to(memory_format=torch.channels_last)
+        model_cl.load_state_dict(model.state_dict())
+        x_cl = x.contiguous(memory_format=torch.channels_last)
+
+        def bf():
+            with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16):
+                model_cl(x_cl)
+
+        runners["torch bf16+CL"] = bf
+    if onnx:
+        import onnxruntime as ort
+
+        from racklay.export import export_onnx_bytes
+
+        opts = ort.SessionOptions()
+        opts.log_severity_level = 3
+        sess = ort.InferenceSession(export_onnx_bytes(model, cfg), sess_options=opts,
+                                    providers=["CPUExecutionProvider"])
+        xn = x.numpy().astype(np.float32)
+        runners["onnxruntime fp32"] = lambda: sess.run(None, {"image": xn})
+    return runners
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="square input = layout sizes")
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds (default 3)")
+    ap.add_argument("--calls", type=int, default=5, help="timed calls per model per round (default 5)")
+    ap.add_argument("--warmup", type=int, default=2, help="untimed calls per model first (default 2)")
+    ap.add_argument("--bf16", action="store_true", help="add a bf16 autocast + channels_last column")
+    ap.add_argument("--onnx", action="store_true", help="add an onnxruntime column")
+    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
+    ap.add_argument("--json", default=None, help="also write the raw numbers here")
+    args = ap.parse_args(argv)
+
+    import torch
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    print("conditions:", conditions())
+    results = {}
+    rows = []
+    for size in args.sizes:
+        runners = {dec: build_runners(dec, size, args.bf16, args.onnx) for dec in ("light", "paper")}
+        times = {(d, k): [] for d, rs in runners.items() for k in rs}
+        for (d, k) in times:
+            time_calls(runners[d][k], args.warmup)
+        for _ in range(args.rounds):
+            for (d, k) in times:
+                times[(d, k)] += time_calls(runners[d][k], args.calls)
+        cols = list(runners["light"])
+        med = {key: 1000 * median(v) for key, v in times.items()}
+        results[size] = {f"{d} {k}": {"median_ms": med[(d, k)], "all_ms": [1000 * t for t in times[(d, k)]]}
+                         for (d, k) in times}
+        for d in ("light", "paper"):
+            rows.append([f"{size}->{size}", d] + [f"{med[(d, k)]:.1f}" for k in cols])
+        rows.append([f"{size}->{size}", "**paper / light**"] +
+                    [f"**{med[('paper', k)] / med[('light', k)]:.1f}x**" for k in cols])
+        print(f"  {size}: " + ", ".join(f"{d} {k} {med[(d, k)]:.1f} ms" for (d, k) in times), flush=True)
+    header = ["input->layout", "decoder"] + [f"{k} (ms)" for k in cols]
+    print()
+    print("RackLay-D (both views), batch 1, median latency over "
+          f"{args.rounds}x{args.calls} interleaved calls:")
+    print(markdown_table(header, rows))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"conditions": conditions(), "results": results}, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    ensure_malloc_env()
+    sys.exit(main())

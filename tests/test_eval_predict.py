@@ -1,0 +1,213 @@
+"""racklay eval / predict / export: metrics plumbing, prediction outputs, bad inputs, ONNX parity.
+Tiny models (64 px input, 32 px layouts) on the schematic toy dataset keep this fast."""
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from racklay import layout as L
+from racklay.cli import main as racklay_main
+from racklay.data import RackLayRoot, read_image
+from racklay.toy import build_toy_dataset
+
+IMG, S, R = 64, 32, 4
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    root = tmp_path_factory.mktemp("toy")
+    build_toy_dataset(root, n=10, seed=3, R=R, D=128)
+    return root
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory):
+    from racklay.checkpoint import save_checkpoint
+    from racklay.model import ModelConfig, RackLayNet
+
+    torch.manual_seed(0)
+    cfg = ModelConfig(R=R, image_size=IMG, layout_size=S, views=("top", "front"))
+    model = RackLayNet(cfg).eval()
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.safetensors"
+    save_checkpoint(path, model, cfg)
+    return path
+
+
+@pytest.fixture(scope="module")
+def onnx_file(ckpt, tmp_path_factory):
+    out = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
+    assert racklay_main(["export", "--weights", str(ckpt), "--onnx", str(out)]) == 0
+    return out
+
+
+class LookupNet(torch.nn.Module):
+    """A 'perfect' model: returns confident logits of the ground truth of whichever dataset image
+    it is given (found by the image tensor's hash). Exercises evaluate's batching/alignment."""
+
+    def __init__(self, items):
+        super().__init__()
+        self.table = {self.key(it["image"]): {v: it[v] for v in ("top", "front")} for it in items}
+
+    @staticmethod
+    def key(x):
+        return hashlib.sha1(x.numpy().tobytes()).hexdigest()
+
+    def forward(self, x):
+        out = {}
+        for v in ("top", "front"):
+            gts = [self.table[self.key(xi)][v] for xi in x]
+            onehot = torch.nn.functional.one_hot(torch.stack(gts), 3).permute(0, 1, 4, 2, 3).float()
+            out[v] = 20.0 * onehot
+        return out
+
+
+def test_perfect_predictor_scores_one(toy):
+    from racklay.evaluate import evaluate
+    from racklay.model import ModelConfig
+    from racklay.torchdata import RackLayDataset
+
+    cfg = ModelConfig(R=R, image_size=IMG, layout_size=S)
+    ds = RackLayDataset(toy, split="test", image_size=IMG, layout_size=S, R=R)
+    net = LookupNet([ds[i] for i in range(len(ds))])
+    res = evaluate((net, cfg), toy, split="test", batch_size=3, progress=False)
+    for v in ("top", "front"):
+        assert res[v]["images"] == len(ds)
+        for k in ("rack", "box"):
+            assert res[v]["paper"][k] == {"mIoU": 1.0, "pixel_precision": 1.0}
+        for c in ("shelf", "box"):
+            d = res[v]["dataset"][c]
+            assert d["IoU"] == d["precision"] == d["recall"] == 1.0
+            assert d["AP"] == pytest.approx(1.0)
+
+
+def test_eval_cli_writes_json_and_table(toy, ckpt, tmp_path, capsys):
+    out = tmp_path / "m.json"
+    rc = racklay_main(["eval", "--weights", str(ckpt), "--data", str(toy), "--split", "test",
+                       "--batch-size", "4", "--json", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "top rack | top box | front rack | front box" in text
+    assert "| view | class | IoU | precision | recall | AP |" in text
+    rep = json.loads(out.read_text())
+    assert {"weights", "data", "split", "images", "model", "metrics"} <= set(rep)
+    n_test = len(RackLayRoot(toy).split_ids("test"))
+    assert rep["images"] == n_test and rep["split"] == "test" and rep["model"]["layout_size"] == S
+    for v in ("top", "front"):
+        m = rep["metrics"][v]
+        assert set(m["paper"]) == {"rack", "box"}
+        assert 0.0 <= m["paper"]["box"]["mIoU"] <= 1.0
+        assert "AP" in m["dataset"]["box"]
+        assert np.array(m["confusion"]).sum() == n_test * R * S * S
+
+
+def test_eval_native_resolution_and_bad_split(toy, ckpt):
+    from racklay.data import DataError
+    from racklay.evaluate import evaluate
+
+    res = evaluate(ckpt, toy, split="val", native=True, progress=False, with_probs=False)
+    n = len(RackLayRoot(toy).split_ids("val"))
+    assert np.array(res["top"]["confusion"]).sum() == n * R * 128 * 128
+    assert "AP" not in res["top"]["dataset"]["box"]
+    with pytest.raises(DataError, match="nosuch.txt"):
+        evaluate(ckpt, toy, split="nosuch", progress=False)
+
+
+def test_predict_folder_outputs_and_bad_files(toy, ckpt, tmp_path, capsys):
+    src = tmp_path / "photos"
+    src.mkdir()
+    ds = RackLayRoot(toy)
+    ids = ds.ids()[:2]
+    import cv2
+
+    cv2.imwrite(str(src / f"{ids[0]}.png"), cv2.cvtColor(ds.read_image(ids[0]), cv2.COLOR_RGB2BGR))
+    big = cv2.resize(ds.read_image(ids[1]), (1000, 600))  # another size, as JPEG
+    cv2.imwrite(str(src / f"{ids[1]}.jpg"), cv2.cvtColor(big, cv2.COLOR_RGB2BGR))
+    (src / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
+    (src / "notes.txt").write_text("not an image")
+    out = tmp_path / "pred"
+    rc = racklay_main(["predict", str(src), "--weights", str(ckpt), "--out", str(out), "--layout-size", "128"])
+    cap = capsys.readouterr()
+    assert rc == 1
+    errors = [line for line in cap.err.splitlines() if line.startswith("error:")]
+    assert len(errors) == 2
+    assert any("broken.png" in e for e in errors) and any("notes.txt" in e for e in errors)
+    assert "2 of 4 input(s) failed, 2 predicted" in cap.out
+    pr = RackLayRoot(out)
+    for sid in ids:
+        for v in ("top", "front"):
+            raw = np.load(pr.layout_path(v, sid))
+            assert raw.shape == (R, 128, 128) and set(np.unique(raw)) <= {0, 115, 255}
+            png = read_image(out / "png" / f"{sid}_{v}_shelf1.png")
+            assert png.shape == (128, 128, 3)
+        assert read_image(out / "figures" / f"{sid}.png").shape[0] > 100
+        assert pr.read_meta(sid)["source"].endswith((".png", ".jpg"))
+    assert not (out / "figures" / "broken.png").exists()
+    # the output is a RackLay dataset that `racklay score` reads against the truth
+    assert racklay_main(["score", "--pred", str(out), "--gt", str(toy)]) == 0
+    assert "Paper protocol" in capsys.readouterr().out
+
+
+def test_predictor_any_size_and_bad_weights(ckpt, tmp_path):
+    from racklay.predict import Predictor
+
+    p = Predictor(ckpt)
+    for shape in ((280, 470, 3), (37, 91, 3), (50, 60), (40, 40, 4)):
+        out = p.predict(np.random.default_rng(0).integers(0, 256, shape, dtype=np.uint8))
+        assert out["top"].shape == out["front"].shape == (R, S, S)
+        assert out["probs"]["top"].shape == (R, 3, S, S)
+        np.testing.assert_allclose(out["probs"]["front"].sum(axis=1), 1.0, atol=1e-5)
+        assert (out["top"] == out["probs"]["top"].argmax(1)).all()
+        assert out["grid"] == L.Grid(S, 8.0)
+    with pytest.raises(ValueError, match="uint8"):
+        p.predict(np.zeros((10, 10, 3), np.float32))
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"nope")
+    with pytest.raises(ValueError, match="bad.safetensors"):
+        Predictor(bad)
+    assert racklay_main(["predict", str(tmp_path), "--weights", str(bad), "--out", str(tmp_path / "o")]) == 2
+    bad_onnx = tmp_path / "bad.onnx"
+    bad_onnx.write_bytes(b"\x08\x07garbage")
+    with pytest.raises(ValueError, match="bad.onnx"):
+        Predictor(bad_onnx)
+
+
+def test_onnx_parity_and_backend(ckpt, onnx_file, toy, capsys):
+    from racklay.checkpoint import load_model
+    from racklay.export import parity
+    from racklay.predict import Predictor
+
+    model, cfg, _ = load_model(ckpt)
+    res = parity(model, onnx_file, cfg)
+    for v in cfg.views:
+        assert res["max_abs_diff"][v] < 1e-3 * max(1.0, res["logit_scale"][v])
+    image = RackLayRoot(toy).read_image(RackLayRoot(toy).ids()[0])
+    a = Predictor(ckpt).predict(image)
+    for b in (Predictor(onnx_file).predict(image), Predictor(ckpt, backend="onnx").predict(image)):
+        for v in cfg.views:
+            assert (a[v] == b[v]).mean() > 0.999
+            np.testing.assert_allclose(a["probs"][v], b["probs"][v], atol=1e-4)
+
+
+def test_predict_cli_onnx_matches_torch(ckpt, onnx_file, toy, tmp_path):
+    img = RackLayRoot(toy).image_path(RackLayRoot(toy).ids()[0])
+    outs = {}
+    for name, extra in (("torch", []), ("onnx", ["--backend", "onnx"])):
+        o = tmp_path / name
+        assert racklay_main(["predict", str(img), "--weights", str(ckpt), "--out", str(o),
+                             "--no-figure", "--no-png"] + extra) == 0
+        outs[name] = np.load(RackLayRoot(o).layout_path("top", img.stem))
+    assert (outs["torch"] == outs["onnx"]).mean() > 0.999
+    assert RackLayRoot(tmp_path / "onnx").read_meta(img.stem)["backend"] == "onnx"
+
+
+def test_export_rejects_bad_file(tmp_path, capsys):
+    bad = tmp_path / "x.safetensors"
+    bad.write_bytes(b"\x00" * 64)
+    assert racklay_main(["export", "--weights", str(bad), "--onnx", str(tmp_path / "y.onnx")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "x.safetensors" in err[0]
+    assert not (tmp_path / "y.onnx").exists()
