@@ -1,0 +1,371 @@
+"""Rack reasoning: counts, metric volumes, view fusion, 3D export and `racklay analyze`."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from racklay import layout as L
+from racklay.export3d import (COLORS, glb_bytes, glb_mesh_arrays, ply_text, rack_parts, read_glb,
+                              render_figure)
+from racklay.reasoning import ReasoningConfig, analyze_layouts, analyze_shelf
+
+G = L.Grid(256)  # 3.125 cm pixels; the default opening (4 cm) rounds to 1 px: no-op
+RES = G.res
+SHELF = L.Shelf(2.0, 0.8, 0.6)
+
+
+def n_rows(v0, v1, grid=G):
+    """Rows whose centre lies in [v0, v1) (top-view y or front-view z)."""
+    c = grid.row_centers()
+    return int(((c >= v0) & (c < v1)).sum())
+
+
+def n_cols(x0, x1, grid=G):
+    c = grid.centers()
+    return int(((c >= x0) & (c < x1)).sum())
+
+
+def expected_volume(box: L.Box, grid=G) -> float:
+    """Exact volume of an axis-aligned box after rasterising: footprint pixels x height rows."""
+    x0, x1 = box.x_range()
+    y0, y1 = box.y_range()
+    return n_cols(x0, x1, grid) * n_rows(y0, y1, grid) * n_rows(box.z0, box.z0 + box.sz, grid) * grid.res ** 3
+
+
+def expected_capacity(shelf: L.Shelf, grid=G) -> float:
+    L_, W, H = shelf.length, shelf.depth, shelf.clear_height
+    return (n_cols(-L_ / 2, L_ / 2, grid) * n_rows(-W / 2, W / 2, grid) * grid.res ** 2
+            * (n_rows(0.0, H + L.FRONT_CLEARANCE_PAD_M, grid) * grid.res - L.FRONT_CLEARANCE_PAD_M))
+
+
+def one_shelf(boxes, shelf=SHELF, grid=G, cfg=ReasoningConfig()):
+    lay = L.rasterize_shelf(shelf, boxes, grid)
+    return analyze_shelf(lay.top, lay.front, grid, cfg), lay
+
+
+# --- layout span helpers ------------------------------------------------------------------------
+def test_grid_span_helpers_invert_fill_axis_rect():
+    g = L.Grid(64, 4.0)
+    canvas = np.zeros((64, 64), np.uint8)
+    L.fill_axis_rect(canvas, g, -0.5, 0.75, 0.25, 1.0, 1)
+    rows = np.flatnonzero(canvas.any(axis=1))
+    cols = np.flatnonzero(canvas.any(axis=0))
+    assert g.col_span_to_x(cols[0], cols[-1] + 1) == (-0.5, 0.75)
+    assert g.row_span_to_v(rows[0], rows[-1] + 1) == (0.25, 1.0)
+    assert g.px_to_m(8) == pytest.approx(0.5)
+    assert g.m_to_px(0.5) == 8 and g.m_to_px(0.001) == 1
+
+
+# --- exact counts and volumes -------------------------------------------------------------------
+def test_separate_boxes_exact_counts_and_volumes():
+    boxes = [L.Box(-0.6, 0.0, 0.4, 0.5, 0.3), L.Box(0.0, 0.1, 0.3, 0.4, 0.5), L.Box(0.6, -0.1, 0.25, 0.3, 0.2)]
+    s, _ = one_shelf(boxes)
+    assert s.complete and len(s.boxes) == 3
+    assert s.length_m == pytest.approx(n_cols(-1, 1) * RES)
+    assert s.depth_m == pytest.approx(n_rows(-0.4, 0.4) * RES)
+    assert s.clear_height_m == pytest.approx(n_rows(0, 0.65) * RES - 0.05)
+    assert s.capacity_m3 == pytest.approx(expected_capacity(SHELF), rel=1e-12)
+    for got, want in zip(s.boxes, boxes):  # sorted by x
+        assert got.volume_m3 == pytest.approx(expected_volume(want), rel=1e-12)
+        assert got.x[0] == pytest.approx(want.x_range()[0], abs=RES)
+        assert got.y[1] == pytest.approx(want.y_range()[1], abs=RES)
+        assert got.z == pytest.approx((0.0, want.sz), abs=RES)
+        assert not got.hidden and not got.split
+    occupied = sum(expected_volume(b) for b in boxes)
+    assert s.free_m3 == pytest.approx(expected_capacity(SHELF) - occupied, rel=1e-12)
+    # and the quantised answer is close to the true metric one
+    true_free = 2.0 * 0.8 * 0.6 - sum(b.sx * b.sy * b.sz for b in boxes)
+    assert abs(s.free_m3 - true_free) / true_free < 0.05
+
+
+def test_rotated_box_volume_uses_footprint_not_bounding_box():
+    box = L.Box(0.0, 0.0, 0.5, 0.3, 0.4, yaw=0.6)
+    s, lay = one_shelf([box])
+    (b,) = s.boxes
+    footprint = (lay.top == L.BOX).sum() * RES ** 2
+    assert b.footprint_m2 == pytest.approx(footprint)
+    assert b.volume_m3 == pytest.approx(footprint * n_rows(0, 0.4) * RES)
+    assert b.volume_m3 < b.size[0] * b.size[1] * b.size[2] * 0.8
+    assert b.footprint_m2 == pytest.approx(0.5 * 0.3, rel=0.1)
+
+
+def test_empty_shelf_is_all_free():
+    s, _ = one_shelf([])
+    assert s.boxes == [] and s.occupied_m3 == 0
+    assert s.free_m3 == pytest.approx(s.capacity_m3) and s.free_fraction == pytest.approx(1.0)
+
+
+def test_boxes_offset_off_centre_shelf_z_base_from_layout():
+    # a box stacked on something (z0 > 0) keeps its z-range
+    box = L.Box(0.3, 0.0, 0.3, 0.3, 0.2, z0=0.15)
+    s, _ = one_shelf([box])
+    (b,) = s.boxes
+    assert b.z == pytest.approx((n_rows(0, 0.15) * RES, n_rows(0, 0.35) * RES))
+
+
+# --- fusion edge cases --------------------------------------------------------------------------
+def test_touching_in_front_view_but_not_top_is_split_by_column_occupancy():
+    # adjacent in x (one front blob), apart in y (two top blobs), different heights
+    a = L.Box(-0.35, -0.2, 0.3, 0.3, 0.3)
+    b = L.Box(-0.05, 0.2, 0.3, 0.3, 0.5)
+    s, lay = one_shelf([a, b])
+    from racklay.reasoning import components
+    assert len(components(lay.front == L.BOX, G, 0.01)) == 1
+    assert len(s.boxes) == 2
+    got = sorted(s.boxes, key=lambda q: q.x[0])
+    assert got[0].z[1] == pytest.approx(n_rows(0, 0.3) * RES)
+    assert got[1].z[1] == pytest.approx(n_rows(0, 0.5) * RES)
+    assert [q.volume_m3 for q in got] == pytest.approx([expected_volume(a), expected_volume(b)])
+    assert not any(q.hidden for q in got)
+
+
+def test_stack_hidden_behind_another_gets_the_front_height():
+    front_box = L.Box(0.2, -0.2, 0.4, 0.3, 0.5)   # x in [0, 0.4), near the camera, tall
+    behind = L.Box(0.2, 0.2, 0.2, 0.3, 0.2)       # x in [0.1, 0.3): fully hidden in the front view
+    s, _ = one_shelf([front_box, behind])
+    assert len(s.boxes) == 2
+    hid = [b for b in s.boxes if b.hidden]
+    vis = [b for b in s.boxes if not b.hidden]
+    assert len(hid) == 1 and len(vis) == 1
+    assert vis[0].z[1] == pytest.approx(n_rows(0, 0.5) * RES)
+    assert hid[0].z[1] == pytest.approx(n_rows(0, 0.5) * RES)  # an upper bound: all the view shows
+    assert hid[0].y[0] == pytest.approx(0.05, abs=RES)
+
+
+def test_partially_hidden_stacks_keep_their_own_heights():
+    a = L.Box(0.2, -0.2, 0.4, 0.3, 0.3)  # x [0, 0.4), front, short
+    b = L.Box(0.4, 0.2, 0.4, 0.3, 0.5)   # x [0.2, 0.6), behind, tall
+    s, _ = one_shelf([a, b])
+    got = sorted(s.boxes, key=lambda q: q.x[0])
+    assert len(got) == 2 and not any(q.hidden for q in got)
+    assert got[0].z[1] == pytest.approx(n_rows(0, 0.3) * RES)
+    assert got[1].z[1] == pytest.approx(n_rows(0, 0.5) * RES)
+
+
+def test_touching_in_top_view_but_not_front_is_split_at_front_gaps():
+    a = L.Box(-0.3, 0.0, 0.3, 0.4, 0.3)  # x [-0.45, -0.15)
+    b = L.Box(0.05, 0.0, 0.3, 0.4, 0.4)  # x [-0.10, 0.20): a 5 cm gap
+    lay = L.rasterize_shelf(SHELF, [a, b], G)
+    top = lay.top.copy()
+    gap = slice(int(G.x_to_col(-0.16)), int(G.x_to_col(-0.09)) + 1)
+    rows = slice(int(G.y_to_row(0.05)), int(G.y_to_row(-0.05)))
+    top[rows, gap] = L.BOX  # a predicted bridge joins the two footprints
+    from racklay.reasoning import components
+    assert len(components(top == L.BOX, G, 0.01)) == 1
+    s = analyze_shelf(top, lay.front, G)
+    assert len(s.boxes) == 2 and all(q.split for q in s.boxes)
+    got = sorted(s.boxes, key=lambda q: q.x[0])
+    assert [q.volume_m3 for q in got] == pytest.approx([expected_volume(a), expected_volume(b)])
+
+
+def test_noise_blobs_below_min_size_are_ignored_and_unmatched_blobs_not_counted():
+    box = L.Box(-0.5, 0.0, 0.3, 0.3, 0.3)
+    lay = L.rasterize_shelf(SHELF, [box], G)
+    top, front = lay.top.copy(), lay.front.copy()
+    c = int(G.x_to_col(0.5))
+    top[128, c:c + 2] = L.BOX          # 2 px: 0.002 m^2
+    front[120, c:c + 3] = L.BOX        # 3 px in the free space
+    s = analyze_shelf(top, front, G)
+    assert len(s.boxes) == 1 and s.unmatched_top == 0 and s.unmatched_front == 0
+    # a front-view box big enough to be real but with nothing in the top view: reported, not counted
+    z0 = int(G.z_to_row(0.3))
+    front[z0:z0 + 6, c:c + 6] = L.BOX
+    s = analyze_shelf(top, front, G)
+    assert len(s.boxes) == 1 and s.unmatched_front == 1
+    # the opening removes thin spurs when the kernel is wider than a pixel
+    top2 = lay.top.copy()
+    top2[120:140, c] = L.BOX  # 1-px-wide line, 0.02 m^2
+    s = analyze_shelf(top2, lay.front, G, ReasoningConfig(open_m=0.1))
+    assert len(s.boxes) == 1
+
+
+# --- racks: missing shelves, incomplete views, report, JSON -------------------------------------
+def test_missing_shelves_and_report_line():
+    full = L.rasterize_shelf(SHELF, [L.Box(0, 0, 0.3, 0.3, 0.3), L.Box(0.6, 0, 0.3, 0.3, 0.2)], G)
+    empty = L.rasterize_shelf(SHELF, [], G)
+    top, front = L.stack_shelves([full, None, empty], 4, G)
+    r = analyze_layouts(top, front, G)
+    assert [s.index for s in r.shelves] == [0, 2]
+    assert r.n_shelves == 2 and r.n_box_stacks == 2
+    assert r.capacity_m3 == pytest.approx(2 * expected_capacity(SHELF))
+    frac = r.free_m3 / r.capacity_m3
+    assert r.report() == (f"Rack has 2 shelves, 2 box stacks, and {r.free_m3:.2f} m³ of free space "
+                          f"available ({frac * 100:.0f}%)")
+    d = json.loads(r.to_json())
+    assert d["n_box_stacks"] == 2 and len(d["shelves"]) == 2
+    assert d["shelves"][0]["boxes"][0]["size"][2] == pytest.approx(n_rows(0, 0.3) * RES)
+    assert d["grid"] == {"D": 256, "extent_m": 8.0, "res_m": RES}
+
+    one = analyze_layouts(*L.stack_shelves([L.rasterize_shelf(SHELF, [L.Box(0, 0, .3, .3, .3)], G)], 4, G), G)
+    assert one.report().startswith("Rack has 1 shelf, 1 box stack, and ")
+
+    none = analyze_layouts(np.zeros((4, 256, 256), np.uint8), np.zeros((4, 256, 256), np.uint8), G)
+    assert none.n_shelves == 0 and none.free_fraction is None
+    assert none.report() == "Rack has 0 shelves, 0 box stacks, and 0.00 m³ of free space available"
+
+
+def test_shelf_with_one_view_missing_is_flagged_not_summed():
+    lay = L.rasterize_shelf(SHELF, [L.Box(0, 0, 0.3, 0.3, 0.3)], G)
+    top, front = L.stack_shelves([lay, lay], 4, G)
+    front[1] = 0
+    r = analyze_layouts(top, front, G)
+    assert r.n_shelves == 2 and not r.shelves[1].complete and r.shelves[1].missing_view == "front"
+    assert r.capacity_m3 == pytest.approx(r.shelves[0].capacity_m3)
+    assert any("no front-view layout" in w for w in r.warnings())
+    assert "missing" in r.report()
+
+
+def test_bad_layout_arrays_raise_layout_error():
+    with pytest.raises(L.LayoutError, match="class ids"):
+        analyze_layouts(np.full((4, 32, 32), 7, np.uint8), None, L.Grid(32))
+    with pytest.raises(L.LayoutError, match="grid has D=64"):
+        analyze_layouts(np.zeros((4, 32, 32), np.uint8), None, L.Grid(64))
+
+
+# --- 3D export ----------------------------------------------------------------------------------
+def _rack():
+    lay = L.rasterize_shelf(SHELF, [L.Box(-0.5, 0, 0.3, 0.3, 0.3), L.Box(0.4, 0.1, 0.4, 0.3, 0.45)], G)
+    return analyze_layouts(*L.stack_shelves([lay, lay], 4, G), G)
+
+
+def test_glb_parses_back_with_the_boxes_geometry(tmp_path):
+    r = _rack()
+    parts = rack_parts(r)
+    assert sum(p.kind == "box" for p in parts) == 4 and sum(p.kind == "board" for p in parts) == 2
+    data = glb_bytes(parts)
+    assert data[:4] == b"glTF" and len(data) % 4 == 0
+    doc, binc = read_glb(data)
+    assert doc["asset"]["version"] == "2.0"
+    assert len(doc["meshes"]) == len(doc["nodes"]) == len(parts)
+    assert doc["buffers"][0]["byteLength"] == len(binc)
+    assert {m["name"] for m in doc["materials"]} == {p.kind for p in parts}
+    for i, part in enumerate(parts):
+        pos, idx = glb_mesh_arrays(doc, binc, i)
+        acc = doc["accessors"][doc["meshes"][i]["primitives"][0]["attributes"]["POSITION"]]
+        assert np.allclose(acc["min"], pos.min(0)) and np.allclose(acc["max"], pos.max(0))
+        # glTF is y-up: (x, z, -y)
+        lo = np.array([part.lo[0], part.lo[2], -part.hi[1]])
+        hi = np.array([part.hi[0], part.hi[2], -part.lo[1]])
+        assert np.allclose(pos.min(0), lo, atol=1e-6) and np.allclose(pos.max(0), hi, atol=1e-6)
+        # every triangle faces outward
+        tri = pos[idx.reshape(-1, 3)].astype(np.float64)
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        outward = tri.mean(axis=1) - (lo + hi) / 2
+        assert (np.einsum("ij,ij->i", normal, outward) > 0).all()
+    with pytest.raises(ValueError, match="GLB"):
+        read_glb(data[:-4])
+    empty_doc, _ = read_glb(glb_bytes([]))
+    assert empty_doc["scenes"][0]["nodes"] == []
+
+
+def test_ply_and_render(tmp_path):
+    r = _rack()
+    text = ply_text(rack_parts(r))
+    head, body = text.split("end_header\n")
+    n_v = int(head.split("element vertex ")[1].split()[0])
+    n_f = int(head.split("element face ")[1].split()[0])
+    lines = body.strip().splitlines()
+    assert len(lines) == n_v + n_f and n_v == 8 * 6 and n_f == 6 * 6
+    out = tmp_path / "r.png"
+    render_figure(r, np.zeros((28, 47, 3), np.uint8), out=out)
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert set(COLORS) >= {"box", "board", "space", "hidden_box"}
+
+
+# --- validation against the toy dataset's 3D truth ----------------------------------------------
+def test_toy_ground_truth_counts_and_free_volume(tmp_path):
+    from racklay.data import RackLayRoot
+    from racklay.toy import build_toy_dataset
+
+    ds = build_toy_dataset(tmp_path / "toy", n=4, seed=3, D=512)
+    for sid in ds.ids():
+        meta = ds.read_meta(sid)
+        r = analyze_layouts(ds.read_layouts("top", sid), ds.read_layouts("front", sid), L.Grid(512))
+        truth = meta["shelves"]
+        assert r.n_shelves == len(truth)
+        for s, t in zip(r.shelves, truth):
+            assert len(s.boxes) == len(t["boxes"])  # >= 3 cm gaps survive at 1.56 cm pixels
+            # each metric span is read back as a whole number of pixels: off by < 1 pixel
+            dims = [(t["length"], t["depth"], t["clear_height"])] + [(b["sx"], b["sy"], b["sz"]) for b in t["boxes"]]
+            tol = [np.prod(np.add(d, 1 / 64)) - np.prod(d) for d in dims]
+            cap = np.prod(dims[0])
+            occ = sum(np.prod(d) for d in dims[1:])
+            assert abs(s.capacity_m3 - cap) < tol[0]
+            assert abs(s.free_m3 - (cap - occ)) < sum(tol)
+    assert isinstance(ds, RackLayRoot)
+
+
+# --- command line -------------------------------------------------------------------------------
+def test_cli_analyze_layouts_and_malformed_file(tmp_path, capsys):
+    from racklay.cli import main
+    from racklay.toy import build_toy_dataset
+
+    ds = build_toy_dataset(tmp_path / "toy", n=5, seed=1, D=64)
+    ids = ds.split_ids("test") + ds.split_ids("val")
+    out = tmp_path / "out"
+    assert main(["analyze", "--layouts", str(ds.root), "--split", "test", "--out", str(out), "--format", "both"]) == 0
+    printed = capsys.readouterr().out
+    sid = ds.split_ids("test")[0]
+    assert f"{sid}: Rack has " in printed and "m³ of free space available" in printed
+    d = json.loads((out / f"{sid}.json").read_text())
+    assert {"n_shelves", "n_box_stacks", "free_m3", "free_fraction", "shelves"} <= set(d)
+    read_glb((out / f"{sid}.glb").read_bytes())
+    assert (out / f"{sid}.ply").read_text().startswith("ply\n")
+    assert (out / f"{sid}.png").stat().st_size > 1000
+
+    # a corrupt layout file: one line naming it, the others still analysed, exit 1
+    bad = ds.layout_path("front", ids[0])
+    bad.write_bytes(b"not a numpy file")
+    out2 = tmp_path / "out2"
+    rc = main(["analyze", "--layouts", str(ds.root), "--out", str(out2), "--no-render"])
+    cap = capsys.readouterr()
+    assert rc == 1
+    errors = [line for line in cap.err.splitlines() if "error" in line]
+    assert len(errors) == 1 and str(bad) in errors[0]
+    assert cap.out.count("Rack has") == len(ds.ids()) - 1
+    summary = json.loads((out2 / "summary.json").read_text())
+    assert summary["failed"] == 1 and summary["analysed"] == len(ds.ids()) - 1
+    assert not (out2 / f"{ids[0]}.json").exists()
+
+    # bad values in a layout: the same, naming the file and the value
+    arr = np.load(ds.layout_path("top", ids[1]))
+    arr[0, 0, 0] = 7
+    np.save(ds.layout_path("top", ids[1]), arr)
+    rc = main(["analyze", "--layouts", str(ds.root), "--out", str(out2), "--no-render", "--format", "none"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "stray value(s) [7]" in err and str(ds.layout_path("top", ids[1])) in err
+
+
+def test_cli_usage_errors(tmp_path, capsys):
+    from racklay.cli import main
+
+    assert main(["analyze", "--out", str(tmp_path)]) == 2
+    assert "nothing to analyse" in capsys.readouterr().err
+    assert main(["analyze", "x.png", "--out", str(tmp_path)]) == 2
+    assert "--weights is required" in capsys.readouterr().err
+    assert main(["analyze", "--layouts", str(tmp_path / "nope"), "--out", str(tmp_path)]) == 2
+    assert "nope" in capsys.readouterr().err
+
+
+def test_cli_analyze_photos_with_a_checkpoint(tmp_path, capsys):
+    torch = pytest.importorskip("torch")
+    from racklay.checkpoint import save_checkpoint
+    from racklay.cli import main
+    from racklay.model import ModelConfig, build_model
+    from racklay.toy import build_toy_dataset
+
+    torch.manual_seed(0)
+    cfg = ModelConfig(image_size=64, layout_size=64)
+    w = tmp_path / "m.safetensors"
+    save_checkpoint(w, build_model(cfg), cfg)
+    ds = build_toy_dataset(tmp_path / "toy", n=2, seed=0, D=64)
+    out = tmp_path / "out"
+    rc = main(["analyze", str(ds.root / "Images"), "--weights", str(w), "--out", str(out), "--no-render"])
+    printed = capsys.readouterr().out
+    assert rc == 0, printed
+    for sid in ds.ids():
+        d = json.loads((out / f"{sid}.json").read_text())
+        assert d["grid"]["D"] == 64 and d["report"].startswith("Rack has ")
+        assert f"{sid}: Rack has " in printed
