@@ -437,5 +437,56 @@ def analyze_layouts(top: np.ndarray | None, front: np.ndarray | None, grid: L.Gr
     return RackResult(shelves=shelves, grid=grid, config=cfg, source=source)
 
 
+
+
+# --- ground truth from 3D boxes (validation) --------------------------------------------------
+def group_stacks(boxes: Sequence[L.Box], tol: float = 1e-6) -> list[list[int]]:
+    """Indices of `boxes` grouped into stacks: boxes whose footprints (x/y ranges) overlap are
+    one stack (stacked items stand on each other), transitively."""
+    n = len(boxes)
+    parent = list(range(n))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    rng = [(b.x_range(), b.y_range()) for b in boxes]
+    for i in range(n):
+        for j in range(i + 1, n):
+            (ax, ay), (bx, by) = rng[i], rng[j]
+            if min(ax[1], bx[1]) - max(ax[0], bx[0]) > tol and min(ay[1], by[1]) - max(ay[0], by[0]) > tol:
+                parent[find(i)] = find(j)
+    groups: dict[int, list[int]] = {}
+    for i in range(n):
+        groups.setdefault(find(i), []).append(i)
+    return sorted(groups.values())
+
+
+@dataclass
+class ShelfTruth:
+    """What a shelf really holds: capacity from its metric size, occupied from its boxes."""
+
+    shelf: L.Shelf
+    boxes: list
+
+    @property
+    def n_stacks(self) -> int:
+        return len(group_stacks(self.boxes))
+
+    @property
+    def capacity_m3(self) -> float:
+        return self.shelf.length * self.shelf.depth * self.shelf.clear_height
+
+    @property
+    def occupied_m3(self) -> float:
+        return float(sum(b.sx * b.sy * b.sz for b in self.boxes))
+
+    @property
+    def free_m3(self) -> float:
+        return self.capacity_m3 - self.occupied_m3
+
+
 __all__ = ["ReasoningConfig", "BoxStack", "ShelfResult", "RackResult", "clean_mask", "components",
-           "analyze_shelf", "fuse_views", "analyze_layouts"]
+           "analyze_shelf", "fuse_views", "analyze_layouts", "group_stacks", "ShelfTruth"]

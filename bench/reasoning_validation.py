@@ -1,0 +1,212 @@
+"""Validate rack reasoning against known 3D boxes (issue 7).
+
+For every image of a RackLay-format dataset whose meta/ID.json carries the 3D truth per visible
+shelf (WareSynth; `racklay.toy` datasets too), compare what `racklay.reasoning` reads from
+
+  * the ground-truth layouts (should be near exact: residuals are pixel quantisation, stacks
+    merged at layout resolution, stacks hidden in the front view, the prism model of a stack), and
+  * the layouts a trained model predicts from the photo (--weights, when a checkpoint exists),
+
+with the truth: box-stack counts (exact-match accuracy and mean absolute error, per rack and per
+shelf) and free volume (relative error per rack: |free_read - free_true| / free_true).
+
+Truth per shelf: capacity = length x depth x clear height (what the layouts encode), occupied =
+the sum of the boxes' own volumes, a stack = boxes whose footprints overlap.
+
+    .venv/bin/python bench/reasoning_validation.py --data datasets/waresynth-val --split test \
+        --weights runs/accuracy-default/best.safetensors --json bench/results/reasoning.json
+    .venv/bin/python bench/reasoning_validation.py --toy 40     # no dataset: a D=512 toy set
+
+Prints Markdown tables; docs/reasoning.md records the numbers.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import markdown_table  # noqa: E402
+
+from racklay import layout as L  # noqa: E402
+from racklay.data import DataError, RackLayRoot  # noqa: E402
+from racklay.reasoning import ShelfTruth, analyze_layouts  # noqa: E402
+
+BOX_FIELDS = ("cx", "cy", "sx", "sy", "sz", "z0", "yaw")
+
+
+def truth_from_meta(meta: dict | None, source: str) -> list[ShelfTruth]:
+    """Per visible shelf (lowest first): its Shelf and Boxes, from meta['shelves'] =
+    [{length, depth, clear_height, boxes: [{cx, cy, sx, sy, sz, z0, yaw}, ...]}, ...]."""
+    if not meta or "shelves" not in meta:
+        found = ", ".join(sorted(meta)) if meta else "no meta file"
+        raise DataError(f"{source}: no 3D truth ('shelves' with boxes) in the meta ({found})")
+    out = []
+    for k, s in enumerate(meta["shelves"]):
+        try:
+            shelf = L.Shelf(float(s["length"]), float(s["depth"]), float(s["clear_height"]))
+            boxes = [L.Box(**{f: float(b[f]) for f in BOX_FIELDS if f in b}) for b in s["boxes"]]
+        except (KeyError, TypeError, ValueError) as e:
+            raise DataError(f"{source}: shelf {k}: bad 3D truth ({type(e).__name__}: {e})") from None
+        out.append(ShelfTruth(shelf, boxes))
+    return out
+
+
+def compare(result, truth: list[ShelfTruth]) -> dict:
+    """Per-rack and per-shelf numbers of one image (shelves matched by channel order)."""
+    n_true = sum(t.n_stacks for t in truth)
+    free_true = sum(t.free_m3 for t in truth)
+    occ_true = sum(t.occupied_m3 for t in truth)
+    cap_true = sum(t.capacity_m3 for t in truth)
+    shelves = []
+    for i, t in enumerate(truth):
+        s = next((s for s in result.shelves if s.index == i), None)
+        shelves.append({"true": t.n_stacks, "read": len(s.boxes) if s else 0,
+                        "hidden": sum(b.hidden for b in s.boxes) if s else 0})
+    return {"n_true": n_true, "n_read": result.n_box_stacks, "shelves_true": len(truth),
+            "shelves_read": result.n_shelves, "free_true": free_true, "free_read": result.free_m3,
+            "occ_true": occ_true, "occ_read": result.occupied_m3, "cap_true": cap_true,
+            "cap_read": result.capacity_m3, "per_shelf": shelves}
+
+
+def summarise(rows: list[dict]) -> dict:
+    if not rows:
+        return {}
+    shelf = [s for r in rows for s in r["per_shelf"]]
+
+    def rel(a, b):
+        return [abs(r[a] - r[b]) / r[b] for r in rows if r[b] > 0]
+
+    free_rel = rel("free_read", "free_true")
+    return {
+        "images": len(rows),
+        "shelves": len(shelf),
+        "stacks_true": sum(r["n_true"] for r in rows),
+        "stacks_read": sum(r["n_read"] for r in rows),
+        "shelf_count_acc": float(np.mean([r["shelves_read"] == r["shelves_true"] for r in rows])),
+        "rack_count_acc": float(np.mean([r["n_read"] == r["n_true"] for r in rows])),
+        "rack_count_mae": float(np.mean([abs(r["n_read"] - r["n_true"]) for r in rows])),
+        "shelf_count_acc_by_shelf": float(np.mean([s["read"] == s["true"] for s in shelf])),
+        "shelf_count_mae": float(np.mean([abs(s["read"] - s["true"]) for s in shelf])),
+        "merged_shelves": int(sum(s["read"] < s["true"] for s in shelf)),
+        "split_shelves": int(sum(s["read"] > s["true"] for s in shelf)),
+        "hidden_stacks": int(sum(s["hidden"] for s in shelf)),
+        "free_rel_err_mean": float(np.mean(free_rel)),
+        "free_rel_err_median": float(statistics.median(free_rel)),
+        "free_rel_err_max": float(np.max(free_rel)),
+        "free_bias_mean": float(np.mean([(r["free_read"] - r["free_true"]) / r["free_true"] for r in rows
+                                         if r["free_true"] > 0])),
+        "capacity_rel_err_mean": float(np.mean(rel("cap_read", "cap_true"))),
+        "occupied_rel_err_mean": float(np.mean(rel("occ_read", "occ_true"))),
+    }
+
+
+def table(results: dict[str, dict]) -> str:
+    keys = [("images", "images", "{:d}"), ("shelves", "shelves (truth)", "{:d}"),
+            ("stacks_true", "box stacks (truth)", "{:d}"), ("stacks_read", "box stacks (read)", "{:d}"),
+            ("shelf_count_acc", "shelves per rack exact", "{:.1%}"),
+            ("rack_count_acc", "stacks per rack exact", "{:.1%}"), ("rack_count_mae", "stacks per rack MAE", "{:.3f}"),
+            ("shelf_count_acc_by_shelf", "stacks per shelf exact", "{:.1%}"),
+            ("shelf_count_mae", "stacks per shelf MAE", "{:.3f}"),
+            ("merged_shelves", "shelves with merged stacks", "{:d}"),
+            ("split_shelves", "shelves with extra stacks", "{:d}"),
+            ("hidden_stacks", "stacks flagged hidden", "{:d}"),
+            ("free_rel_err_mean", "free volume rel. error, mean", "{:.2%}"),
+            ("free_rel_err_median", "free volume rel. error, median", "{:.2%}"),
+            ("free_rel_err_max", "free volume rel. error, max", "{:.2%}"),
+            ("free_bias_mean", "free volume signed error, mean", "{:+.2%}"),
+            ("capacity_rel_err_mean", "capacity rel. error, mean", "{:.2%}"),
+            ("occupied_rel_err_mean", "occupied rel. error, mean", "{:.2%}")]
+    names = list(results)
+    rows = [[label] + [fmt.format(results[n][k]) if k in results[n] else "–" for n in names]
+            for k, label, fmt in keys]
+    return markdown_table(["metric"] + names, rows)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", help="RackLay dataset with 3D truth in meta/ID.json")
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--toy", type=int, default=0, help="instead of --data: build a toy set of N images at D=512")
+    ap.add_argument("--seed", type=int, default=0, help="toy set seed")
+    ap.add_argument("--weights", default=None, help="checkpoint for predicted layouts (skipped when absent)")
+    ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--json", default=None, help="write the numbers here")
+    args = ap.parse_args(argv)
+
+    tmp = None
+    if args.data:
+        ds = RackLayRoot(args.data)
+    elif args.toy:
+        from racklay.toy import build_toy_dataset
+
+        tmp = tempfile.TemporaryDirectory(prefix="racklay-toy-")
+        ds = build_toy_dataset(Path(tmp.name) / "toy", n=args.toy, seed=args.seed, D=512)
+        print(f"toy dataset: {args.toy} images at D=512 (seed {args.seed})")
+    else:
+        ap.error("give --data ROOT or --toy N")
+    ids = ds.resolve(args.split)[: args.limit]
+    predictor = None
+    if args.weights:
+        if Path(args.weights).is_file():
+            from racklay.predict import Predictor
+
+            predictor = Predictor(args.weights)
+            print(f"predicted layouts from {args.weights} (S={predictor.layout_size})")
+        else:
+            print(f"{args.weights}: no checkpoint, predicted layouts skipped")
+
+    rows = {"ground-truth layouts": []}
+    if predictor:
+        rows["predicted layouts"] = []
+    t0 = time.perf_counter()
+    errors = 0
+    for n, sid in enumerate(ids):
+        try:
+            truth = truth_from_meta(ds.read_meta(sid), str(ds.meta_path(sid)))
+            top, front = ds.read_layouts("top", sid), ds.read_layouts("front", sid)
+            meta = ds.read_meta(sid) or {}
+            extent = float((meta.get("grid") or {}).get("extent_m", L.DEFAULT_EXTENT_M))
+            gt = analyze_layouts(top, front, L.Grid(top.shape[-1], extent), source=sid)
+            rows["ground-truth layouts"].append(compare(gt, truth) | {"id": sid})
+            if predictor:
+                pred = predictor.predict(ds.read_image(sid))
+                pr = analyze_layouts(pred.get("top"), pred.get("front"), pred["grid"], source=sid)
+                rows["predicted layouts"].append(compare(pr, truth) | {"id": sid})
+        except (DataError, L.LayoutError) as e:
+            errors += 1
+            print(f"error: {e}", file=sys.stderr)
+        if (n + 1) % 50 == 0:
+            print(f"  {n + 1}/{len(ids)} images, {time.perf_counter() - t0:.0f} s", flush=True)
+    dt = time.perf_counter() - t0
+    results = {k: summarise(v) for k, v in rows.items() if v}
+    print(f"\n{ds.root} split {args.split}: {len(ids)} images ({errors} unreadable), {dt:.1f} s "
+          f"(2 shared CPU cores, other jobs running)\n")
+    if results:
+        print(table(results))
+    worst = sorted(rows["ground-truth layouts"], key=lambda r: -abs(r["free_read"] - r["free_true"]) / max(r["free_true"], 1e-9))[:5]
+    print("\nworst ground-truth-layout images (free volume):")
+    for r in worst:
+        print(f"  {r['id']}: free read {r['free_read']:.3f} vs true {r['free_true']:.3f} m³, "
+              f"stacks {r['n_read']} vs {r['n_true']}")
+    if args.json:
+        from racklay.atomic import atomic_write_json
+
+        atomic_write_json(args.json, {"data": str(ds.root) if not tmp else f"toy n={args.toy} seed={args.seed}",
+                                      "split": args.split, "weights": args.weights if predictor else None,
+                                      "results": results, "per_image": rows})
+    if tmp:
+        tmp.cleanup()
+    return 1 if errors and not results else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
