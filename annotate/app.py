@@ -8,7 +8,7 @@ at once through annotate.store (atomic, version-checked); this module never touc
 
 Offline by design: analytics off, a built-in theme with system fonts, no CDN assets.
 """
-from __future__ import annotations
+
 
 import copy
 import os
@@ -670,9 +670,9 @@ def build_app(project: Project, predictor=None, user: str | None = None):
         header = gr.Markdown(elem_id="header")
         with gr.Row():
             btn_prev = gr.Button("◀ prev", elem_id="btn-prev", size="sm", scale=0)
-            image_dd = gr.Dropdown(choices=project.images(), label="image", elem_id="image-select", scale=3)
+            image_dd = gr.Dropdown(choices=project.images(), label="photo file", elem_id="image-select", scale=3)
             btn_next = gr.Button("next ▶", elem_id="btn-next", size="sm", scale=0)
-            status_dd = gr.Dropdown(choices=list(S.STATUSES), label="status", elem_id="status", scale=2)
+            status_dd = gr.Dropdown(choices=list(S.STATUSES), label="annotation status", elem_id="status", scale=2)
             btn_done = gr.Button("mark done (d)", elem_id="btn-done", size="sm", scale=0)
         with gr.Row(elem_classes="mode-row"):
             mode_btns = {m: gr.Button(f"{i + 1} {m}", elem_id=f"mode-{m}", size="sm") for i, m in enumerate(MODES)}
