@@ -56,3 +56,33 @@ def markdown_table(header: list[str], rows: list[list[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
     return "\n".join(lines)
+
+
+def add_common_args(ap, rounds: int = 3, calls: int = 5, warmup: int = 2) -> None:
+    """Options shared by the benchmarks: interleaving, threads, JSON output."""
+    ap.add_argument("--rounds", type=int, default=rounds, help=f"interleaved rounds (default {rounds})")
+    ap.add_argument("--calls", type=int, default=calls, help=f"timed calls per model per round (default {calls})")
+    ap.add_argument("--warmup", type=int, default=warmup, help=f"untimed calls per model first (default {warmup})")
+    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
+    ap.add_argument("--json", default=None, help="also write the raw numbers here")
+
+
+def start(args) -> None:
+    """Apply --threads and print the conditions line."""
+    import torch
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    print("conditions:", conditions(), flush=True)
+
+
+def interleaved(runners: dict, args) -> dict:
+    """Time every runner: `warmup` untimed calls each, then `rounds` rounds in which each runner
+    makes `calls` timed calls in turn (so background load hits all alike). -> {key: [seconds]}"""
+    for fn in runners.values():
+        time_calls(fn, args.warmup)
+    times = {k: [] for k in runners}
+    for _ in range(args.rounds):
+        for k, fn in runners.items():
+            times[k] += time_calls(fn, args.calls)
+    return times

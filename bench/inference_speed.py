@@ -19,7 +19,7 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import conditions, ensure_malloc_env, markdown_table, median, time_calls  # noqa: E402
+from _common import add_common_args, conditions, ensure_malloc_env, interleaved, markdown_table, median, start  # noqa: E402
 
 
 def build_runners(decoder: str, size: int, bf16: bool, onnx: bool) -> dict:
@@ -66,30 +66,16 @@ def build_runners(decoder: str, size: int, bf16: bool, onnx: bool) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="square input = layout sizes")
-    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds (default 3)")
-    ap.add_argument("--calls", type=int, default=5, help="timed calls per model per round (default 5)")
-    ap.add_argument("--warmup", type=int, default=2, help="untimed calls per model first (default 2)")
     ap.add_argument("--bf16", action="store_true", help="add a bf16 autocast + channels_last column")
     ap.add_argument("--onnx", action="store_true", help="add an onnxruntime column")
-    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
-    ap.add_argument("--json", default=None, help="also write the raw numbers here")
+    add_common_args(ap, rounds=3, calls=5, warmup=2)
     args = ap.parse_args(argv)
-
-    import torch
-
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    print("conditions:", conditions())
+    start(args)
     results = {}
     rows = []
     for size in args.sizes:
         runners = {dec: build_runners(dec, size, args.bf16, args.onnx) for dec in ("light", "paper")}
-        times = {(d, k): [] for d, rs in runners.items() for k in rs}
-        for (d, k) in times:
-            time_calls(runners[d][k], args.warmup)
-        for _ in range(args.rounds):
-            for (d, k) in times:
-                times[(d, k)] += time_calls(runners[d][k], args.calls)
+        times = interleaved({(d, k): fn for d, rs in runners.items() for k, fn in rs.items()}, args)
         cols = list(runners["light"])
         med = {key: 1000 * median(v) for key, v in times.items()}
         results[size] = {f"{d} {k}": {"median_ms": med[(d, k)], "all_ms": [1000 * t for t in times[(d, k)]]}

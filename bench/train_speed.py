@@ -6,7 +6,8 @@ authors' `paper` decoder, in the same run.
 
 (the script re-executes itself with those MALLOC_* variables if they are missing: glibc reads
 them at process start). One step = forward, per-shelf weighted cross-entropy ([1, 5, 5]) over
-both views, backward and an Adam update, as the training engine does it. With
+both views (`racklay.train.layout_loss`), backward and an Adam update, in the same sequence as
+the loop in `racklay.train.train` (which has no separate step function to call). With
 --disc the least-squares adversarial terms (generator + discriminator update, patch
 discriminators fed softmax probabilities) are included. Data come from random tensors, so the
 number is the model's cost alone (data loading is excluded). Steps of the two models are
@@ -21,15 +22,15 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import conditions, ensure_malloc_env, markdown_table, median, time_calls  # noqa: E402
+from _common import add_common_args, conditions, ensure_malloc_env, interleaved, markdown_table, median, start  # noqa: E402
 
 CLASS_WEIGHTS = (1.0, 5.0, 5.0)
 
 
 def make_step(decoder: str, size: int, batch: int, disc: bool, bf16: bool, lr: float = 1e-4):
     import torch
-    import torch.nn.functional as F
 
+    from racklay.train import layout_loss
     from racklay.model import (Discriminators, ModelConfig, RackLayNet, lsgan_discriminator_loss,
                                lsgan_generator_loss, one_hot_layouts)
 
@@ -40,7 +41,7 @@ def make_step(decoder: str, size: int, batch: int, disc: bool, bf16: bool, lr: f
     if bf16:
         model = model.to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
-    opt_d = torch.optim.Adam(discs.parameters(), lr=lr) if disc else None
+    opt_d = torch.optim.Adam(discs.parameters(), lr=lr, betas=(0.5, 0.999)) if disc else None
     x = torch.randn(batch, 3, size, size)
     if bf16:
         x = x.contiguous(memory_format=torch.channels_last)
@@ -49,23 +50,30 @@ def make_step(decoder: str, size: int, batch: int, disc: bool, bf16: bool, lr: f
     w = torch.tensor(CLASS_WEIGHTS)
     lam = 0.01
 
-    def step():
+    def step():  # the same sequence as the loop in racklay.train.train()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             out = model(x)
-        loss = 0.0
+        loss = sum(layout_loss(out[v], y[v], w) for v in cfg.views)
         probs = {}
-        for v in cfg.views:
-            z = out[v].float()
-            loss = loss + F.cross_entropy(z.flatten(0, 1), y[v].flatten(0, 1), weight=w)
-            if disc:
-                probs[v] = z.softmax(dim=2)
-                loss = loss + lam * lsgan_generator_loss(discs(v, probs[v]))
+        if disc:
+            discs.requires_grad_(False)
+            adv = 0.0
+            for v in cfg.views:
+                probs[v] = out[v].float().softmax(2)
+                with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                    adv = adv + lsgan_generator_loss(discs(v, probs[v]).float())
+            discs.requires_grad_(True)
+            loss = loss + lam * adv
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         if disc:
-            ld = sum(lsgan_discriminator_loss(discs(v, one_hot_layouts(y[v])), discs(v, probs[v].detach()))
-                     for v in cfg.views)
+            ld = 0.0
+            for v in cfg.views:
+                both = torch.cat([one_hot_layouts(y[v]), probs[v].detach()])
+                with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                    scores = discs(v, both).float()
+                ld = ld + lsgan_discriminator_loss(scores[:batch], scores[batch:])
             opt_d.zero_grad(set_to_none=True)
             ld.backward()
             opt_d.step()
@@ -77,31 +85,17 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", type=int, nargs="+", default=[256], help="square input = layout size(s) (default 256)")
     ap.add_argument("--batch", type=int, default=8, help="images per step (default 8)")
-    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds (default 3)")
-    ap.add_argument("--steps", type=int, default=2, help="timed steps per model per round (default 2)")
-    ap.add_argument("--warmup", type=int, default=1, help="untimed steps per model first (default 1)")
     ap.add_argument("--disc", action="store_true", help="include the patch discriminators (-disc variant)")
     ap.add_argument("--bf16", action="store_true", help="bf16 autocast + channels_last instead of fp32")
-    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
-    ap.add_argument("--json", default=None, help="also write the raw numbers here")
+    add_common_args(ap, rounds=3, calls=2, warmup=1)
     args = ap.parse_args(argv)
-
-    import torch
-
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    print("conditions:", conditions())
-    print("step: forward + weighted CE [1,5,5] + backward + Adam, written in this script")
+    start(args)
+    print("step: the sequence of racklay.train's loop (its layout_loss, weighted CE [1,5,5]) + backward + Adam")
     mode = ("bf16+CL" if args.bf16 else "fp32") + (", with discriminators" if args.disc else "")
     rows, results = [], {}
     for size in args.size:
         steps = {d: make_step(d, size, args.batch, args.disc, args.bf16) for d in ("light", "paper")}
-        times = {d: [] for d in steps}
-        for d in steps:
-            time_calls(steps[d], args.warmup)
-        for _ in range(args.rounds):
-            for d in steps:
-                times[d] += time_calls(steps[d], args.steps)
+        times = interleaved(steps, args)
         per_img = {d: median(t) / args.batch for d, t in times.items()}
         results[size] = {d: {"s_per_image": per_img[d], "step_s": times[d]} for d in times}
         for d in ("light", "paper"):
@@ -110,7 +104,7 @@ def main(argv=None) -> int:
         rows.append([f"{size}->{size}", "**paper / light**", f"**{per_img['paper'] / per_img['light']:.1f}x**", ""])
         print(f"  {size}: light {per_img['light']:.3f} s/img, paper {per_img['paper']:.3f} s/img", flush=True)
     print()
-    print(f"RackLay-D training, batch {args.batch}, {mode}, median over {args.rounds}x{args.steps} interleaved steps:")
+    print(f"RackLay-D training, batch {args.batch}, {mode}, median over {args.rounds}x{args.calls} interleaved steps:")
     print(markdown_table(["input->layout", "decoder", "s / training image", "min / 2,000-image epoch"], rows))
     if args.json:
         with open(args.json, "w") as f:

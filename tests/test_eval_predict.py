@@ -164,6 +164,11 @@ def test_predictor_any_size_and_bad_weights(ckpt, tmp_path):
         assert out["grid"] == L.Grid(S, 8.0)
     with pytest.raises(ValueError, match="uint8"):
         p.predict(np.zeros((10, 10, 3), np.float32))
+    # bf16 autocast: same shapes, nearly the same classes
+    img = np.random.default_rng(1).integers(0, 256, (120, 200, 3), dtype=np.uint8)
+    a, b = p.predict(img), Predictor(ckpt, precision="bf16").predict(img)
+    assert b["probs"]["top"].dtype == np.float32
+    assert (a["top"] == b["top"]).mean() > 0.95 and (a["front"] == b["front"]).mean() > 0.95
     bad = tmp_path / "bad.safetensors"
     bad.write_bytes(b"nope")
     with pytest.raises(ValueError, match="bad.safetensors"):
