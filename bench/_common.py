@@ -38,18 +38,28 @@ def conditions() -> str:
             f"load average {load[0]:.1f}/{load[1]:.1f}/{load[2]:.1f} (CPU shared with other jobs)")
 
 
-def time_calls(fn, n: int) -> list[float]:
-    """Wall-clock seconds of n calls of fn()."""
+def time_calls(fn, n: int) -> list[tuple[float, float]]:
+    """(wall-clock seconds, process CPU seconds) of each of n calls of fn(). On a shared machine
+    the CPU time (with --threads 1) is the cost least disturbed by other processes: waiting for a
+    core does not count, only the work itself (and cache effects) do."""
     out = []
     for _ in range(n):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         fn()
-        out.append(time.perf_counter() - t0)
+        out.append((time.perf_counter() - t0, time.process_time() - c0))
     return out
 
 
 def median(xs) -> float:
     return statistics.median(xs)
+
+
+def summarise(samples: list[tuple[float, float]], scale: float = 1.0) -> dict:
+    """Median and minimum wall time and median CPU time of (wall, cpu) samples, times `scale`."""
+    wall = [w * scale for w, _ in samples]
+    cpu = [c * scale for _, c in samples]
+    return {"wall_median": median(wall), "wall_min": min(wall), "cpu_median": median(cpu),
+            "wall": wall, "cpu": cpu}
 
 
 def markdown_table(header: list[str], rows: list[list[str]]) -> str:
@@ -78,7 +88,8 @@ def start(args) -> None:
 
 def interleaved(runners: dict, args) -> dict:
     """Time every runner: `warmup` untimed calls each, then `rounds` rounds in which each runner
-    makes `calls` timed calls in turn (so background load hits all alike). -> {key: [seconds]}"""
+    makes `calls` timed calls in turn (so background load hits all alike).
+    -> {key: [(wall s, cpu s), ...]}"""
     for fn in runners.values():
         time_calls(fn, args.warmup)
     times = {k: [] for k in runners}

@@ -7,7 +7,9 @@ authors' `paper` decoder, in the same run, at 256->256 and 512->512 (input -> la
 (the script re-executes itself with those MALLOC_* variables if they are missing: glibc reads
 them at process start). Models are randomly initialised (weights do not change the cost).
 Timing interleaves the models in rounds so that load from other processes hits all of them alike;
-the reported number is the median over all timed calls (ms). Columns: torch fp32; with --bf16,
+each cell gives the median (and minimum) wall time over all timed calls and the median process
+CPU time (ms): on a machine shared with other jobs, the minimum and the CPU time (best with
+--threads 1) are the least disturbed estimates of the model's own cost. Columns: torch fp32; with --bf16,
 torch autocast bfloat16 + channels_last; with --onnx, onnxruntime fp32 (CPU provider). Prints
 numbers only; nothing is asserted.
 """
@@ -19,10 +21,10 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import add_common_args, conditions, ensure_malloc_env, interleaved, markdown_table, median, start  # noqa: E402
+from _common import add_common_args, conditions, ensure_malloc_env, interleaved, markdown_table, start, summarise  # noqa: E402
 
 
-def build_runners(decoder: str, size: int, bf16: bool, onnx: bool) -> dict:
+def build_runners(decoder: str, size: int, bf16: bool, onnx: bool, threads: int | None = None) -> dict:
     import numpy as np
     import torch
 
@@ -56,11 +58,21 @@ def build_runners(decoder: str, size: int, bf16: bool, onnx: bool) -> dict:
 
         opts = ort.SessionOptions()
         opts.log_severity_level = 3
+        if threads:
+            opts.intra_op_num_threads = threads
         sess = ort.InferenceSession(export_onnx_bytes(model, cfg), sess_options=opts,
                                     providers=["CPUExecutionProvider"])
         xn = x.numpy().astype(np.float32)
         runners["onnxruntime fp32"] = lambda: sess.run(None, {"image": xn})
     return runners
+
+
+def cell(s: dict) -> str:
+    return f"{s['wall_median']:.0f} ({s['wall_min']:.0f}), cpu {s['cpu_median']:.0f}"
+
+
+def ratio(a: dict, b: dict) -> str:
+    return f"**{a['wall_median'] / b['wall_median']:.1f}x** (min {a['wall_min'] / b['wall_min']:.1f}x, cpu {a['cpu_median'] / b['cpu_median']:.1f}x)"
 
 
 def main(argv=None) -> int:
@@ -74,21 +86,18 @@ def main(argv=None) -> int:
     results = {}
     rows = []
     for size in args.sizes:
-        runners = {dec: build_runners(dec, size, args.bf16, args.onnx) for dec in ("light", "paper")}
+        runners = {dec: build_runners(dec, size, args.bf16, args.onnx, args.threads) for dec in ("light", "paper")}
         times = interleaved({(d, k): fn for d, rs in runners.items() for k, fn in rs.items()}, args)
         cols = list(runners["light"])
-        med = {key: 1000 * median(v) for key, v in times.items()}
-        results[size] = {f"{d} {k}": {"median_ms": med[(d, k)], "all_ms": [1000 * t for t in times[(d, k)]]}
-                         for (d, k) in times}
+        st = {key: summarise(v, 1000.0) for key, v in times.items()}
+        results[size] = {f"{d} {k}": st[(d, k)] for (d, k) in times}
         for d in ("light", "paper"):
-            rows.append([f"{size}->{size}", d] + [f"{med[(d, k)]:.1f}" for k in cols])
-        rows.append([f"{size}->{size}", "**paper / light**"] +
-                    [f"**{med[('paper', k)] / med[('light', k)]:.1f}x**" for k in cols])
-        print(f"  {size}: " + ", ".join(f"{d} {k} {med[(d, k)]:.1f} ms" for (d, k) in times), flush=True)
-    header = ["input->layout", "decoder"] + [f"{k} (ms)" for k in cols]
+            rows.append([f"{size}->{size}", d] + [cell(st[(d, k)]) for k in cols])
+        rows.append([f"{size}->{size}", "**paper / light**"] + [ratio(st[("paper", k)], st[("light", k)]) for k in cols])
+        print(f"  {size}: " + ", ".join(f"{d} {k} {cell(st[(d, k)])}" for (d, k) in times), flush=True)
+    header = ["input->layout", "decoder"] + [f"{k}: wall median (min), CPU ms" for k in cols]
     print()
-    print("RackLay-D (both views), batch 1, median latency over "
-          f"{args.rounds}x{args.calls} interleaved calls:")
+    print(f"RackLay-D (both views), batch 1, {args.rounds}x{args.calls} interleaved calls per cell:")
     print(markdown_table(header, rows))
     if args.json:
         with open(args.json, "w") as f:
