@@ -17,6 +17,7 @@ COMMANDS = [
     "racklay.commands.predict",
     "racklay.commands.export",
     "racklay.commands.analyze",
+    "racklay.commands.synth",
 ]
 
 

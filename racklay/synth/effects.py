@@ -1,0 +1,92 @@
+"""Camera effects applied after rendering (the proxy-real domain; off in the synthetic
+recipes): mild radial lens distortion, blur, vignetting, exposure and white-balance shifts,
+sensor noise and a JPEG round trip. Only the image (and the per-pixel maps that must stay
+aligned with it) change; the layouts are metric and never distorted."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def distortion_maps(K: np.ndarray, k1: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps that turn an undistorted (pinhole) render into the image of a camera with
+    radial distortion x_d = x_u (1 + k1 r_u^2) (normalised coordinates, OpenCV's model with
+    only k1). For every distorted output pixel the undistorted source is found by fixed-point
+    iteration."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64) + 0.5, np.arange(height, dtype=np.float64) + 0.5)
+    xd, yd = (u - cx) / fx, (v - cy) / fy
+    xu, yu = xd.copy(), yd.copy()
+    for _ in range(8):
+        f = 1 + k1 * (xu * xu + yu * yu)
+        xu, yu = xd / f, yd / f
+    # remap uses pixel-index coordinates (pixel i's centre is at i)
+    return (xu * fx + cx - 0.5).astype(np.float32), (yu * fy + cy - 0.5).astype(np.float32)
+
+
+def distort_points(K: np.ndarray, k1: float, uv: np.ndarray) -> np.ndarray:
+    """Pinhole pixel coordinates -> distorted pixel coordinates (same model)."""
+    if not k1:
+        return uv
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    x, y = (uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy
+    f = 1 + k1 * (x * x + y * y)
+    return np.c_[x * f * fx + cx, y * f * fy + cy]
+
+
+def apply_distortion(maps, rgb, nearest: list[np.ndarray]):
+    import cv2
+
+    mx, my = maps
+    out_rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    out = []
+    for a in nearest:
+        if a.dtype == np.uint32:  # remap has no uint32 path: split into two uint16 halves
+            lo = cv2.remap((a & 0xFFFF).astype(np.uint16), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+            hi = cv2.remap((a >> 16).astype(np.uint16), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+            out.append(lo.astype(np.uint32) | (hi.astype(np.uint32) << 16))
+        else:
+            out.append(cv2.remap(a, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE))
+    return out_rgb, out
+
+
+def edge_antialias(rgb: np.ndarray, instance: np.ndarray) -> np.ndarray:
+    """Cheap anti-aliasing from the exact instance map: pixels on an object boundary get a 3x3
+    average. Used when MSAA is off (antialias: 1)."""
+    import cv2
+
+    e = np.zeros(instance.shape, bool)
+    e[:, 1:] |= instance[:, 1:] != instance[:, :-1]
+    e[1:, :] |= instance[1:, :] != instance[:-1, :]
+    e[:, :-1] |= e[:, 1:].copy()
+    e[:-1, :] |= e[1:, :].copy()
+    soft = cv2.blur(rgb, (3, 3))
+    out = rgb.copy()
+    out[e] = ((rgb[e].astype(np.uint16) + soft[e]) // 2).astype(np.uint8)
+    return out
+
+
+def photometric(rgb: np.ndarray, fx: dict) -> np.ndarray:
+    """Blur, vignetting, exposure, white balance, noise, JPEG (each skipped when neutral)."""
+    import cv2
+
+    img = rgb
+    if fx.get("blur_sigma", 0) > 0.05:
+        img = cv2.GaussianBlur(img, (0, 0), fx["blur_sigma"])
+    gain = np.array(fx.get("white_balance", [1, 1, 1]), np.float32) * float(fx.get("exposure", 1.0))
+    vig = float(fx.get("vignetting", 0))
+    noise = float(fx.get("noise_std", 0))
+    if vig > 0 or noise > 0 or np.any(np.abs(gain - 1) > 1e-6):
+        f = img.astype(np.float32) * gain
+        if vig > 0:
+            H, W = img.shape[:2]
+            yy, xx = np.meshgrid(np.linspace(-1, 1, H, dtype=np.float32), np.linspace(-1, 1, W, dtype=np.float32), indexing="ij")
+            f *= (1 - vig * np.clip((xx * xx + yy * yy) / 2, 0, 1) ** 1.5)[..., None]
+        if noise > 0:
+            rng = np.random.default_rng(fx.get("noise_seed", 0))
+            f += rng.normal(0, noise, f.shape).astype(np.float32) * np.sqrt(np.clip(f, 8, 255) / 128)
+        img = np.clip(f + 0.5, 0, 255).astype(np.uint8)
+    q = int(fx.get("jpeg_quality", 0))
+    if q > 0:
+        ok, buf = cv2.imencode(".jpg", img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, q])
+        img = np.ascontiguousarray(cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1])
+    return img

@@ -1,0 +1,264 @@
+"""Generate a WareSynth dataset: sample -> render -> ground truth -> write, per index.
+
+Every image depends only on (recipe, seed, index): shards (`index % n == i`) and worker
+processes produce byte-identical files, so shards merge by copying folders together. A run
+resumes: an index whose meta/NNNNNN.json exists is finished (meta is written last, every
+file through racklay.atomic). At the end, split files and COCO annotations are (re)built from
+the finished samples found in the folder.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import layout as L
+from ..atomic import atomic_write_bytes, atomic_write_json, atomic_write_text, encode_png
+from ..data import RackLayRoot, make_splits
+from .recipe import Recipe, recipe_from_dict
+
+MANIFEST = "waresynth.json"
+EXTRA_DIRS = {"depth": "depth", "normals": "normals", "semantic": "semantic", "instance": "instance",
+              "kitti": "kitti"}
+STAGES = ("sample", "render", "groundtruth", "write")
+
+
+def sample_id(index: int) -> str:
+    return f"{index:06d}"
+
+
+def parse_shard(text: str | None) -> tuple[int, int]:
+    if not text:
+        return 0, 1
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise ValueError(f"--shard {text!r}: expected i/n, e.g. 0/4") from None
+    if n < 1 or not 0 <= i < n:
+        raise ValueError(f"--shard {text!r}: need 0 <= i < n")
+    return i, n
+
+
+class Generator:
+    """Renders and writes samples of one dataset; one per process (owns a GL context)."""
+
+    def __init__(self, recipe: Recipe, seed: int, out: str | os.PathLike, backend: str = "gl"):
+        from .render import make_renderer
+        from .textures import build_bank
+
+        self.recipe, self.seed = recipe, int(seed)
+        self.root = RackLayRoot(out)
+        self.grid = L.Grid(recipe.layout_size, recipe.extent_m)
+        self.bank = build_bank(recipe.texture_family, self.seed, recipe.texture_dir)
+        msaa = recipe.antialias if recipe.antialias >= 2 else 0
+        self.renderer = make_renderer(self.bank, recipe.image_width, recipe.image_height, msaa=msaa, backend=backend)
+
+    def close(self):
+        self.renderer.release()
+
+    def make(self, index: int):
+        """Everything of one sample in memory: (scene, rgb, maps dict, top, front, meta, kitti)."""
+        from .effects import apply_distortion, distortion_maps, edge_antialias, photometric
+        from .groundtruth import (kitti_lines, object_annotations, scene_layouts, scene_meta, semantic_map)
+        from .scene import sample_scene
+
+        r = self.recipe
+        t = {}
+        t0 = time.perf_counter()
+        scene = sample_scene(r, self.seed, index)
+        scene.shadows = r.shadows
+        t1 = time.perf_counter()
+        out = self.renderer.render(scene)
+        t2 = time.perf_counter()
+        rgb, inst, depth, normals = out.rgb, out.instance, out.depth, out.normals
+        if r.antialias == 1:
+            rgb = edge_antialias(rgb, inst)
+        if scene.camera.k1:
+            maps = distortion_maps(scene.camera.K, scene.camera.k1, r.image_width, r.image_height)
+            rgb, (inst, depth, normals) = apply_distortion(maps, rgb, [inst, depth, normals])
+        rgb = photometric(rgb, scene.effects)
+        top, front = scene_layouts(scene, self.grid, r.R)
+        objects = object_annotations(scene, inst, coco=r.write_coco)
+        meta = scene_meta(scene, r, self.grid, objects)
+        kitti = kitti_lines(objects) if r.write_kitti else None
+        t3 = time.perf_counter()
+        t.update(sample=t1 - t0, render=t2 - t1, groundtruth=t3 - t2)
+        maps = {"instance": inst, "depth": depth, "normals": normals}
+        return scene, rgb, maps, top, front, meta, kitti, t
+
+    def generate(self, index: int) -> dict:
+        """Make and write one sample; returns per-stage seconds."""
+        from .groundtruth import depth_png, normals_png, semantic_map
+
+        scene, rgb, maps, top, front, meta, kitti, t = self.make(index)
+        r, root, sid = self.recipe, self.root.root, sample_id(index)
+        t0 = time.perf_counter()
+        if r.write_depth:
+            atomic_write_bytes(root / "depth" / f"{sid}.png", encode_png(depth_png(maps["depth"])))
+        if r.write_normals:
+            atomic_write_bytes(root / "normals" / f"{sid}.png", encode_png(normals_png(maps["normals"])))
+        if r.write_semantic:
+            atomic_write_bytes(root / "semantic" / f"{sid}.png", encode_png(semantic_map(scene, maps["instance"])))
+        if r.write_instance:
+            atomic_write_bytes(root / "instance" / f"{sid}.png", encode_png(maps["instance"].astype(np.uint16)))
+        if kitti is not None:
+            atomic_write_text(root / "kitti" / f"{sid}.txt", kitti)
+        self.root.write_sample(sid, image=rgb, top=top, front=front)
+        atomic_write_json(self.root.meta_path(sid), meta, indent=None)  # last: marks the index finished
+        t["write"] = time.perf_counter() - t0
+        return t
+
+
+# --- multiprocessing ---------------------------------------------------------------------
+_WORKER: Generator | None = None
+
+
+def _init_worker(recipe_dict, seed, out, lp_threads):
+    global _WORKER
+    if lp_threads:
+        os.environ["LP_NUM_THREADS"] = str(lp_threads)
+    _WORKER = Generator(recipe_from_dict(recipe_dict, "recipe"), seed, out)
+
+
+def _work(index):
+    return index, _WORKER.generate(index)
+
+
+def is_done(root: RackLayRoot, index: int, recipe: Recipe) -> bool:
+    sid = sample_id(index)
+    if not root.meta_path(sid).exists():
+        return False
+    return root.image_path(sid).exists() and root.layout_path("top", sid).exists() and \
+        root.layout_path("front", sid).exists()
+
+
+def check_manifest(out: Path, recipe: Recipe, n: int, seed: int) -> dict:
+    """Write out/waresynth.json, or check that an existing one describes the same dataset."""
+    man = {"generator": "racklay synth (WareSynth)", "recipe": recipe.to_dict(), "n": int(n), "seed": int(seed)}
+    p = out / MANIFEST
+    if p.exists():
+        try:
+            old = json.loads(p.read_text())
+        except json.JSONDecodeError:
+            raise ValueError(f"{p}: invalid JSON; remove it or use another --out") from None
+        diffs = [k for k in ("n", "seed") if old.get(k) != man[k]]
+        diffs += [f"recipe.{k}" for k in man["recipe"] if old.get("recipe", {}).get(k) != man["recipe"][k]]
+        if diffs:
+            raise ValueError(f"{p}: {out} holds a dataset made with different settings ({', '.join(diffs[:5])}); "
+                             f"use another --out or the same recipe/--n/--seed to resume")
+    else:
+        atomic_write_json(p, man)
+    return man
+
+
+@dataclass
+class RunResult:
+    out: Path
+    generated: list = field(default_factory=list)
+    skipped: int = 0
+    timings: dict = field(default_factory=lambda: {s: 0.0 for s in STAGES})
+    wall: float = 0.0
+    splits: dict = field(default_factory=dict)
+
+
+def generate_dataset(recipe: Recipe, n: int, out: str | os.PathLike, seed: int = 0, shard: str | None = None,
+                     workers: int = 1, progress: bool = True, lp_threads: int | None = None,
+                     limit: int | None = None, finalize: bool = True) -> RunResult:
+    """Generate indices [0, n) of this shard into `out` (resuming), then write splits/COCO."""
+    if n < 1:
+        raise ValueError(f"--n must be >= 1, got {n}")
+    si, sn = parse_shard(shard)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    check_manifest(out, recipe, n, seed)
+    root = RackLayRoot(out)
+    todo_all = [i for i in range(si, n, sn)]
+    todo = [i for i in todo_all if not is_done(root, i, recipe)]
+    res = RunResult(out=out, skipped=len(todo_all) - len(todo))
+    if limit is not None:
+        todo = todo[:limit]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=len(todo_all), initial=res.skipped, desc=f"synth {recipe.name}", unit="img", dynamic_ncols=True)
+    t0 = time.perf_counter()
+    try:
+        if workers <= 1:
+            if lp_threads:
+                os.environ["LP_NUM_THREADS"] = str(lp_threads)
+            gen = Generator(recipe, seed, out) if todo else None
+            try:
+                for i in todo:
+                    t = gen.generate(i)
+                    _acc(res, i, t, bar)
+            finally:
+                if gen:
+                    gen.close()
+        elif todo:
+            import multiprocessing as mp
+
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(workers, initializer=_init_worker,
+                          initargs=(recipe.to_dict(), seed, str(out), lp_threads or 1)) as pool:
+                for i, t in pool.imap_unordered(_work, todo, chunksize=1):
+                    _acc(res, i, t, bar)
+    finally:
+        res.wall = time.perf_counter() - t0
+        if bar:
+            bar.close()
+        if finalize:
+            res.splits = finalize_dataset(out, recipe, n, seed)
+    return res
+
+
+def _acc(res: RunResult, i, t, bar):
+    res.generated.append(i)
+    for k, v in t.items():
+        res.timings[k] = res.timings.get(k, 0.0) + v
+    if bar:
+        bar.update(1)
+
+
+def finalize_dataset(out: str | os.PathLike, recipe: Recipe, n: int, seed: int) -> dict:
+    """Split files over the finished samples (assignment fixed by seed over all n indices, so
+    every shard and the merged folder agree) and COCO instance files per split."""
+    root = RackLayRoot(out)
+    present = {p.stem for p in (root.root / "meta").glob("*.json") if not p.name.startswith(".")}
+    all_ids = [sample_id(i) for i in range(n)]
+    assignment = make_splits(all_ids, recipe.splits, seed)
+    counts = {}
+    for name, ids in assignment.items():
+        ids = [s for s in ids if s in present and root.image_path(s).exists()]
+        root.write_split(name, ids)
+        counts[name] = len(ids)
+        if recipe.write_coco:
+            write_coco(root, name, ids)
+    return counts
+
+
+def write_coco(root: RackLayRoot, split: str, ids: list[str]) -> Path:
+    """annotations/instances_SPLIT.json (COCO instances: cartons and crates, polygons)."""
+    from .scene import CATEGORY_NAMES
+
+    images, anns = [], []
+    for k, sid in enumerate(ids):
+        meta = root.read_meta(sid)
+        W, H = meta["image_size"]
+        images.append({"id": int(sid), "file_name": f"Images/{sid}.png", "width": W, "height": H})
+        for o in meta["objects"]:
+            if not o.get("bbox_visible") or not o.get("segmentation"):
+                continue
+            x0, y0, x1, y1 = o["bbox_visible"]
+            anns.append({"id": len(anns) + 1, "image_id": int(sid), "category_id": o["category_id"],
+                         "bbox": [x0, y0, x1 - x0, y1 - y0], "area": o["visible_pixels"], "iscrowd": 0,
+                         "segmentation": o["segmentation"],
+                         "attributes": {"shelf_channel": o["channel"], "visible_fraction": o["visible_fraction"]}})
+    coco = {"info": {"description": f"WareSynth ({root.root.name}) {split}"},
+            "categories": [{"id": i + 1, "name": n, "supercategory": "crate" if n.startswith("crate") else "carton"}
+                           for i, n in enumerate(CATEGORY_NAMES)],
+            "images": images, "annotations": anns}
+    return atomic_write_json(root.root / "annotations" / f"instances_{split}.json", coco, indent=None)

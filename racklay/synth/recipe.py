@@ -1,0 +1,259 @@
+"""WareSynth recipes: every knob of the generator in one validated dataclass.
+
+A recipe is a flat YAML mapping (``datasets/recipes/NAME.yaml``). Keys not listed in `Recipe`
+and values outside a field's range are rejected with one clear error *before* anything is
+written. Command-line overrides use the same names: ``--set box_density=[0.2,0.9]``.
+
+Ranges are written ``[lo, hi]`` and sampled uniformly per scene (integers for integer knobs).
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+RECIPE_DIR = Path(__file__).resolve().parents[2] / "datasets" / "recipes"
+
+
+class RecipeError(ValueError):
+    """A recipe that cannot be used; the message names the recipe and the key."""
+
+
+def _f(default, kind, lo=None, hi=None, doc=""):
+    """A recipe field. kind: int, float, bool, str, path, irange/frange ([lo, hi]), splits,
+    choice:a|b, weights:a|b; lo/hi bound every number."""
+    return field(default_factory=(lambda d=default: list(d) if isinstance(d, list) else (dict(d) if isinstance(d, dict) else d)),
+                 metadata={"kind": kind, "lo": lo, "hi": hi, "doc": doc})
+
+
+@dataclass
+class Recipe:
+    # --- identity and output -------------------------------------------------------------
+    name: str = _f("custom", "str", doc="recipe name, written into every meta file")
+    domain: str = _f("synthetic", "choice:synthetic|proxy-real", doc="'proxy-real' marks the stand-in target domain")
+    image_width: int = _f(470, "int", 32, 4096, "image width in pixels")
+    image_height: int = _f(280, "int", 32, 4096, "image height in pixels")
+    R: int = _f(4, "int", 1, 16, "layout channels = most shelves that can be visible")
+    layout_size: int = _f(512, "int", 16, 2048, "layout grid D (pixels a side)")
+    extent_m: float = _f(8.0, "float", 1.0, 64.0, "metres covered by the layout grid")
+    splits: dict = _f({"train": 0.6667, "val": 0.1667, "test": 0.1666}, "splits", doc="split fractions (paper: 8k/2k/2k)")
+    # --- the considered rack ------------------------------------------------------------
+    n_shelves: list = _f([3, 6], "irange", 1, 12, "shelves (boards that carry boxes) in the rack")
+    shelf_height: list = _f([0.45, 0.8], "frange", 0.2, 2.5, "inter-shelf height in metres (board top to board top)")
+    shelf_height_jitter: float = _f(0.0, "float", 0.0, 0.4, "relative per-level variation of the inter-shelf height")
+    rack_length: list = _f([1.6, 3.0], "frange", 0.5, 6.0, "rack (shelf board) length along x, metres")
+    rack_depth: list = _f([0.6, 1.1], "frange", 0.3, 2.0, "shelf board depth, metres")
+    bottom_height: list = _f([0.08, 0.25], "frange", 0.0, 1.0, "height of the lowest board's top above the floor")
+    board_thickness: float = _f(0.035, "float", 0.005, 0.2, "board thickness, metres")
+    beam_height: list = _f([0.06, 0.12], "frange", 0.0, 0.3, "front/back beam height under each board")
+    upright_width: float = _f(0.08, "float", 0.02, 0.3, "upright post width, metres")
+    # --- warehouse ------------------------------------------------------------------------
+    background: dict = _f({"wall": 0.4, "busy": 0.6}, "weights:wall|busy", doc="probability of each background")
+    wall_gap: list = _f([0.05, 0.6], "frange", 0.0, 5.0, "gap between the rack's back and the wall (wall background)")
+    corridor_width: list = _f([2.5, 4.0], "frange", 1.0, 10.0, "corridor width in the occupancy map, metres")
+    rack_density: float = _f(0.8, "float", 0.0, 1.0, "probability that a cell of the occupancy map holds a rack bay")
+    rack_rows: int = _f(3, "int", 0, 8, "rack rows behind the considered one (busy background)")
+    bays_per_side: int = _f(3, "int", 0, 10, "neighbouring bays on each side in the same row (busy background)")
+    clutter: list = _f([2, 10], "irange", 0, 60, "clutter items (pallets, forklift-like blocks, extinguishers)")
+    # --- boxes ----------------------------------------------------------------------------
+    box_density: list = _f([0.0, 1.0], "frange", 0.0, 1.0, "per-shelf occupancy density ~ U(lo, hi)")
+    min_gap: float = _f(0.03, "float", 0.0, 0.5, "minimum gap between boxes, metres")
+    yaw_max_deg: float = _f(10.0, "float", 0.0, 45.0, "box yaw about the vertical ~ U(-r, r) degrees")
+    max_stack: list = _f([1, 3], "irange", 1, 8, "boxes stack up to a random height in this range")
+    crate_fraction: float = _f(0.25, "float", 0.0, 1.0, "probability that an item is a crate, not a carton")
+    size_jitter: float = _f(0.12, "float", 0.0, 0.5, "relative size variation within a category")
+    back_row: float = _f(0.5, "float", 0.0, 1.0, "probability of a second box row behind a shallow box")
+    # --- camera ---------------------------------------------------------------------------
+    focal_px: list = _f([330.0, 520.0], "frange", 50.0, 5000.0, "focal length in pixels (fx = fy)")
+    camera_distance: list = _f([0.9, 4.0], "frange", 0.2, 30.0, "horizontal distance from the rack front, metres")
+    camera_height: list = _f([0.2, 4.5], "frange", 0.0, 30.0, "camera height above the floor, metres")
+    camera_x: float = _f(0.2, "float", 0.0, 1.0, "camera x offset ~ U(-a, a) x rack length")
+    yaw_jitter_deg: float = _f(3.0, "float", 0.0, 30.0, "camera yaw jitter ~ U(-a, a)")
+    pitch_jitter_deg: float = _f(3.0, "float", 0.0, 30.0, "camera pitch jitter ~ U(-a, a)")
+    roll_jitter_deg: float = _f(1.0, "float", 0.0, 15.0, "camera roll jitter ~ U(-a, a)")
+    visible_fraction: float = _f(0.5, "float", 0.05, 1.0, "a shelf is visible when this fraction of its front opening's height is in the image")
+    detection_range_m: float = _f(12.0, "float", 0.5, 100.0, "range of detection d: farther shelves are not visible")
+    # --- lighting -------------------------------------------------------------------------
+    ambient: list = _f([0.2, 0.35], "frange", 0.0, 2.0, "ambient light level")
+    light_intensity: list = _f([0.45, 0.85], "frange", 0.0, 5.0, "ceiling light intensity")
+    light_spacing: list = _f([3.0, 5.0], "frange", 1.0, 20.0, "ceiling lights along corridors every ... metres")
+    light_warmth: list = _f([-0.1, 0.1], "frange", -1.0, 1.0, "colour temperature shift (+ warm, - cool)")
+    ceiling_height: list = _f([7.0, 10.0], "frange", 3.0, 30.0, "warehouse ceiling height, metres")
+    shadows: bool = _f(True, "bool", doc="shadow map for the main light")
+    # --- look -----------------------------------------------------------------------------
+    texture_family: str = _f("warehouse", "choice:warehouse|proxy", doc="procedural texture family")
+    texture_dir: str = _f("", "path", doc="folder of your own images used as extra carton textures")
+    tint_jitter: float = _f(0.08, "float", 0.0, 0.5, "per-object colour jitter")
+    antialias: int = _f(1, "int", 0, 16, "0 off, 1 edge AA from the exact instance map (cheap), >= 2 MSAA samples (slow on CPU)")
+    # --- camera effects (proxy-real domain; off in the synthetic recipes) -------------------
+    exposure: list = _f([1.0, 1.0], "frange", 0.1, 4.0, "exposure gain")
+    white_balance: float = _f(0.0, "float", 0.0, 0.5, "per-channel gain shift ~ U(-a, a)")
+    blur_sigma: list = _f([0.0, 0.0], "frange", 0.0, 5.0, "Gaussian blur sigma, pixels")
+    noise_std: list = _f([0.0, 0.0], "frange", 0.0, 50.0, "sensor noise std (0..255 scale)")
+    vignetting: list = _f([0.0, 0.0], "frange", 0.0, 1.0, "corner darkening")
+    jpeg_quality: list = _f([0, 0], "irange", 0, 100, "JPEG round-trip quality (0 = off)")
+    distortion_k1: list = _f([0.0, 0.0], "frange", -0.5, 0.5, "radial lens distortion k1 (image only; layouts stay metric)")
+    # --- extra outputs --------------------------------------------------------------------
+    write_depth: bool = _f(True, "bool", doc="depth/NNNNNN.png (uint16 millimetres)")
+    write_normals: bool = _f(True, "bool", doc="normals/NNNNNN.png (camera-frame, 8-bit)")
+    write_semantic: bool = _f(True, "bool", doc="semantic/NNNNNN.png")
+    write_instance: bool = _f(True, "bool", doc="instance/NNNNNN.png (uint16)")
+    write_kitti: bool = _f(True, "bool", doc="kitti/NNNNNN.txt labels")
+    write_coco: bool = _f(True, "bool", doc="annotations/instances_*.json at the end")
+
+    # ------------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def fields_help(cls) -> str:
+        return "\n".join(f"  {f.name:20s} {f.metadata['doc']}" for f in dataclasses.fields(cls))
+
+
+_FIELDS = {f.name: f for f in dataclasses.fields(Recipe)}
+
+
+def _check_value(key: str, value, src: str):
+    f = _FIELDS[key]
+    kind, lo, hi = f.metadata["kind"], f.metadata["lo"], f.metadata["hi"]
+    where = f"{src}: key '{key}'"
+
+    def num(v, integer):
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise RecipeError(f"{where}: expected a number, got {v!r}")
+        if integer and float(v) != int(v):
+            raise RecipeError(f"{where}: expected an integer, got {v!r}")
+        v = int(v) if integer else float(v)
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise RecipeError(f"{where}: {v} out of range [{lo}, {hi}]")
+        return v
+
+    if kind in ("int", "float"):
+        return num(value, kind == "int")
+    if kind in ("irange", "frange"):
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            value = [value, value]
+        if not isinstance(value, (list, tuple)) or len(value) != 2:
+            raise RecipeError(f"{where}: expected a range [lo, hi], got {value!r}")
+        a, b = (num(v, kind == "irange") for v in value)
+        if a > b:
+            raise RecipeError(f"{where}: range [{a}, {b}] has lo > hi")
+        return [a, b]
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise RecipeError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if kind == "str":
+        return str(value)
+    if kind == "path":
+        return "" if value in (None, "") else str(value)
+    if kind.startswith("choice:"):
+        allowed = kind.split(":", 1)[1].split("|")
+        if value not in allowed:
+            raise RecipeError(f"{where}: {value!r} is not one of {allowed}")
+        return value
+    if kind.startswith("weights:"):
+        allowed = kind.split(":", 1)[1].split("|")
+        if not isinstance(value, dict) or not value:
+            raise RecipeError(f"{where}: expected a mapping like {{{allowed[0]}: 0.5, ...}}")
+        out = {}
+        for k, v in value.items():
+            if k not in allowed:
+                raise RecipeError(f"{where}: unknown choice {k!r} (allowed: {allowed})")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or v < 0:
+                raise RecipeError(f"{where}: weight of {k!r} must be a number >= 0")
+            out[k] = float(v)
+        if sum(out.values()) <= 0:
+            raise RecipeError(f"{where}: weights sum to 0")
+        return out
+    if kind == "splits":
+        if not isinstance(value, dict) or not value:
+            raise RecipeError(f"{where}: expected a mapping like {{train: 0.8, val: 0.1, test: 0.1}}")
+        out = {}
+        for k, v in value.items():
+            if not isinstance(k, str) or not k.replace("_", "").isalnum():
+                raise RecipeError(f"{where}: bad split name {k!r}")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or v < 0:
+                raise RecipeError(f"{where}: fraction of split {k!r} must be a number >= 0")
+            out[k] = float(v)
+        if sum(out.values()) > 1 + 1e-6:
+            raise RecipeError(f"{where}: split fractions sum to {sum(out.values()):.4f} > 1")
+        return out
+    raise AssertionError(kind)
+
+
+def recipe_from_dict(data: dict, src: str = "recipe") -> Recipe:
+    """Validate a mapping and build a Recipe; unknown keys and bad values raise RecipeError."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise RecipeError(f"{src}: expected a mapping of key: value, got {type(data).__name__}")
+    kw = {}
+    for key, value in data.items():
+        if key not in _FIELDS:
+            close = difflib.get_close_matches(str(key), list(_FIELDS), n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise RecipeError(f"{src}: unknown key '{key}'{hint}")
+        kw[key] = _check_value(key, value, src)
+    r = Recipe(**kw)
+    if r.layout_size % 2:
+        raise RecipeError(f"{src}: key 'layout_size' must be even, got {r.layout_size}")
+    if r.texture_dir and not Path(os.path.expanduser(r.texture_dir)).is_dir():
+        raise RecipeError(f"{src}: key 'texture_dir': folder {r.texture_dir} not found")
+    return r
+
+
+def parse_override(text: str) -> tuple[str, object]:
+    """`key=value` with a YAML value (`box_density=[0.2, 0.9]`, `shadows=false`)."""
+    if "=" not in text:
+        raise RecipeError(f"--set {text!r}: expected key=value")
+    key, _, raw = text.partition("=")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as e:
+        raise RecipeError(f"--set {text!r}: value is not valid YAML ({e.__class__.__name__})") from None
+    return key.strip(), value
+
+
+def resolve_recipe_path(name_or_path: str) -> Path:
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") or p.exists() or os.sep in name_or_path:
+        if not p.is_file():
+            raise RecipeError(f"{p}: recipe file not found")
+        return p
+    q = RECIPE_DIR / f"{name_or_path}.yaml"
+    if not q.is_file():
+        known = sorted(x.stem for x in RECIPE_DIR.glob("*.yaml"))
+        raise RecipeError(f"recipe '{name_or_path}' not found in {RECIPE_DIR} (known: {', '.join(known) or 'none'})")
+    return q
+
+
+def load_recipe(name_or_path: str | None = None, overrides: list[str] | dict | None = None) -> Recipe:
+    """Load a recipe by name (from datasets/recipes/) or path, apply `key=value` overrides,
+    validate everything, and return it."""
+    data, src = {}, "recipe defaults"
+    if name_or_path:
+        path = resolve_recipe_path(name_or_path)
+        src = str(path)
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as e:
+            raise RecipeError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+        if not isinstance(data, dict):
+            raise RecipeError(f"{path}: expected a mapping of key: value")
+        data.setdefault("name", path.stem)
+        recipe_from_dict(data, src)  # errors in the file are reported against the file
+    if overrides:
+        items = overrides.items() if isinstance(overrides, dict) else (parse_override(o) for o in overrides)
+        for k, v in items:
+            if k not in _FIELDS:
+                close = difflib.get_close_matches(str(k), list(_FIELDS), n=1)
+                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                raise RecipeError(f"--set: unknown key '{k}'{hint}")
+            data[k] = v
+        src = f"{src} with --set overrides"
+    return recipe_from_dict(data, src)

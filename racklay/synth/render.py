@@ -1,0 +1,400 @@
+"""Rendering behind a small interface. `Renderer.render(scene) -> RenderOutput` with the RGB
+image and exact per-pixel maps (instance ids, camera-frame depth and normals).
+
+Backend `GLRenderer`: moderngl on a headless EGL context (Mesa llvmpipe on CPU here; a GPU
+where one exists). All solids are instanced unit cubes / cylinders: one draw call per pass.
+Passes: shadow map from the main light; a G-buffer pass (no anti-aliasing, so ids, depth and
+normals are exact at pixel centres); the colour pass (textured Lambert + Blinn-Phong, 1 shadowed
+key light + up to 7 point lights + ambient, MSAA-resolved).
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from .scene import Scene
+from .textures import TextureBank
+
+MAX_LIGHTS = 8  # array size in the shader; scenes use up to 5
+NEAR, FAR = 0.05, 300.0
+
+
+@dataclass
+class RenderOutput:
+    rgb: np.ndarray        # (H, W, 3) uint8
+    instance: np.ndarray   # (H, W) uint32: object index + 1, 0 = nothing
+    depth: np.ndarray      # (H, W) float32 camera-frame z in metres (0 = nothing)
+    normals: np.ndarray    # (H, W, 3) float32 camera-frame unit normals (0 = nothing)
+
+
+class Renderer(Protocol):
+    def render(self, scene: Scene) -> RenderOutput: ...
+
+    def release(self) -> None: ...
+
+
+# --- meshes -------------------------------------------------------------------------------
+def cube_mesh():
+    """24 vertices: pos(3) normal(3) uv(2) mu(3) mv(3) is_top(1); 36 indices."""
+    faces = [  # normal, u axis, v axis
+        ((1, 0, 0), (0, 1, 0), (0, 0, 1)), ((-1, 0, 0), (0, -1, 0), (0, 0, 1)),
+        ((0, 1, 0), (-1, 0, 0), (0, 0, 1)), ((0, -1, 0), (1, 0, 0), (0, 0, 1)),
+        ((0, 0, 1), (1, 0, 0), (0, 1, 0)), ((0, 0, -1), (1, 0, 0), (0, -1, 0)),
+    ]
+    verts, idx = [], []
+    for n, u, v in faces:
+        n, u, v = (np.array(a, np.float32) for a in (n, u, v))
+        base = len(verts)
+        for su, sv in ((0, 0), (1, 0), (1, 1), (0, 1)):
+            p = 0.5 * n + (su - 0.5) * u + (sv - 0.5) * v
+            verts.append(np.concatenate([p, n, [su, 1 - sv], np.abs(u), np.abs(v), [1.0 if abs(n[2]) > 0.5 else 0.0]]))
+        idx += [base, base + 1, base + 2, base, base + 2, base + 3]
+    return np.array(verts, np.float32), np.array(idx, np.int32)
+
+
+def cylinder_mesh(seg: int = 20):
+    """Vertical cylinder inscribed in the unit cube (radius 0.5 in x and y)."""
+    verts, idx = [], []
+    for i in range(seg + 1):
+        a = 2 * math.pi * i / seg
+        c, s = math.cos(a), math.sin(a)
+        for z, v in ((-0.5, 1.0), (0.5, 0.0)):
+            verts.append([0.5 * c, 0.5 * s, z, c, s, 0, i / seg, v, 1, 1, 0, 0, 0, 1, 0])
+    for i in range(seg):
+        a, b = 2 * i, 2 * i + 2
+        idx += [a, b, b + 1, a, b + 1, a + 1]
+    for z, nz in ((0.5, 1.0), (-0.5, -1.0)):
+        centre = len(verts)
+        verts.append([0, 0, z, 0, 0, nz, 0.5, 0.5, 1, 0, 0, 0, 1, 0, 1])
+        for i in range(seg + 1):
+            a = 2 * math.pi * i / seg
+            verts.append([0.5 * math.cos(a), 0.5 * math.sin(a), z, 0, 0, nz,
+                          0.5 + 0.5 * math.cos(a), 0.5 + 0.5 * math.sin(a), 1, 0, 0, 0, 1, 0, 1])
+        for i in range(seg):
+            t = [centre, centre + 1 + i, centre + 2 + i]
+            idx += t if nz > 0 else t[::-1]
+    return np.array(verts, np.float32), np.array(idx, np.int32)
+
+
+_VS_COMMON = """
+#version 330
+in vec3 in_pos; in vec3 in_normal; in vec2 in_uv; in vec3 in_mu; in vec3 in_mv; in float in_istop;
+in vec3 i_center; in vec3 i_size; in float i_yaw; in vec3 i_tint; in vec2 i_layers; in vec4 i_mat; in float i_id;
+vec3 world_pos() {
+    float c = cos(i_yaw), s = sin(i_yaw);
+    vec3 p = in_pos * i_size;
+    return i_center + vec3(c * p.x - s * p.y, s * p.x + c * p.y, p.z);
+}
+vec3 world_normal() {
+    float c = cos(i_yaw), s = sin(i_yaw);
+    return vec3(c * in_normal.x - s * in_normal.y, s * in_normal.x + c * in_normal.y, in_normal.z);
+}
+"""
+
+SHADOW_VS = _VS_COMMON + """
+uniform mat4 light_vp;
+void main() { gl_Position = light_vp * vec4(world_pos(), 1.0); }
+"""
+DEPTH_VS = _VS_COMMON + """
+uniform mat3 Rwc; uniform vec3 twc; uniform vec4 proj; uniform vec2 nf;
+void main() {
+    vec3 pc = Rwc * world_pos() + twc;
+    float n = nf.x, f = nf.y;
+    gl_Position = vec4(proj.x * pc.x + proj.y * pc.z, -proj.z * pc.y + proj.w * pc.z,
+                       (pc.z * (f + n) - 2.0 * f * n) / (f - n), pc.z);
+}
+"""
+SHADOW_FS = """
+#version 330
+void main() {}
+"""
+
+CAM_VS = _VS_COMMON + """
+uniform mat3 Rwc; uniform vec3 twc; uniform vec4 proj;   // (2fx/W, 2cx/W - 1, 2fy/H, 1 - 2cy/H)
+uniform vec2 nf; uniform mat4 light_vp;
+out vec3 v_world; out vec3 v_nworld; out vec3 v_ncam; out float v_zcam; out vec3 v_uvl; out vec3 v_tint;
+out vec4 v_mat; flat out uint v_id; out vec4 v_lpos;
+void main() {
+    vec3 pw = world_pos();
+    vec3 nw = world_normal();
+    vec3 pc = Rwc * pw + twc;
+    float n = nf.x, f = nf.y;
+    gl_Position = vec4(proj.x * pc.x + proj.y * pc.z, -proj.z * pc.y + proj.w * pc.z,
+                       (pc.z * (f + n) - 2.0 * f * n) / (f - n), pc.z);
+    v_world = pw; v_nworld = nw; v_ncam = Rwc * nw; v_zcam = pc.z;
+    vec2 uv = in_uv;
+    if (i_mat.x > 0.0) uv *= vec2(dot(in_mu, i_size), dot(in_mv, i_size)) / i_mat.x;
+    v_uvl = vec3(uv, in_istop > 0.5 ? i_layers.y : i_layers.x);
+    v_tint = i_tint; v_mat = i_mat; v_id = uint(i_id + 0.5);
+    v_lpos = light_vp * vec4(pw, 1.0);
+}
+"""
+
+GBUF_FS = """
+#version 330
+in vec3 v_world; in vec3 v_nworld; in vec3 v_ncam; in float v_zcam; in vec3 v_uvl; in vec3 v_tint;
+in vec4 v_mat; flat in uint v_id; in vec4 v_lpos;
+layout(location = 0) out uint f_id;
+layout(location = 1) out float f_depth;
+layout(location = 2) out vec4 f_normal;
+void main() {
+    f_id = v_id; f_depth = v_zcam;
+    vec3 n = normalize(v_ncam);
+    if (!gl_FrontFacing) n = -n;
+    f_normal = vec4(n, 1.0);
+}
+"""
+
+COLOR_FS = """
+#version 330
+in vec3 v_world; in vec3 v_nworld; in vec3 v_ncam; in float v_zcam; in vec3 v_uvl; in vec3 v_tint;
+in vec4 v_mat; flat in uint v_id; in vec4 v_lpos;
+uniform sampler2DArray tex; uniform sampler2DShadow shadow_map; uniform int use_shadow;
+uniform vec3 cam_pos; uniform vec3 ambient; uniform int n_lights; uniform float falloff;
+uniform vec3 light_pos[8]; uniform vec3 light_col[8];
+out vec4 f_color;
+float shadow_factor(vec3 n, vec3 l) {
+    if (use_shadow == 0) return 1.0;
+    vec3 p = v_lpos.xyz / v_lpos.w * 0.5 + 0.5;
+    if (p.x < 0.0 || p.x > 1.0 || p.y < 0.0 || p.y > 1.0 || p.z > 1.0) return 1.0;
+    float bias = 0.0006 + 0.002 * (1.0 - max(dot(n, l), 0.0));
+    float s = texture(shadow_map, vec3(p.xy, p.z - bias));  // bilinear PCF (2 x 2 compare)
+    return 0.15 + 0.85 * s;
+}
+void main() {
+    vec3 albedo = texture(tex, v_uvl).rgb * v_tint;
+    vec3 n = normalize(v_nworld);
+    if (!gl_FrontFacing) n = -n;
+    vec3 v = normalize(cam_pos - v_world);
+    vec3 col = albedo * ambient * (0.8 + 0.2 * n.z);
+    for (int i = 0; i < n_lights; ++i) {
+        vec3 l = light_pos[i] - v_world;
+        float d = length(l); l /= d;
+        float att = 1.0 / (1.0 + (d / falloff) * (d / falloff));
+        float sh = (i == 0) ? shadow_factor(n, l) : 1.0;
+        float ndl = max(dot(n, l), 0.0);
+        vec3 h = normalize(l + v);
+        float spec = ndl > 0.0 ? v_mat.y * pow(max(dot(n, h), 0.0), v_mat.z) : 0.0;
+        col += light_col[i] * att * sh * (albedo * ndl + spec);
+    }
+    col += albedo * v_mat.w;
+    f_color = vec4(clamp(col, 0.0, 1.0), 1.0);
+}
+"""
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    eye, target, up = (np.asarray(a, np.float64) for a in (eye, target, up))
+    f = target - eye
+    f /= np.linalg.norm(f)
+    if abs(np.dot(f, up)) > 0.99:
+        up = np.array([0.0, 1.0, 0.0])
+    s = np.cross(f, up); s /= np.linalg.norm(s)
+    u = np.cross(s, f)
+    M = np.eye(4)
+    M[0, :3], M[1, :3], M[2, :3] = s, u, -f
+    M[:3, 3] = -M[:3, :3] @ eye
+    return M
+
+
+def perspective(fovy, aspect, near, far) -> np.ndarray:
+    f = 1 / math.tan(fovy / 2)
+    return np.array([[f / aspect, 0, 0, 0], [0, f, 0, 0],
+                     [0, 0, (far + near) / (near - far), 2 * far * near / (near - far)], [0, 0, -1, 0]])
+
+
+def instance_array(scene: Scene, bank: TextureBank) -> tuple[np.ndarray, np.ndarray]:
+    """Per-instance attributes (N, 17) float32 for boxes and cylinders (two arrays)."""
+    rows_box, rows_cyl = [], []
+    for i, o in enumerate(scene.objects):
+        m = bank.materials[o.material]
+        side = m.side[i % len(m.side)]
+        top = m.top[i % len(m.top)]
+        row = (*o.center, *o.size, o.yaw, *o.tint, side, top, m.uv_tile, m.specular, m.shininess, m.emissive, i + 1)
+        (rows_cyl if o.shape == "cylinder" else rows_box).append(row)
+    a = np.array(rows_box, np.float32).reshape(-1, 17)
+    b = np.array(rows_cyl, np.float32).reshape(-1, 17)
+    return a, b
+
+
+class GLRenderer:
+    """moderngl + EGL renderer. One instance per process (owns a GL context)."""
+
+    def __init__(self, bank: TextureBank, width: int, height: int, msaa: int = 4, shadow_size: int = 512,
+                 backend: str | None = "egl"):
+        import moderngl
+
+        self.moderngl = moderngl
+        kw = {"backend": backend} if backend else {}
+        self.ctx = ctx = moderngl.create_standalone_context(**kw)
+        self.W, self.H = width, height
+        self.bank = bank
+        layers = bank.array()
+        rgba = np.concatenate([layers, np.full(layers.shape[:3] + (1,), 255, np.uint8)], axis=-1)
+        self.tex = ctx.texture_array((layers.shape[2], layers.shape[1], layers.shape[0]), 4, rgba.tobytes())
+        self.tex.build_mipmaps()
+        self.tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        self.tex.repeat_x = self.tex.repeat_y = True
+        self.shadow_prog = ctx.program(vertex_shader=SHADOW_VS, fragment_shader=SHADOW_FS)
+        self.gbuf_prog = ctx.program(vertex_shader=CAM_VS, fragment_shader=GBUF_FS)
+        self.color_prog = ctx.program(vertex_shader=CAM_VS, fragment_shader=COLOR_FS)
+        self.depth_prog = ctx.program(vertex_shader=DEPTH_VS, fragment_shader=SHADOW_FS)
+        self.meshes = []
+        for verts, idx in (cube_mesh(), cylinder_mesh()):
+            self.meshes.append((ctx.buffer(verts.tobytes()), ctx.buffer(idx.tobytes()), len(idx)))
+        self.capacity = 8192
+        self.inst_bufs = [ctx.buffer(reserve=self.capacity * 17 * 4) for _ in self.meshes]
+        self._vao_cache = {}
+        # shadow map
+        self.shadow_size = shadow_size
+        self.shadow_tex = ctx.depth_texture((shadow_size, shadow_size))
+        self.shadow_tex.compare_func = "<="
+        self.shadow_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        self.shadow_fbo = ctx.framebuffer(depth_attachment=self.shadow_tex)
+        # G-buffer (exact, no AA)
+        self.id_tex = ctx.texture((width, height), 1, dtype="u4")
+        self.z_tex = ctx.texture((width, height), 1, dtype="f4")
+        self.n_tex = ctx.texture((width, height), 4, dtype="f4")
+        for t in (self.id_tex, self.z_tex, self.n_tex):
+            t.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        gdepth = ctx.depth_renderbuffer((width, height))
+        self.gbuf_fbo = ctx.framebuffer(color_attachments=[self.id_tex, self.z_tex, self.n_tex], depth_attachment=gdepth)
+        # colour (MSAA + resolve)
+        self.msaa = msaa if msaa and msaa > 1 else 0
+        # without MSAA the colour pass reuses the G-buffer's depth (no overdraw shading)
+        self.color_out = ctx.framebuffer(color_attachments=[ctx.renderbuffer((width, height), 4)],
+                                         depth_attachment=gdepth if not (msaa and msaa > 1) else
+                                         ctx.depth_renderbuffer((width, height)))
+        if self.msaa:
+            self.color_ms = ctx.framebuffer(
+                color_attachments=[ctx.renderbuffer((width, height), 4, samples=self.msaa)],
+                depth_attachment=ctx.depth_renderbuffer((width, height), samples=self.msaa))
+        else:
+            self.color_ms = self.color_out
+
+    def _vaos(self, prog):
+        """One VAO per mesh for `prog` (cached); attributes the program does not use are skipped."""
+        key = id(prog)
+        if key in self._vao_cache:
+            return self._vao_cache[key]
+        names_v = [("in_pos", "3f"), ("in_normal", "3f"), ("in_uv", "2f"), ("in_mu", "3f"), ("in_mv", "3f"), ("in_istop", "1f")]
+        names_i = [("i_center", "3f"), ("i_size", "3f"), ("i_yaw", "1f"), ("i_tint", "3f"), ("i_layers", "2f"),
+                   ("i_mat", "4f"), ("i_id", "1f")]
+        fv = " ".join(f if nm in prog else _skip(f) for nm, f in names_v)
+        fi = " ".join(f if nm in prog else _skip(f) for nm, f in names_i) + "/i"
+        vaos = []
+        for (vbo, ibo, _n), ibuf in zip(self.meshes, self.inst_bufs):
+            vaos.append(self.ctx.vertex_array(prog, [(vbo, fv, *[nm for nm, _ in names_v if nm in prog]),
+                                                     (ibuf, fi, *[nm for nm, _ in names_i if nm in prog])],
+                                              index_buffer=ibo))
+        self._vao_cache[key] = vaos
+        return vaos
+
+    def _draw(self, prog, counts):
+        for vao, n in zip(self._vaos(prog), counts):
+            if n:
+                vao.render(self.moderngl.TRIANGLES, instances=n)
+
+    def render(self, scene: Scene) -> RenderOutput:
+        ctx, mgl = self.ctx, self.moderngl
+        cam = scene.camera
+        if (cam.width, cam.height) != (self.W, self.H):
+            raise ValueError(f"renderer is {self.W}x{self.H}, scene camera is {cam.width}x{cam.height}")
+        boxes, cyls = instance_array(scene, self.bank)
+        if max(len(boxes), len(cyls)) > self.capacity:
+            raise ValueError(f"scene has {len(boxes)} solids, renderer capacity is {self.capacity}")
+        counts = []
+        for arr, buf in zip((boxes, cyls), self.inst_bufs):
+            if len(arr):
+                buf.write(arr.tobytes())
+            counts.append(len(arr))
+        # light setup
+        lights = scene.lights[:getattr(self, "_nl", MAX_LIGHTS)]
+        key = np.array(lights[0].position, np.float64)
+        target = np.array([0.0, 0.0, scene.shelves[len(scene.shelves) // 2].board_top])
+        dist = float(np.linalg.norm(target - key))
+        light_vp = (perspective(math.radians(100), 1.0, max(0.1, dist * 0.05), dist * 4 + 30) @ look_at(key, target))
+        light_vp32 = light_vp.T.astype(np.float32).tobytes()
+        ctx.enable(mgl.DEPTH_TEST)
+        ctx.disable(mgl.CULL_FACE)
+        use_shadow = int(bool(getattr(scene, "shadows", True)))
+        if True:
+            # 1) shadow map
+            if use_shadow:
+                self.shadow_fbo.use()
+                self.shadow_fbo.clear(depth=1.0)
+                self.shadow_prog["light_vp"].write(light_vp32)
+                self._draw(self.shadow_prog, counts)
+            # camera uniforms
+            K = cam.K
+            proj = (2 * K[0, 0] / self.W, 2 * K[0, 2] / self.W - 1, 2 * K[1, 1] / self.H, 1 - 2 * K[1, 2] / self.H)
+            Rwc = cam.R.astype(np.float32)
+            for prog in (self.gbuf_prog, self.color_prog, self.depth_prog):
+                prog["Rwc"].write(Rwc.T.tobytes())  # GLSL mat3 is column-major
+                prog["twc"].value = tuple(float(v) for v in cam.t)
+                prog["proj"].value = tuple(float(v) for v in proj)
+                prog["nf"].value = (NEAR, FAR)
+                if "light_vp" in prog._members:
+                    prog["light_vp"].write(light_vp32)
+            # 2) G-buffer
+            self.gbuf_fbo.use()
+            self.gbuf_fbo.clear(0, 0, 0, 0, depth=1.0)
+            self._draw(self.gbuf_prog, counts)
+            # 3) colour
+            p = self.color_prog
+            p["tex"].value = 0
+            p["shadow_map"].value = 1
+            p["use_shadow"].value = use_shadow
+            p["cam_pos"].value = tuple(float(v) for v in cam.center)
+            amb = scene.ambient
+            p["ambient"].value = tuple(float(amb * c) for c in scene.ambient_color)
+            p["n_lights"].value = len(lights)
+            p["falloff"].value = float(getattr(scene, "light_falloff", 6.0))
+            pos = np.zeros((MAX_LIGHTS, 3), np.float32)
+            col = np.zeros((MAX_LIGHTS, 3), np.float32)
+            for i, l in enumerate(lights):
+                pos[i] = l.position
+                col[i] = np.array(l.color) * l.intensity
+            p["light_pos"].write(pos.tobytes())
+            p["light_col"].write(col.tobytes())
+            self.tex.use(0)
+            self.shadow_tex.use(1)
+            self.color_ms.use()
+            if self.msaa:  # depth pre-pass so that only visible fragments are shaded
+                self.color_ms.clear(0.1, 0.1, 0.11, 1.0, depth=1.0)
+                self._draw(self.depth_prog, counts)
+            else:
+                self.color_ms.clear(0.1, 0.1, 0.11, 1.0)
+            ctx.depth_func = "<="
+            self._draw(p, counts)
+            ctx.depth_func = "<"
+            if self.msaa:
+                ctx.copy_framebuffer(self.color_out, self.color_ms)
+            # read back (GL rows are bottom-up)
+            W, H = self.W, self.H
+            rgb = np.frombuffer(self.color_out.read(components=3, alignment=1), np.uint8).reshape(H, W, 3)[::-1]
+            ids = np.frombuffer(self.id_tex.read(alignment=1), np.uint32).reshape(H, W)[::-1]
+            z = np.frombuffer(self.z_tex.read(alignment=1), np.float32).reshape(H, W)[::-1]
+            nrm = np.frombuffer(self.n_tex.read(alignment=1), np.float32).reshape(H, W, 4)[::-1, :, :3]
+        return RenderOutput(rgb=np.ascontiguousarray(rgb), instance=np.ascontiguousarray(ids),
+                            depth=np.ascontiguousarray(z), normals=np.ascontiguousarray(nrm))
+
+    def release(self) -> None:
+        self.ctx.release()
+
+
+def _skip(fmt: str) -> str:
+    """Format of an attribute the program does not use: skip its bytes."""
+    n = int(fmt[0])
+    return f"{4 * n}x"
+
+
+def make_renderer(bank: TextureBank, width: int, height: int, msaa: int = 4, backend: str = "gl") -> Renderer:
+    """The renderer factory: 'gl' (moderngl/EGL). Another backend plugs in here."""
+    if backend == "gl":
+        return GLRenderer(bank, width, height, msaa=msaa)
+    raise ValueError(f"unknown renderer backend {backend!r} (available: gl)")

@@ -1,0 +1,540 @@
+"""Scene sampling: pure data, no rendering. A `Scene` is a list of cuboids/cylinders with
+materials and semantic classes, the considered rack with its shelves and boxes, a camera and
+lights. The ground truth (layouts, 3D boxes) is computed from this description, never from
+rendered pixels.
+
+World frame: x along the considered rack (to the camera's right), y away from the camera
+(into the rack), z up, floor at z = 0. The considered rack is centred at x = y = 0, so every
+shelf frame of the layout convention (racklay.layout) is the world frame shifted up to that
+shelf's board top: shelf-frame (x, y, z) = world (x, y, z - board_top).
+
+Camera frame: OpenCV (x right, y down, z forward). X_cam = R @ X_world + t, pixel = K @ X_cam.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import layout as L
+from .recipe import Recipe
+
+# --- semantic classes ---------------------------------------------------------------------
+SEMANTIC_CLASSES = ("void", "floor", "wall", "rack", "shelf", "box", "crate", "clutter")
+SEM = {name: i for i, name in enumerate(SEMANTIC_CLASSES)}
+
+# --- item categories: 6 cartons + 2 crates, nominal size (sx along the rack, sy deep, sz up) ---
+CATEGORIES = (
+    ("carton_small", (0.30, 0.25, 0.22)),
+    ("carton_medium", (0.40, 0.30, 0.30)),
+    ("carton_long", (0.60, 0.40, 0.28)),
+    ("carton_flat", (0.50, 0.40, 0.14)),
+    ("carton_tall", (0.30, 0.30, 0.46)),
+    ("carton_large", (0.55, 0.45, 0.42)),
+    ("crate_blue", (0.40, 0.30, 0.24)),
+    ("crate_red", (0.60, 0.40, 0.32)),
+)
+CATEGORY_NAMES = tuple(c[0] for c in CATEGORIES)
+CARTONS = tuple(i for i, c in enumerate(CATEGORY_NAMES) if c.startswith("carton"))
+CRATES = tuple(i for i, c in enumerate(CATEGORY_NAMES) if c.startswith("crate"))
+
+
+@dataclass
+class Obj:
+    """One renderable solid: a cuboid (or a vertical cylinder inscribed in it)."""
+
+    center: tuple          # world (x, y, z) of the solid's centre
+    size: tuple            # (sx, sy, sz) along its own axes
+    yaw: float             # radians about z
+    material: str          # texture bank key
+    semantic: int
+    tint: tuple = (1.0, 1.0, 1.0)
+    shape: str = "box"     # "box" | "cylinder"
+    category: int = -1     # index into CATEGORIES for cartons/crates
+    shelf: int = -1        # shelf index of the considered rack (-1 elsewhere)
+    layout_box: L.Box | None = None  # the same item in its shelf frame (considered rack only)
+
+    def corners(self) -> np.ndarray:
+        """8 x 3 world corners of the cuboid (bottom 4 counter-clockwise, then top 4)."""
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        hx, hy, hz = (v / 2 for v in self.size)
+        local = np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]])
+        xy = local @ np.array([[c, s], [-s, c]]) + self.center[:2]
+        bottom = np.c_[xy, np.full(4, self.center[2] - hz)]
+        top = np.c_[xy, np.full(4, self.center[2] + hz)]
+        return np.vstack([bottom, top])
+
+
+@dataclass
+class ShelfInfo:
+    board_top: float       # world z of the board's top surface
+    clear_height: float    # inter-shelf height (board top to next board top; nominal for the top shelf)
+    max_item_top: float    # highest allowed item top above the board (below the next beam)
+    items: list = field(default_factory=list)  # indices into Scene.objects
+
+
+@dataclass
+class Camera:
+    K: np.ndarray          # 3 x 3
+    R: np.ndarray          # 3 x 3 world -> camera
+    t: np.ndarray          # 3
+    width: int
+    height: int
+    k1: float = 0.0        # radial distortion applied to the image after rendering
+
+    @property
+    def center(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+    def to_cam(self, pts: np.ndarray) -> np.ndarray:
+        return np.asarray(pts, dtype=np.float64) @ self.R.T + self.t
+
+    def project(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points -> (pixel coordinates (N, 2) with pixel centres at +0.5, camera z)."""
+        pc = self.to_cam(pts)
+        z = pc[:, 2]
+        uv = (pc @ self.K.T)[:, :2] / np.where(np.abs(z) < 1e-9, 1e-9, z)[:, None]
+        return uv, z
+
+
+@dataclass
+class Light:
+    position: tuple
+    color: tuple
+    intensity: float
+
+
+@dataclass
+class Scene:
+    index: int
+    seed: int
+    recipe: str
+    objects: list
+    shelves: list              # ShelfInfo, bottom-up, of the considered rack
+    rack_length: float
+    rack_depth: float
+    visible: list              # indices of visible shelves, lowest first (channel 0 = visible[0])
+    camera: Camera
+    lights: list
+    ambient: float
+    ambient_color: tuple
+    main_light: int            # index of the shadow-casting light
+    background: str
+    occupancy: list            # rows of the bay occupancy map (strings, '#' rack, '.' free, '=' corridor)
+    effects: dict
+    domain: str = "synthetic"
+
+    def layout_inputs(self) -> list[tuple[L.Shelf, list[L.Box]]]:
+        """(Shelf, boxes in the shelf frame) of each visible shelf, lowest first."""
+        out = []
+        for si in self.visible:
+            sh = self.shelves[si]
+            boxes = [self.objects[i].layout_box for i in sh.items]
+            out.append((L.Shelf(self.rack_length, self.rack_depth, sh.clear_height), boxes))
+        return out
+
+
+def _u(rng, rng_pair):
+    lo, hi = rng_pair
+    return float(lo) if lo == hi else float(rng.uniform(lo, hi))
+
+
+def _ui(rng, rng_pair):
+    lo, hi = rng_pair
+    return int(rng.integers(lo, hi + 1))
+
+
+def _tint(rng, amount, base=(1.0, 1.0, 1.0)):
+    """Colour jitter: a shared brightness change plus a per-channel one, each ~ U(-a, a)."""
+    j = (rng.random(4) * 2 - 1) * amount
+    return tuple(min(max(b * (1 + float(j[3] + v)), 0.05), 2.0) for b, v in zip(base, j[:3]))
+
+
+def scene_rng(seed: int, index: int) -> np.random.Generator:
+    """The random stream of one image: depends only on (seed, index), not on sharding/workers."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, int(index), 0x5EED]))
+
+
+# --- items on one shelf ----------------------------------------------------------------------
+def _item_size(rng, r: Recipe, cat: int) -> list[float]:
+    base = CATEGORIES[cat][1]
+    j = (rng.random(3) * 2 - 1) * r.size_jitter
+    return [b * (1 + float(v)) for b, v in zip(base, j)]
+
+
+def _pick(rng, options):
+    return options[int(rng.integers(len(options)))]
+
+
+def _category(rng, r: Recipe) -> int:
+    return _pick(rng, CRATES) if rng.random() < r.crate_fraction else _pick(rng, CARTONS)
+
+
+def _half_extents(sx, sy, yaw):
+    c, s = abs(math.cos(yaw)), abs(math.sin(yaw))
+    return c * sx / 2 + s * sy / 2, s * sx / 2 + c * sy / 2
+
+
+def fill_shelf(rng, r: Recipe, length: float, depth: float, max_top: float, density: float,
+               stack_max: int) -> list[tuple[int, L.Box]]:
+    """Place items on one shelf (shelf frame). Returns (category, Box) pairs. Items never
+    overlap (slots along x separated by >= min_gap; rows along y separated by >= min_gap),
+    stay on the board, stand on the board or on the item below, and stay below max_top."""
+    items: list[tuple[int, L.Box]] = []
+    margin = 0.02
+    yaw_max = math.radians(r.yaw_max_deg)
+    x = -length / 2 + margin + float(rng.uniform(0, 0.08))
+    misfits = 0
+    while misfits < 3:
+        cat = _category(rng, r)
+        sx, sy, sz = _item_size(rng, r, cat)
+        if rng.uniform() < 0.25:
+            sx, sy = sy, sx
+        sy = min(sy, depth - 2 * margin)
+        if sz > max_top:
+            if max_top < 0.08:
+                break
+            sz = max_top * float(rng.uniform(0.6, 0.95))
+        yaw = float(rng.uniform(-yaw_max, yaw_max))
+        ex, ey = _half_extents(sx, sy, yaw)
+        if ey * 2 > depth - 2 * margin:
+            yaw = 0.0
+            ex, ey = _half_extents(sx, sy, yaw)
+        if x + 2 * ex > length / 2 - margin:
+            if length / 2 - margin - x < 0.2:
+                break
+            misfits += 1
+            continue  # try another (maybe smaller) item in the remaining space
+        slot = (x, x + 2 * ex)
+        misfits = 0
+        if rng.uniform() < density:
+            free = depth - 2 * margin - 2 * ey
+            # front row: pushed towards the front edge, with some random set-back
+            cy = -depth / 2 + margin + ey + float(rng.uniform(0, free)) * float(rng.uniform(0, 0.6))
+            base = L.Box(cx=x + ex, cy=cy, sx=sx, sy=sy, sz=sz, z0=0.0, yaw=yaw)
+            items.append((cat, base))
+            _stack(rng, r, items, cat, base, slot, (-depth / 2 + margin, depth / 2 - margin), max_top, stack_max)
+            # optional back row in the same slot
+            y_lo = base.y_range()[1] + r.min_gap
+            room = depth / 2 - margin - y_lo
+            if room > 0.15 and rng.uniform() < r.back_row * density:
+                cat2 = cat if rng.uniform() < 0.5 else (_category(rng, r))
+                bx, by, bz = _item_size(rng, r, cat2)
+                bx, by = min(bx, slot[1] - slot[0]), min(by, room)
+                bz = min(bz, max_top * float(rng.uniform(0.6, 0.95)))
+                byaw = float(rng.uniform(-yaw_max, yaw_max))
+                hx, hy = _half_extents(bx, by, byaw)
+                if 2 * hx > slot[1] - slot[0] or 2 * hy > room:
+                    byaw, (hx, hy) = 0.0, (bx / 2, by / 2)
+                if bz > 0.05:
+                    cx = float(rng.uniform(slot[0] + hx, slot[1] - hx)) if slot[1] - slot[0] > 2 * hx else (slot[0] + slot[1]) / 2
+                    cyb = float(rng.uniform(y_lo + hy, depth / 2 - margin - hy)) if room > 2 * hy else y_lo + hy
+                    back = L.Box(cx=cx, cy=cyb, sx=bx, sy=by, sz=bz, z0=0.0, yaw=byaw)
+                    items.append((cat2, back))
+                    _stack(rng, r, items, cat2, back, slot, (y_lo, depth / 2 - margin), max_top, stack_max)
+        x = slot[1] + r.min_gap + float(rng.uniform(0, 0.08))
+    return items
+
+
+def _stack(rng, r, items, cat, base: L.Box, slot, yband, max_top, stack_max):
+    """Stack up to stack_max - 1 items on `base`, each no larger than the one below and kept
+    inside the slot (x) and the band (y) of its column."""
+    height = int(rng.integers(1, stack_max + 1))
+    below = base
+    for _ in range(height - 1):
+        c2 = cat if rng.uniform() < 0.7 else (_pick(rng, CRATES) if cat in CRATES else _pick(rng, CARTONS))
+        s = float(rng.uniform(0.85, 1.0))
+        sx, sy = below.sx * s, below.sy * s
+        sz = _item_size(rng, r, c2)[2]
+        z0 = below.z0 + below.sz
+        if z0 + sz > max_top:
+            sz = max_top - z0
+            if sz < 0.08:
+                break
+        yaw = below.yaw + math.radians(float(rng.uniform(-3, 3)))
+        b = L.Box(cx=below.cx, cy=below.cy, sx=sx, sy=sy, sz=sz, z0=z0, yaw=yaw)
+        x0, x1 = b.x_range()
+        y0, y1 = b.y_range()
+        if not (x0 >= slot[0] and x1 <= slot[1] and y0 >= yband[0] - 1e-9 and y1 <= yband[1] + 1e-9):
+            b = L.Box(cx=below.cx, cy=below.cy, sx=sx, sy=sy, sz=sz, z0=z0, yaw=below.yaw)
+        items.append((c2, b))
+        below = b
+
+
+# --- the scene ------------------------------------------------------------------------------
+class _Builder:
+    def __init__(self, rng, r: Recipe):
+        self.rng, self.r, self.objects = rng, r, []
+
+    def add(self, center, size, material, semantic, yaw=0.0, tint=None, shape="box", **kw) -> int:
+        tint = tint if tint is not None else _tint(self.rng, self.r.tint_jitter)
+        self.objects.append(Obj(tuple(float(v) for v in center), tuple(float(v) for v in size), float(yaw),
+                                material, semantic, tint, shape, **kw))
+        return len(self.objects) - 1
+
+    def item(self, cat: int, box: L.Box, z_board: float, x_off=0.0, y_off=0.0, shelf=-1, keep_layout=False):
+        mat = CATEGORY_NAMES[cat]
+        sem = SEM["crate"] if cat in CRATES else SEM["box"]
+        return self.add((box.cx + x_off, box.cy + y_off, z_board + box.z0 + box.sz / 2), (box.sx, box.sy, box.sz),
+                        mat, sem, yaw=box.yaw, category=cat, shelf=shelf,
+                        layout_box=box if keep_layout else None)
+
+    def rack(self, x0, y0, length, depth, boards, beam_h, top_z, steel_tint, beam_tint, filled,
+             shelf_infos=None, uprights=(True, True)):
+        """A rack bay centred at (x0, y0): uprights, beams, boards and (optionally) items."""
+        r, uw = self.r, self.r.upright_width
+        for side, want in zip((-1, 1), uprights):
+            if want:
+                for yy in (-1, 1):
+                    self.add((x0 + side * (length / 2 + uw / 2), y0 + yy * (depth / 2 - uw / 2), top_z / 2),
+                             (uw, uw, top_z), "steel", SEM["rack"], tint=steel_tint)
+        for zi, (z_top, _h, _mt) in enumerate(boards):
+            t = r.board_thickness
+            self.add((x0, y0, z_top - t / 2), (length, depth, t), "board", SEM["shelf"])
+            for yy in (-1, 1):
+                self.add((x0, y0 + yy * (depth / 2 - 0.025), z_top - t - beam_h / 2), (length, 0.05, beam_h),
+                         "beam", SEM["rack"], tint=beam_tint)
+        if not filled:
+            return
+        for si, (z_top, h, max_top) in enumerate(boards):
+            density = _u(self.rng, r.box_density)
+            stack_max = _ui(self.rng, r.max_stack)
+            items = fill_shelf(self.rng, r, length, depth, max_top, density, stack_max)
+            idx = [self.item(cat, b, z_top, x0, y0, shelf=si if shelf_infos is not None else -1,
+                             keep_layout=shelf_infos is not None) for cat, b in items]
+            if shelf_infos is not None:
+                shelf_infos[si].items = idx
+
+
+def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -> Scene:
+    """Sample the scene of image `index`; deterministic in (recipe, seed, index)."""
+    rng = scene_rng(seed, index)
+    B = _Builder(rng, r)
+
+    # the considered rack
+    length, depth = _u(rng, r.rack_length), _u(rng, r.rack_depth)
+    n = _ui(rng, r.n_shelves)
+    h_nom = _u(rng, r.shelf_height)
+    beam_h = _u(rng, r.beam_height)
+    z = _u(rng, r.bottom_height)
+    boards = []
+    for i in range(n):
+        h = h_nom * (1 + float(rng.uniform(-r.shelf_height_jitter, r.shelf_height_jitter)))
+        below_next = h - r.board_thickness - beam_h - 0.03 if i < n - 1 else h - 0.05
+        boards.append((z, h, max(below_next, 0.0)))
+        z += h
+    top_z = boards[-1][0] + boards[-1][1]  # uprights end one nominal height above the top board
+    shelves = [ShelfInfo(board_top=b[0], clear_height=b[1], max_item_top=b[2]) for b in boards]
+    steel_tint = _tint(rng, 0.15, (0.25, 0.35, 0.65) if rng.uniform() < 0.6 else (0.55, 0.56, 0.58))
+    beam_tint = _tint(rng, 0.1, (0.95, 0.45, 0.08) if rng.uniform() < 0.7 else (0.2, 0.3, 0.7))
+
+    background = str(rng.choice(list(r.background), p=np.array(list(r.background.values())) / sum(r.background.values())))
+    corridor = _u(rng, r.corridor_width)
+    ceiling = _u(rng, r.ceiling_height)
+
+    # occupancy map at bay granularity: rows (y) x bays (x); the considered bay is at row 0, col K
+    K = r.bays_per_side if background == "busy" else 0
+    pitch_x = length + r.upright_width
+    rows_y = [0.0]
+    depths = [depth]
+    occ = []
+    if background == "busy":
+        y_back = depth / 2
+        for row in range(1, r.rack_rows + 1):
+            d2 = depth if row % 2 else _u(rng, r.rack_depth)
+            # back-to-back rows pair up (small flue gap), pairs are separated by corridors
+            gap = float(rng.uniform(0.1, 0.3)) if row % 2 else _u(rng, r.corridor_width)
+            rows_y.append(y_back + gap + d2 / 2)
+            depths.append(d2)
+            y_back = rows_y[-1] + d2 / 2
+        far_wall = y_back + float(rng.uniform(1.5, 4.0))
+    else:
+        far_wall = depth / 2 + _u(rng, r.wall_gap)
+    for ri, (yc, d2) in enumerate(zip(rows_y, depths)):
+        row = []
+        for col in range(-K, K + 1):
+            occupied = (ri == 0 and col == 0) or (background == "busy" and rng.uniform() < r.rack_density)
+            row.append(occupied)
+        occ.append(row)
+
+    # racks: uprights are shared between neighbouring bays of a row
+    shelf_infos = shelves
+    for ri, (yc, d2) in enumerate(zip(rows_y, depths)):
+        row = occ[ri]
+        for ci, col in enumerate(range(-K, K + 1)):
+            if not row[ci]:
+                continue
+            left_shared = ci > 0 and row[ci - 1]
+            is_target = ri == 0 and col == 0
+            B.rack(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, beam_tint, filled=True,
+                   shelf_infos=shelf_infos if is_target else None, uprights=(not left_shared, True))
+
+    # building: floor, ceiling, walls, lamps
+    fl_tint = _tint(rng, 0.12)
+    B.add((0, far_wall / 2, -0.05), (80, 80 + far_wall, 0.1), "concrete", SEM["floor"], tint=fl_tint)
+    B.add((0, 0, ceiling + 0.1), (80, 120, 0.2), "ceiling", SEM["wall"])
+    wall_tint = _tint(rng, 0.2, (0.85, 0.85, 0.82) if rng.uniform() < 0.5 else (0.75, 0.8, 0.85))
+    B.add((0, far_wall + 0.1, ceiling / 2), (80, 0.2, ceiling), "wall", SEM["wall"], tint=wall_tint)
+
+    # lights along the corridors of the occupancy map, plus ambient
+    cam_corr_y = -depth / 2 - corridor / 2
+    corr_ys = [cam_corr_y]
+    for a, b in zip(range(2, len(rows_y), 2), range(1, len(rows_y), 2)):
+        corr_ys.append((rows_y[a] - depths[a] / 2 + rows_y[b] + depths[b] / 2) / 2)
+    spacing = _u(rng, r.light_spacing)
+    warm = _u(rng, r.light_warmth)
+    lcolor = (1.0 + 0.25 * warm, 1.0 + 0.05 * warm, 1.0 - 0.3 * warm)
+    intensity = _u(rng, r.light_intensity)
+    phase = float(rng.uniform(0, spacing))
+    lights = []
+    for cy in corr_ys:
+        for k in range(-3, 4):
+            lx = k * spacing + phase - spacing / 2
+            lights.append(Light((lx, cy, ceiling - 0.4), lcolor, intensity * float(rng.uniform(0.85, 1.15))))
+            B.add((lx, cy, ceiling - 0.3), (1.2, 0.25, 0.08), "lamp", SEM["wall"], tint=(1, 1, 1))
+    # main light = the camera-corridor light closest to the rack centre (casts the shadows)
+    main = int(np.argmin([abs(l.position[0]) + 100 * abs(l.position[1] - cam_corr_y) for l in lights]))
+    if r.domain == "proxy-real":
+        # a low, strong side light (like a loading-dock door) replaces the ceiling light as key light
+        side = 1 if rng.uniform() < 0.5 else -1
+        lights.insert(0, Light((side * float(rng.uniform(4, 8)), cam_corr_y - float(rng.uniform(0, 2)), float(rng.uniform(2.5, 4.5))),
+                               (1.15, 1.0, 0.8), intensity * 1.6))
+        main = 0
+    lights = [lights[main]] + [l for i, l in enumerate(lights) if i != main]
+    lights = lights[:1] + sorted(lights[1:], key=lambda l: l.position[0] ** 2 + (l.position[1] - cam_corr_y) ** 2)[:4]
+    ambient = _u(rng, r.ambient)
+
+    # clutter in corridors (never between the camera and the considered rack)
+    n_clutter = _ui(rng, r.clutter)
+    for _ in range(n_clutter):
+        kind = rng.choice(["pallet", "forklift", "extinguisher"], p=[0.5, 0.2, 0.3])
+        if background == "busy" and len(corr_ys) > 1 and rng.uniform() < 0.6:
+            cy = corr_ys[int(rng.integers(1, len(corr_ys)))] + float(rng.uniform(-0.6, 0.6))
+            cx = float(rng.uniform(-8, 8))
+        else:
+            side = 1 if rng.uniform() < 0.5 else -1
+            cx = side * (length / 2 + r.upright_width + float(rng.uniform(0.5, 4.0)))
+            cy = -depth / 2 - float(rng.uniform(0.4, max(0.5, corridor - 0.8)))
+        if kind == "extinguisher":
+            # stands next to an upright of the considered row
+            hh = float(rng.uniform(0.45, 0.6))
+            B.add((cx, cy, hh / 2), (0.17, 0.17, hh), "paint", SEM["clutter"], tint=(0.8, 0.06, 0.05), shape="cylinder")
+            B.add((cx, cy, hh + 0.04), (0.06, 0.06, 0.08), "paint", SEM["clutter"], tint=(0.1, 0.1, 0.1), shape="cylinder")
+        elif kind == "pallet":
+            yaw = float(rng.uniform(0, math.pi))
+            B.add((cx, cy, 0.072), (1.2, 0.8, 0.144), "pallet", SEM["clutter"], yaw=yaw)
+            if rng.uniform() < 0.6:
+                cat = _pick(rng, CARTONS)
+                sz = float(rng.uniform(0.3, 1.2))
+                B.add((cx, cy, 0.144 + sz / 2), (1.1, 0.7, sz), CATEGORY_NAMES[cat], SEM["box"], yaw=yaw, category=cat)
+        else:
+            yaw = float(rng.uniform(-math.pi, math.pi))
+            col = _tint(rng, 0.1, (0.95, 0.7, 0.05) if rng.uniform() < 0.6 else (0.9, 0.3, 0.1))
+            c, s = math.cos(yaw), math.sin(yaw)
+            B.add((cx, cy, 0.65), (1.0, 2.0, 1.0), "paint", SEM["clutter"], yaw=yaw, tint=col)
+            B.add((cx, cy, 0.075), (1.05, 1.5, 0.15), "paint", SEM["clutter"], yaw=yaw, tint=(0.06, 0.06, 0.06))
+            mx, my = cx - s * 1.05, cy + c * 1.05  # mast at the front end of the body
+            for off in (-0.35, 0.35):
+                B.add((mx + c * off, my + s * off, 1.15), (0.09, 0.09, 2.1), "steel", SEM["clutter"], yaw=yaw, tint=(0.2, 0.2, 0.2))
+            B.add((mx - s * 0.5, my + c * 0.5, 0.08), (0.8, 1.0, 0.06), "steel", SEM["clutter"], yaw=yaw, tint=(0.15, 0.15, 0.15))
+            B.add((cx, cy, 2.15), (1.0, 1.2, 0.06), "paint", SEM["clutter"], yaw=yaw, tint=(0.1, 0.1, 0.1))
+
+    cam, visible = _sample_camera(rng, r, length, depth, shelves, corridor if background == "busy" else None,
+                                  max_camera_tries)
+    effects = _sample_effects(rng, r)
+    cam.k1 = effects["distortion_k1"]
+    occ_rows = ["".join("#" if v else "." for v in row) for row in occ]
+    return Scene(index=index, seed=seed, recipe=r.name, objects=B.objects, shelves=shelves, rack_length=length,
+                 rack_depth=depth, visible=visible, camera=cam, lights=lights, ambient=ambient,
+                 ambient_color=(1.0, 1.0, 1.0), main_light=0, background=background, occupancy=occ_rows,
+                 effects=effects, domain=r.domain)
+
+
+def rotation_world_to_cam(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """World -> camera rotation of a camera looking along +y (world) with the given jitter
+    (radians): yaw about world z, then pitch about the camera x axis (positive = look up),
+    then roll about the optical axis."""
+    R0 = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # camera axes in world: rows x_c, y_c, z_c
+    cz, sz = math.cos(yaw), math.sin(yaw)
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1.0]])
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    Rx = np.array([[1.0, 0, 0], [0, cp, sp], [0, -sp, cp]])
+    cr, sr = math.cos(roll), math.sin(roll)
+    Rr = np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1.0]])
+    # camera -> world = Rz @ R0^T @ Rx^T-ish; compose in camera frame and invert
+    R_cw = Rz @ R0.T @ Rx.T @ Rr.T
+    return R_cw.T
+
+
+def visible_shelves(cam: Camera, length: float, depth: float, shelves: list, fraction: float,
+                    max_range: float) -> list[int]:
+    """The visible-shelf rule (documented in docs/waresynth.md). Shelf i is visible when the
+    vertical segment of its front opening at the x of the camera (clamped to the rack), from
+    the board top to board top + clear height on the rack's front plane, projects in front of
+    the camera with at least `fraction` of its image-height inside the image rows, its column
+    inside the image, and its midpoint within `max_range` metres of the camera."""
+    C = cam.center
+    x = float(np.clip(C[0], -length / 2, length / 2))
+    out = []
+    for i, sh in enumerate(shelves):
+        pts = np.array([[x, -depth / 2, sh.board_top], [x, -depth / 2, sh.board_top + sh.clear_height]])
+        uv, zc = cam.project(pts)
+        if (zc <= 0.05).any():
+            continue
+        mid = pts.mean(axis=0)
+        if np.linalg.norm(mid - C) > max_range:
+            continue
+        v0, v1 = sorted(uv[:, 1])
+        span = v1 - v0
+        inside = max(0.0, min(v1, cam.height) - max(v0, 0.0))
+        col = uv[:, 0].mean()
+        if span > 0 and inside >= fraction * span and 0 <= col < cam.width:
+            out.append(i)
+    return out
+
+
+def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries):
+    W, H = r.image_width, r.image_height
+    n = len(shelves)
+    last = None
+    for _ in range(tries):
+        f = _u(rng, r.focal_px)
+        k = int(rng.integers(1, min(r.R, n) + 1))
+        s = int(rng.integers(0, n - k + 1))
+        lo = shelves[s].board_top
+        hi = shelves[s + k - 1].board_top + shelves[s + k - 1].clear_height
+        band = hi - lo
+        dist = f * band / H * float(rng.uniform(1.0, 1.3))
+        dmax = r.camera_distance[1] if corridor is None else min(r.camera_distance[1], corridor - 0.3)
+        dist = float(np.clip(dist, r.camera_distance[0], max(dmax, r.camera_distance[0])))
+        cz = float(np.clip((lo + hi) / 2 + rng.uniform(-0.1, 0.1) * band, *r.camera_height))
+        cx = float(rng.uniform(-r.camera_x, r.camera_x)) * length
+        C = np.array([cx, -depth / 2 - dist, cz])
+        yaw = math.radians(float(rng.uniform(-r.yaw_jitter_deg, r.yaw_jitter_deg)))
+        pitch = math.radians(float(rng.uniform(-r.pitch_jitter_deg, r.pitch_jitter_deg)))
+        roll = math.radians(float(rng.uniform(-r.roll_jitter_deg, r.roll_jitter_deg)))
+        R = rotation_world_to_cam(yaw, pitch, roll)
+        K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+        cam = Camera(K=K, R=R, t=-R @ C, width=W, height=H)
+        vis = visible_shelves(cam, length, depth, shelves, r.visible_fraction, r.detection_range_m)
+        last = (cam, vis)
+        if 1 <= len(vis) <= r.R:
+            return cam, vis
+    raise ValueError(f"recipe {r.name}: no camera placement with 1..{r.R} visible shelves in {tries} tries "
+                     f"(check camera_distance / camera_height / focal_px against the rack size); last try saw "
+                     f"{len(last[1])} shelves")
+
+
+def _sample_effects(rng, r: Recipe) -> dict:
+    wb = r.white_balance
+    return {
+        "exposure": _u(rng, r.exposure),
+        "white_balance": [float(1 + rng.uniform(-wb, wb)) for _ in range(3)] if wb > 0 else [1.0, 1.0, 1.0],
+        "blur_sigma": _u(rng, r.blur_sigma),
+        "noise_std": _u(rng, r.noise_std),
+        "vignetting": _u(rng, r.vignetting),
+        "jpeg_quality": _ui(rng, r.jpeg_quality),
+        "distortion_k1": _u(rng, r.distortion_k1),
+        "noise_seed": int(rng.integers(0, 2**31 - 1)),
+    }
