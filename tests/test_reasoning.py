@@ -181,6 +181,32 @@ def test_noise_blobs_below_min_size_are_ignored_and_unmatched_blobs_not_counted(
     assert len(s.boxes) == 1
 
 
+def test_prediction_like_noise_is_cleaned():
+    """Salt noise and ragged box tops (what a model's argmax looks like) leave counts intact and
+    heights within a pixel."""
+    boxes = [L.Box(-0.6, 0.0, 0.4, 0.5, 0.3), L.Box(0.0, 0.1, 0.3, 0.4, 0.5), L.Box(0.6, -0.1, 0.25, 0.3, 0.2)]
+    lay = L.rasterize_shelf(SHELF, boxes, G)
+    rng = np.random.default_rng(0)
+    top, front = lay.top.copy(), lay.front.copy()
+    for v in (top, front):
+        inside = v == L.SHELF
+        salt = inside & (rng.uniform(size=v.shape) < 0.01)
+        v[salt] = L.BOX
+    # ragged tops: each box column's top pixel randomly removed or one extra added
+    for c in np.flatnonzero((front == L.BOX).any(axis=0)):
+        r = int(np.argmax(front[:, c] == L.BOX))
+        if rng.uniform() < 0.3:
+            front[r, c] = L.SHELF
+        elif rng.uniform() < 0.3:
+            front[r - 1, c] = L.BOX
+    clean, _ = one_shelf(boxes)
+    s = analyze_shelf(top, front, G)
+    assert len(s.boxes) == 3 and s.unmatched_top == 0 and s.unmatched_front == 0
+    for a, b in zip(s.boxes, clean.boxes):
+        assert a.z[1] == pytest.approx(b.z[1], abs=RES)
+        assert a.footprint_m2 == pytest.approx(b.footprint_m2, rel=0.05)
+
+
 # --- racks: missing shelves, incomplete views, report, JSON -------------------------------------
 def test_missing_shelves_and_report_line():
     full = L.rasterize_shelf(SHELF, [L.Box(0, 0, 0.3, 0.3, 0.3), L.Box(0.6, 0, 0.3, 0.3, 0.2)], G)
