@@ -27,6 +27,7 @@ from . import schema as S
 from .dataset import read_imported
 from .store import ConflictError, Project, StoreError
 
+DISPLAY_W, DISPLAY_H = 960, 640  # the photo viewer, in CSS pixels
 MODES = ("corners", "shelves", "boxes", "select", "move", "resize")
 MODE_HELP = {
     "corners": "click the 4 corners of the rack's front face (any order); a 5th click moves the nearest corner",
@@ -194,20 +195,23 @@ class Tool:
 
     # --- clicks ----------------------------------------------------------------------------
     def display_to_image(self, st: dict, x: float, y: float) -> tuple[float, float]:
-        x0, y0, z = self.view(st)
-        return x0 + (x + 0.5) / z - 0.5 if z != 1 else x, y0 + (y + 0.5) / z - 0.5 if z != 1 else y
+        x0, y0, s = self.view(st)
+        return x0 + (x + 0.5) / s - 0.5, y0 + (y + 0.5) / s - 0.5
 
     def view(self, st: dict) -> tuple[float, float, float]:
-        """(x0, y0, zoom): the displayed window's top-left in image pixels and its scale."""
+        """(x0, y0, scale): the displayed window's top-left in image pixels, and display pixels
+        per image pixel. Small photos are enlarged to fill the viewer (DISPLAY_W x DISPLAY_H);
+        zoom crops a window around the last click."""
         if st.get("ann") is None:
             return 0.0, 0.0, 1.0
         W, H = st["ann"]["image_size"]
-        z = float(st.get("zoom") or 1.0)
-        if z <= 1:
-            return 0.0, 0.0, 1.0
+        base = max(1.0, round(min(DISPLAY_W / W, DISPLAY_H / H), 3))
+        z = max(1.0, float(st.get("zoom") or 1.0))
+        if z == 1:
+            return 0.0, 0.0, base
         cx, cy = st.get("center") or (W / 2, H / 2)
         w, h = W / z, H / z
-        return float(int(np.clip(cx - w / 2, 0, W - w))), float(int(np.clip(cy - h / 2, 0, H - h))), z
+        return float(int(np.clip(cx - w / 2, 0, W - w))), float(int(np.clip(cy - h / 2, 0, H - h))), base * z
 
     def click(self, st: dict, x: float, y: float) -> dict:
         """A click at display pixel (x, y) in the current mode."""
@@ -296,7 +300,7 @@ class Tool:
         then the nearest shelf line."""
         a = st["ann"]
         W, H = a["image_size"]
-        tol = max(W, H) / 60 / max(self.view(st)[2], 1)
+        tol = max(W, H) / 50 / max(1.0, float(st.get("zoom") or 1.0))
         for k, q in enumerate(a["rack"]["corners"]):
             if np.hypot(q[0] - pt[0], q[1] - pt[1]) <= tol:
                 return ["corner", k]
@@ -498,14 +502,14 @@ class Tool:
             return img
         x0, y0, z = self.view(st)
         H, W = img.shape[:2]
-        if z > 1:
-            crop = img[int(y0):int(np.ceil(y0 + H / z)), int(x0):int(np.ceil(x0 + W / z))]
+        if z != 1:
+            zoom = max(1.0, float(st.get("zoom") or 1.0))
+            crop = img[int(y0):int(np.ceil(y0 + H / zoom)), int(x0):int(np.ceil(x0 + W / zoom))]
             canvas = cv2.resize(crop, (int(round(crop.shape[1] * z)), int(round(crop.shape[0] * z))),
-                                interpolation=cv2.INTER_NEAREST)
-            x0, y0 = int(x0), int(y0)
+                                interpolation=cv2.INTER_LINEAR)
         else:
             canvas = img.copy()
-        t = max(1, int(round(max(W, H) / 450)))
+        t = max(1, int(round(max(canvas.shape[:2]) / 450)))
 
         def P(pts):
             p = (np.asarray(pts, float).reshape(-1, 2) - [x0, y0] + 0.5) * z - 0.5
@@ -680,10 +684,12 @@ def build_app(project: Project, predictor=None, user: str | None = None):
         with gr.Row():
             with gr.Column(scale=3):
                 photo = gr.Image(type="numpy", format="png", interactive=False, buttons=[], show_label=False,
-                                 elem_id="photo", height=620)
+                                 elem_id="photo", height=DISPLAY_H)
                 message = gr.Markdown(elem_id="message")
             with gr.Column(scale=2):
-                preview = gr.Image(type="numpy", format="png", interactive=False, buttons=[], label="live layouts",
+                gr.Markdown("**Live layouts** — per shelf (S1 = lowest): top view above, front view below; "
+                            "orange = box, blue = free shelf space")
+                preview = gr.Image(type="numpy", format="png", interactive=False, buttons=[], show_label=False,
                                    elem_id="preview")
                 summary = gr.Markdown(elem_id="summary")
         with gr.Row():

@@ -18,13 +18,15 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 PHOTO = REPO / "datasets" / "real-photos" / "10_loco_orange_crates_a.jpg"
 CHROMIUM = "/usr/bin/chromium"
+PHOTO_W = 416
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
          "--host-resolver-rules=MAP * ~NOTFOUND , EXCLUDE 127.0.0.1, EXCLUDE localhost"]
 # clicks in image pixels (the photo is 416 x 416 and shown at natural size)
-CORNERS = [(40, 60), (380, 50), (390, 380), (30, 390)]
-SHELVES = [(200, 368), (200, 247)]
-BOXES = [((62, 358), (121, 300)), ((150, 358), (222, 282)), ((230, 235), (385, 155))]
+# (the right-hand bay, seen obliquely: lowest beam to the third beam)
+CORNERS = [(222, 68), (395, 133), (390, 253), (222, 298)]
+SHELVES = [(300, 279), (300, 191)]
+BOXES = [((228, 297), (262, 232)), ((268, 282), (337, 210)), ((228, 189), (305, 155))]
 
 pytestmark = pytest.mark.browser
 
@@ -95,7 +97,8 @@ def test_annotate_in_browser(server, tmp_path):
                 nw, nh = img.evaluate("e => [e.naturalWidth, e.naturalHeight]")
                 s = min(1.0, box["width"] / nw, box["height"] / nh)  # object-fit: scale-down, centred
                 ox, oy = (box["width"] - nw * s) / 2, (box["height"] - nh * s) / 2
-                page.mouse.click(box["x"] + ox + (x + 0.5) * s, box["y"] + oy + (y + 0.5) * s)
+                k = nw / PHOTO_W  # the tool enlarges small photos for display
+                page.mouse.click(box["x"] + ox + (x + 0.5) * k * s, box["y"] + oy + (y + 0.5) * k * s)
                 expect(message).to_contain_text(expect_msg, timeout=10000)
 
             t1 = time.perf_counter()
