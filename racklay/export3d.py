@@ -137,7 +137,10 @@ def glb_bytes(parts: list[Part], generator: str = "racklay") -> bytes:
     for data, target in ((pos_blob, 34962), (nrm_blob, 34962), (idx_blob, 34963)):
         while len(blob) % 4:
             blob += b"\0"
-        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(data), "target": target})
+        view = {"buffer": 0, "byteOffset": len(blob), "byteLength": len(data), "target": target}
+        if target == 34962:
+            view["byteStride"] = 12  # several meshes' accessors share the vertex views
+        views.append(view)
         blob += data
     while len(blob) % 4:
         blob += b"\0"
@@ -145,9 +148,10 @@ def glb_bytes(parts: list[Part], generator: str = "racklay") -> bytes:
            "scenes": [{"name": "rack", "nodes": list(range(len(nodes)))}], "nodes": nodes,
            "meshes": meshes, "materials": materials, "accessors": accessors,
            "bufferViews": views if parts else [], "buffers": [{"byteLength": len(blob)}] if parts else []}
-    if not parts:  # a valid empty scene: no buffer at all
-        for k in ("meshes", "materials", "accessors", "bufferViews", "buffers"):
+    if not parts:  # a valid empty scene: no buffer, no empty arrays (the validator rejects them)
+        for k in ("nodes", "meshes", "materials", "accessors", "bufferViews", "buffers"):
             doc.pop(k)
+        doc["scenes"] = [{"name": "rack"}]
     js = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     js += b" " * (-len(js) % 4)
     chunks = struct.pack("<I4s", len(js), b"JSON") + js
