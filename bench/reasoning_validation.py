@@ -49,20 +49,37 @@ BOX_FIELDS = ("cx", "cy", "sx", "sy", "sz", "z0", "yaw")
 
 
 def truth_from_meta(meta: dict | None, source: str) -> list[ShelfTruth]:
-    """Per visible shelf (lowest first): its Shelf and Boxes, from meta['shelves'] =
-    [{length, depth, clear_height, boxes: [{cx, cy, sx, sy, sz, z0, yaw}, ...]}, ...]."""
-    if not meta or "shelves" not in meta:
-        found = ", ".join(sorted(meta)) if meta else "no meta file"
-        raise DataError(f"{source}: no 3D truth ('shelves' with boxes) in the meta ({found})")
-    out = []
-    for k, s in enumerate(meta["shelves"]):
-        try:
-            shelf = L.Shelf(float(s["length"]), float(s["depth"]), float(s["clear_height"]))
-            boxes = [L.Box(**{f: float(b[f]) for f in BOX_FIELDS if f in b}) for b in s["boxes"]]
-        except (KeyError, TypeError, ValueError) as e:
-            raise DataError(f"{source}: shelf {k}: bad 3D truth ({type(e).__name__}: {e})") from None
-        out.append(ShelfTruth(shelf, boxes))
-    return out
+    """Per visible shelf (lowest first, = layout channel): its Shelf and Boxes in the shelf frame.
+
+    Two meta formats are read:
+      * WareSynth (racklay.synth): rack.length / rack.depth, shelf_heights per channel, and
+        objects with "channel", "size" [sx, sy, sz], "yaw" and "shelf_frame" {cx, cy, z0};
+      * racklay.toy: shelves = [{length, depth, clear_height, boxes: [{cx, cy, sx, sy, sz, z0, yaw}]}].
+    """
+    try:
+        if meta and "objects" in meta and "rack" in meta and "shelf_heights" in meta:
+            rack = meta["rack"]
+            out = [ShelfTruth(L.Shelf(float(rack["length"]), float(rack["depth"]), float(h)), [])
+                   for h in meta["shelf_heights"]]
+            for o in meta["objects"]:
+                ch, sf = o.get("channel"), o.get("shelf_frame")
+                if ch is None or sf is None:
+                    continue  # not on a visible shelf of the considered rack
+                sx, sy, sz = (float(v) for v in o["size"])
+                out[int(ch)].boxes.append(L.Box(cx=float(sf["cx"]), cy=float(sf["cy"]), sx=sx, sy=sy, sz=sz,
+                                                z0=float(sf["z0"]), yaw=float(o.get("yaw", 0.0))))
+            return out
+        if meta and "shelves" in meta:
+            out = []
+            for s in meta["shelves"]:
+                shelf = L.Shelf(float(s["length"]), float(s["depth"]), float(s["clear_height"]))
+                out.append(ShelfTruth(shelf, [L.Box(**{f: float(b[f]) for f in BOX_FIELDS if f in b})
+                                              for b in s["boxes"]]))
+            return out
+    except (KeyError, TypeError, ValueError, IndexError) as e:
+        raise DataError(f"{source}: bad 3D truth in the meta ({type(e).__name__}: {e})") from None
+    found = ", ".join(sorted(meta)) if meta else "no meta file"
+    raise DataError(f"{source}: no 3D truth in the meta (WareSynth objects/rack or toy shelves); keys: {found}")
 
 
 def compare(result, truth: list[ShelfTruth]) -> dict:
