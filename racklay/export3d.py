@@ -285,7 +285,7 @@ def render_figure(result, image: np.ndarray | None = None, out: str | os.PathLik
     ax.set_zlabel("z (m)", fontsize=7)
     ax.tick_params(labelsize=6)
     ax.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(3))
-    ax.set_title("3D reconstruction (orange: box stacks; dark: height only bounded, shares\\nall its front-view columns with another stack)", fontsize=8)
+    ax.set_title("3D reconstruction (orange: box stacks; dark: height only bounded, shares\nall its front-view columns with another stack)", fontsize=8)
     fig.suptitle(title if title is not None else result.report(), fontsize=10)
     fig.tight_layout()
     if out is not None:
