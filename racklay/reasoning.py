@@ -4,7 +4,8 @@ from each shelf's top-view T_i and front-view F_i class-id layouts.
 Per shelf (one channel of the R x D x D stacks, predicted or ground truth):
 
 1. Shelf extent. Top view: the largest connected region of shelf+box pixels gives the
-   footprint (length along x x depth along y, from its bounding box). Front view: the largest
+   footprint (length along x x depth along y, from its bounding box over the rows/columns that
+   are at least half as full as the fullest one: exact for a rectangle, robust to spurs). Front view: the largest
    region of shelf+box pixels gives the clear height (its z extent minus
    `racklay.layout.FRONT_CLEARANCE_PAD_M`, the 5 cm that WareSynth — and our own layouts,
    `rasterize_shelf` — add above the inter-shelf distance) and the board top (its lowest edge;
@@ -248,6 +249,16 @@ def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
+def _core_bbox(mask: np.ndarray, frac: float = 0.5) -> tuple[int, int, int, int]:
+    """Bounding box of the rows and columns whose pixel count is at least `frac` of the fullest
+    row/column: the exact rectangle for a rectangular region, and robust to spurs and ragged
+    edges of a predicted one."""
+    rc, cc = mask.sum(axis=1), mask.sum(axis=0)
+    rows = np.flatnonzero(rc >= frac * rc.max())
+    cols = np.flatnonzero(cc >= frac * cc.max())
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
 def _region(view: np.ndarray, grid: L.Grid, cfg: ReasoningConfig) -> np.ndarray | None:
     """Largest shelf+box region of one view (cleaned), or None when there is none."""
     comps = components(clean_mask(view > 0, grid, cfg.open_m), grid, cfg.min_shelf_area_m2, 8)
@@ -304,7 +315,7 @@ def analyze_shelf(top: np.ndarray | None, front: np.ndarray | None, grid: L.Grid
 
     t_boxes: list[np.ndarray] = []
     if t_reg is not None:
-        r0, r1, c0, c1 = _bbox(t_reg)
+        r0, r1, c0, c1 = _core_bbox(t_reg)
         res.x = grid.col_span_to_x(c0, c1)
         res.y = grid.row_span_to_v(r0, r1)
         res.length_m = res.x[1] - res.x[0]
@@ -316,7 +327,7 @@ def analyze_shelf(top: np.ndarray | None, front: np.ndarray | None, grid: L.Grid
     f_boxes: list[np.ndarray] = []
     z_base = 0.0
     if f_reg is not None:
-        r0, r1, c0, c1 = _bbox(f_reg)
+        r0, r1, c0, c1 = _core_bbox(f_reg)
         z_lo, z_hi = grid.row_span_to_v(r0, r1)
         z_base = z_lo
         res.clear_height_m = max(z_hi - z_lo - cfg.front_pad_m, 0.0)

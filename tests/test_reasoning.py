@@ -199,8 +199,14 @@ def test_prediction_like_noise_is_cleaned():
             front[r, c] = L.SHELF
         elif rng.uniform() < 0.3:
             front[r - 1, c] = L.BOX
+    # spurs: a shelf-class streak beyond the board's right end, a spike above the free space
+    c1 = int(G.x_to_col(1.0))
+    top[128:131, c1:c1 + 12] = L.SHELF
+    z1 = int(G.z_to_row(0.65))
+    front[z1 - 8:z1, 100:104] = L.SHELF
     clean, _ = one_shelf(boxes)
     s = analyze_shelf(top, front, G)
+    assert (s.length_m, s.depth_m, s.clear_height_m) == (clean.length_m, clean.depth_m, clean.clear_height_m)
     assert len(s.boxes) == 3 and s.unmatched_top == 0 and s.unmatched_front == 0
     for a, b in zip(s.boxes, clean.boxes):
         assert a.z[1] == pytest.approx(b.z[1], abs=RES)
