@@ -275,9 +275,9 @@ def _column_profile(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return top, bot
 
 
-def _union_overlapping(col_sets: list[np.ndarray]) -> list[list[int]]:
-    """Group indices whose boolean column sets overlap (transitively)."""
-    parent = list(range(len(col_sets)))
+def _groups(n: int, linked) -> list[list[int]]:
+    """Indices 0..n-1 grouped transitively by the predicate linked(i, j) (union-find)."""
+    parent = list(range(n))
 
     def find(i):
         while parent[i] != i:
@@ -285,14 +285,19 @@ def _union_overlapping(col_sets: list[np.ndarray]) -> list[list[int]]:
             i = parent[i]
         return i
 
-    for i in range(len(col_sets)):
-        for j in range(i + 1, len(col_sets)):
-            if (col_sets[i] & col_sets[j]).any():
+    for i in range(n):
+        for j in range(i + 1, n):
+            if linked(i, j):
                 parent[find(i)] = find(j)
     groups: dict[int, list[int]] = {}
-    for i in range(len(col_sets)):
+    for i in range(n):
         groups.setdefault(find(i), []).append(i)
-    return list(groups.values())
+    return sorted(groups.values())
+
+
+def _union_overlapping(col_sets: list[np.ndarray]) -> list[list[int]]:
+    """Group indices whose boolean column sets overlap (transitively)."""
+    return _groups(len(col_sets), lambda i, j: bool((col_sets[i] & col_sets[j]).any()))
 
 
 # --- one shelf --------------------------------------------------------------------------------
@@ -454,25 +459,13 @@ def analyze_layouts(top: np.ndarray | None, front: np.ndarray | None, grid: L.Gr
 def group_stacks(boxes: Sequence[L.Box], tol: float = 1e-6) -> list[list[int]]:
     """Indices of `boxes` grouped into stacks: boxes whose footprints (x/y ranges) overlap are
     one stack (stacked items stand on each other), transitively."""
-    n = len(boxes)
-    parent = list(range(n))
-
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
     rng = [(b.x_range(), b.y_range()) for b in boxes]
-    for i in range(n):
-        for j in range(i + 1, n):
-            (ax, ay), (bx, by) = rng[i], rng[j]
-            if min(ax[1], bx[1]) - max(ax[0], bx[0]) > tol and min(ay[1], by[1]) - max(ay[0], by[0]) > tol:
-                parent[find(i)] = find(j)
-    groups: dict[int, list[int]] = {}
-    for i in range(n):
-        groups.setdefault(find(i), []).append(i)
-    return sorted(groups.values())
+
+    def overlap(i, j):
+        (ax, ay), (bx, by) = rng[i], rng[j]
+        return min(ax[1], bx[1]) - max(ax[0], bx[0]) > tol and min(ay[1], by[1]) - max(ay[0], by[0]) > tol
+
+    return _groups(len(boxes), overlap)
 
 
 @dataclass
