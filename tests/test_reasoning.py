@@ -399,6 +399,10 @@ def test_cli_analyze_photos_with_a_checkpoint(tmp_path, capsys):
     rc = main(["analyze", str(ds.root / "Images"), "--weights", str(w), "--out", str(out), "--no-render"])
     printed = capsys.readouterr().out
     assert rc == 0, printed
+    # a dataset folder: its Images/ of the split
+    rc = main(["analyze", str(ds.root), "--split", "train", "--weights", str(w), "--out", str(tmp_path / "o2"),
+               "--no-render", "--format", "none"])
+    assert rc == 0 and capsys.readouterr().out.count("Rack has") == len(ds.split_ids("train"))
     for sid in ds.ids():
         d = json.loads((out / f"{sid}.json").read_text())
         assert d["grid"]["D"] == 64 and d["report"].startswith("Rack has ")

@@ -22,12 +22,14 @@ def register(sub) -> None:
                     "OUT/summary.json. A file that cannot be read gets one error line naming it; the "
                     "others are still analysed and the exit code is 1.")
     p.add_argument("inputs", nargs="*", metavar="IMAGE_OR_FOLDER",
-                   help="photos, or folders of photos, to run the model on (with --weights)")
+                   help="photos, folders of photos, or RackLay datasets (their Images/, of --split "
+                        "when given) to run the model on (with --weights)")
     p.add_argument("--weights", help="model checkpoint (.safetensors) or exported .onnx file")
     p.add_argument("--backend", choices=("torch", "onnx"), default=None,
                    help="inference backend (default: onnx for .onnx files, else torch)")
     p.add_argument("--layouts", metavar="ROOT", help="analyse the ground-truth layouts of this RackLay dataset")
-    p.add_argument("--split", default=None, help="with --layouts: only this split (e.g. test); default all images")
+    p.add_argument("--split", default=None,
+                   help="only this split (e.g. test) of the --layouts dataset or of dataset inputs; default all")
     p.add_argument("--extent", type=float, default=None,
                    help="with --layouts: metres covered by the layout grid (default: meta/ID.json's "
                         "grid.extent_m, else 8.0 as in RackLay)")
@@ -109,11 +111,18 @@ def _samples_from_layouts(args):
 
 
 def _samples_from_photos(args):
-    from racklay.data import read_image
+    from racklay.data import RackLayRoot, read_image
     from racklay.predict import Predictor, list_inputs, unique_ids
     from racklay.reasoning import analyze_layouts
 
-    files = list_inputs(args.inputs)
+    files = []
+    for item in args.inputs:
+        root = RackLayRoot(item)
+        if Path(item).is_dir() and (root.root / "Images").is_dir():
+            # a RackLay-format dataset: its images (of --split, when given)
+            files += [root.image_path(sid) for sid in root.resolve(args.split)]
+        else:
+            files += list_inputs([item])
     if not files:
         raise FileNotFoundError(f"no images found in {', '.join(args.inputs)}")
     backend = args.backend or ("onnx" if str(args.weights).endswith(".onnx") else "torch")
