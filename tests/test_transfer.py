@@ -138,3 +138,164 @@ def test_augmentation_rejects_bad_input():
         aug(img.astype(np.float32), lays)
     with pytest.raises(ValueError, match=r"\(R, S, S\)"):
         aug(img, {"top": lays["top"][0]})
+
+
+# --------------------------------------------------------------------------- training workflow
+TINY = dict(image_size=64, layout_size=32, batch_size=4, disc=False, workers=0, progress=False)
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    base = tmp_path_factory.mktemp("transfer")
+    build_toy_dataset(base / "syn", n=14, seed=0, D=64)                                  # train/val/test
+    build_toy_dataset(base / "real", n=14, seed=1, D=64, splits={"train": 0.65, "test": 0.35})  # no val
+    return base
+
+
+@pytest.fixture(scope="module")
+def killed_then_resumed_compare(tiny_data, monkeypatch_module):
+    """A compare killed in its second training run, then started again with the same settings."""
+    import racklay.train as rt
+
+    from transfer.compare import CompareConfig, compare
+
+    cfg = CompareConfig(real=str(tiny_data / "real"), out=str(tiny_data / "cmp"), synthetic=str(tiny_data / "syn"),
+                        seeds=[0], fractions=[1.0], epochs=1, pretrain_epochs=1, lr=3e-3, val_fraction=0.25,
+                        image_size=64, layout_size=32, batch_size=4, disc=False, workers=0,
+                        train_overrides={"warmup_steps": 0, "progress": False})
+    real_train = rt.train
+    calls = []
+
+    def dying_train(c, transform=None):
+        calls.append(c.name)
+        if len(calls) == 2:
+            raise KeyboardInterrupt("killed")   # as if the process died during the real-only run
+        return real_train(c, transform=transform)
+
+    monkeypatch_module.setattr(rt, "train", dying_train)
+    with pytest.raises(KeyboardInterrupt):
+        compare(cfg, log=lambda *a: None)
+    first = list(calls)
+    done_before = {p.parent.name: p.stat().st_mtime_ns for p in (tiny_data / "cmp").rglob("result.json")}
+    res = compare(cfg, log=lambda *a: None)
+    return {"cfg": cfg, "first": first, "calls": calls, "done_before": done_before, "res": res}
+
+
+@pytest.fixture(scope="module")
+def monkeypatch_module():
+    mp = pytest.MonkeyPatch()
+    yield mp
+    mp.undo()
+
+
+def test_compare_writes_table2_rows_and_files(killed_then_resumed_compare):
+    out = Path(killed_then_resumed_compare["cfg"].out)
+    md = (out / "table.md").read_text()
+    for row in ("| synthetic only |", "| real only |", "| synthetic → real fine-tune |"):
+        assert row in md
+    assert "top box mIoU" in md and "top box IoU" in md and "Targets" in md
+    lines = (out / "table.csv").read_text().splitlines()
+    assert [l.split(",")[0] for l in lines[1:]] == ["synthetic", "real", "finetune"]
+    assert "top box mIoU mean" in lines[0] and "top box IoU std" in lines[0]
+    runs = (out / "runs.csv").read_text().splitlines()
+    assert len(runs) == 1 + 3
+    for png in ("chart.png", "learning_curve.png"):
+        assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    recs = killed_then_resumed_compare["res"]["records"]
+    assert {r["regime"] for r in recs} == {"synthetic", "real", "finetune"}
+    ft = next(r for r in recs if r["regime"] == "finetune")
+    assert ft["n_train"] == 7 and ft["metrics"]["top"]["images"] == 5   # 9 train - 25% val; 5 test
+    # every number in the table comes from a real evaluation
+    assert all(0 <= r["metrics"]["top"]["paper"]["box"]["mIoU"] <= 1 for r in recs)
+
+
+def test_killed_compare_resumes_without_redoing_finished_runs(killed_then_resumed_compare):
+    k = killed_then_resumed_compare
+    assert k["first"] == ["pretrain", "real_f1"]             # died in the 2nd training run
+    assert set(k["done_before"]) == {"pretrain", "synthetic"}  # finished before the kill
+    assert k["calls"][2:] == ["real_f1", "finetune_f1"]       # resume: no second pretrain
+    out = Path(k["cfg"].out)
+    for name, mtime in k["done_before"].items():
+        p = next(out.rglob(f"{name}/result.json"))
+        assert p.stat().st_mtime_ns == mtime                  # untouched
+    assert k["res"]["summary"]["ran"] == ["seed0/real_f1", "seed0/finetune_f1"]
+    assert not list(out.rglob("*.tmp*"))                      # no half-written files
+
+
+def test_compare_refuses_to_resume_with_different_settings(killed_then_resumed_compare):
+    import dataclasses
+
+    from transfer.compare import compare
+
+    cfg = dataclasses.replace(killed_then_resumed_compare["cfg"], epochs=5)
+    with pytest.raises(ValueError, match="started with epochs=1, now epochs=5"):
+        compare(cfg, log=lambda *a: None)
+
+
+def _real_loss(weights, root) -> float:
+    """The training loss (weighted per-shelf cross-entropy) of a checkpoint on a real training split."""
+    import torch
+
+    from racklay.checkpoint import load_model
+    from racklay.torchdata import RackLayDataset
+    from racklay.train import layout_loss
+
+    model, cfg, _ = load_model(weights)
+    ds = RackLayDataset(root, split="train", image_size=cfg.image_size, layout_size=cfg.layout_size)
+    batch = torch.utils.data.default_collate([ds[i] for i in range(len(ds))])
+    w = torch.tensor([1.0, 5.0, 5.0])
+    with torch.no_grad():
+        out = model(batch["image"])
+    return float(sum(layout_loss(out[v], batch[v], w) for v in cfg.views))
+
+
+def test_finetune_loads_pretrain_checkpoint_and_improves(killed_then_resumed_compare, tiny_data, tmp_path, capsys):
+    from transfer.cli import main
+
+    init = Path(killed_then_resumed_compare["cfg"].out) / "runs/seed0/pretrain/best.safetensors"
+    real = tiny_data / "real"
+    rc = main(["finetune", "--init", str(init), "--real", str(real), "--out", str(tmp_path / "ft"),
+               "--epochs", "2", "--lr", "3e-3", "--batch-size", "4", "--val-fraction", "0.25", "--patience", "10"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert str(tmp_path / "ft" / "best.safetensors") in out
+    import yaml
+    cfg = yaml.safe_load((tmp_path / "ft" / "config.yaml").read_text())
+    assert cfg["init"] == str(init) and cfg["image_size"] == 64 and cfg["layout_size"] == 32  # from the checkpoint
+    before, after = _real_loss(init, real), _real_loss(tmp_path / "ft" / "last.safetensors", real)
+    assert after < 0.8 * before, (before, after)
+
+
+def test_finetune_rejects_checkpoint_with_other_R_or_D(killed_then_resumed_compare, tiny_data, tmp_path):
+    from transfer.cli import main
+    from transfer.workflow import check_init_compatible
+
+    init = Path(killed_then_resumed_compare["cfg"].out) / "runs/seed0/pretrain/best.safetensors"
+    build_toy_dataset(tmp_path / "r3", n=4, seed=2, R=3, D=64, splits={"train": 0.5, "test": 0.5})
+    with pytest.raises(ValueError, match=r"R=4 shelves, but .*r3 has R=3"):
+        check_init_compatible(init, tmp_path / "r3")
+    with pytest.raises(ValueError, match=r"predicts 32x32 layouts \(D\), but layout size 64"):
+        check_init_compatible(init, tiny_data / "real", layout_size=64)
+    # and through the command line: one line, exit code 2, nothing trained
+    assert main(["finetune", "--init", str(init), "--real", str(tmp_path / "r3"), "--out", str(tmp_path / "x")]) == 2
+    assert not (tmp_path / "x").exists()
+
+
+def test_missing_split_names_the_splits_found(tiny_data, tmp_path, capsys):
+    from transfer.cli import main
+
+    rc = main(["compare", "--synthetic", str(tiny_data / "syn"), "--real", str(tiny_data / "real"),
+               "--test-split", "val", "--out", str(tmp_path / "c")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "val.txt: split file not found" in err and "test, train" in err
+    rc = main(["finetune", "--init", "nowhere.safetensors", "--real", str(tmp_path), "--out", str(tmp_path / "f")])
+    assert rc == 2 and "split file not found (splits found in" in capsys.readouterr().err
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tiny_data, tmp_path, capsys):
+    from transfer.cli import main
+
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"not a checkpoint")
+    assert main(["finetune", "--init", str(bad), "--real", str(tiny_data / "real"), "--out", str(tmp_path / "f")]) == 2
+    assert f"{bad}: not a readable safetensors checkpoint" in capsys.readouterr().err

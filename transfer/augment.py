@@ -14,11 +14,13 @@ and the layouts to share a frame and are deliberately not offered.
 Plugs into `racklay.torchdata.RackLayDataset(transform=...)` and `racklay.train.train(cfg,
 transform=...)`: `aug(img_uint8_hwc, {view: (R, S, S) uint8}) -> (img, layouts)`.
 
-Reproducibility: the pipeline owns its random state (`Compose(seed=...)`). albumentations
-2.0.8 does not know about DataLoader workers, so every worker would start from the same state
-(and, with non-persistent workers, replay the same draws every epoch); on its first call in a
-worker process the pipeline therefore re-seeds itself from (seed, torch's per-worker seed),
-which torch derives from the training seed and changes every epoch.
+Reproducibility: the pipeline owns its random state (`Compose(seed=...)`). `racklay.train`
+re-seeds it per sample from (run seed, epoch, index) through `set_random_seed`, which makes a
+resumed run repeat the same draws. Used elsewhere, note that albumentations 2.0.8 does not know
+about DataLoader workers: every worker would start from the same state (and, with
+non-persistent workers, replay the same draws every epoch). Unless `set_random_seed` has been
+called, the pipeline therefore re-seeds itself on its first call in a worker process from
+(seed, torch's per-worker seed), which torch derives from its own seed and changes every epoch.
 """
 from __future__ import annotations
 
@@ -56,8 +58,17 @@ class PaperAugment:
              A.HorizontalFlip(p=c.flip_p)],
             is_check_shapes=False, seed=seed, save_applied_params=True)
         self._worker_seed: int | None = None
+        self._external_seed = False
+
+    def set_random_seed(self, seed: int | None) -> None:
+        """Re-seed the pipeline (racklay.train calls this per sample with a seed derived from
+        (run seed, epoch, index)); from then on the worker re-seeding is off."""
+        self._external_seed = True
+        self.compose.set_random_seed(seed)
 
     def _reseed_in_worker(self) -> None:
+        if self._external_seed:
+            return
         try:
             from torch.utils.data import get_worker_info
         except ImportError:  # pragma: no cover - torch is a dependency

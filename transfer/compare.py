@@ -89,7 +89,7 @@ def validate(cfg: CompareConfig) -> None:
                              "the regimes must share one architecture")
     else:
         workflow.check_init_compatible(cfg.pretrained, cfg.real, cfg.real_train_split,
-                                       layout_size=cfg.layout_size, R=cfg.R, image_size=cfg.image_size)
+                                       layout_size=cfg.layout_size, R=cfg.R)
 
 
 def _check_resume(out: Path, cfg: CompareConfig) -> None:
@@ -122,25 +122,6 @@ def _common(cfg: CompareConfig) -> dict:
               batch_size=cfg.batch_size, patience=cfg.patience, workers=cfg.workers)
     kw.update(cfg.train_overrides)
     return kw
-
-
-def _n_train(run_dir: Path, real: str, split: str, fraction: float, val_fraction: float) -> int | None:
-    """Training images actually used, as the trainer recorded them (falls back to the arithmetic)."""
-    for name in ("summary.json", "result.json"):
-        p = run_dir / name
-        if p.is_file():
-            try:
-                d = json.loads(p.read_text())
-                for k in ("n_train", "train_images"):
-                    if isinstance(d.get(k), int):
-                        return d[k]
-            except json.JSONDecodeError:
-                pass
-    from racklay.data import RackLayRoot
-
-    n = len(RackLayRoot(real).split_ids(split))
-    n_val = round(n * val_fraction) if val_fraction else 0
-    return max(1, round((n - n_val) * fraction))
 
 
 class Compare:
@@ -178,7 +159,8 @@ class Compare:
         kw = _common(cfg)
         run = workflow.pretrain(cfg.synthetic, d.parent, name=d.name, seed=seed, epochs=cfg.pretrain_epochs,
                                 lr=cfg.lr, imagenet_weights=cfg.imagenet_weights,
-                                max_minutes=cfg.pretrain_max_minutes, **kw)
+                                max_minutes=cfg.pretrain_max_minutes,
+                                resume=workflow.has_partial_run(d.parent, d.name) or None, **kw)
         w = workflow.best_weights(run)
         atomic_write_json(d / "result.json", {"kind": "pretrain", "seed": seed, "weights": str(w), "run": str(run),
                                               "train_seconds": time.time() - t0})
@@ -200,7 +182,8 @@ class Compare:
             weights, run, n_train = pre, pre.parent, None
         else:
             common = dict(seed=seed, epochs=cfg.epochs, val_fraction=cfg.val_fraction, augment=cfg.augment,
-                          train_split=cfg.real_train_split, train_fraction=fraction, max_minutes=cfg.max_minutes)
+                          train_split=cfg.real_train_split, train_fraction=fraction, max_minutes=cfg.max_minutes,
+                          resume=workflow.has_partial_run(d.parent, d.name) or None)
             if regime == "real":
                 run = workflow.train_on_real(cfg.real, d.parent, name=d.name, init=None, lr=cfg.lr,
                                              imagenet_weights=cfg.imagenet_weights, **common, **kw)
@@ -211,7 +194,7 @@ class Compare:
                 run = workflow.finetune(pre, cfg.real, d.parent, name=d.name, lr=lr,
                                         freeze_encoder_epochs=cfg.freeze_encoder_epochs, **common, **ft_kw)
             weights = workflow.best_weights(run)
-            n_train = _n_train(run, cfg.real, cfg.real_train_split, fraction, cfg.val_fraction)
+            n_train = workflow.train_images(run)
         t_train = time.time() - t0
         t0 = time.time()
         from racklay.evaluate import evaluate

@@ -118,7 +118,7 @@ def table_markdown(records: list[dict], fraction: float = 1.0, title: str = "") 
     lines = []
     if title:
         lines += [f"### {title}", ""]
-    lines.append(f"Real test split: {test_n} images; real training data: {fraction:g} of the training split; "
+    lines.append(f"Real test split: {test_n} images; real training data: {fraction:.0%} of the training split; "
                  f"seeds: {', '.join(map(str, seeds))} (mean ± sample std over seeds), ×100.")
     lines.append("")
     lines.append("Paper protocol (Table 2 layout; per image × shelf, a shelf empty in both counts 1; "
@@ -260,26 +260,35 @@ def learning_curve_plot(records: list[dict], out: str | Path, title: str = "") -
 
     from racklay.viz import save_figure
 
-    fig, axes = plt.subplots(1, len(LC_COLUMNS), figsize=(4 * len(LC_COLUMNS), 3.6))
+    from matplotlib.ticker import NullLocator
+
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
+    axes = axes.ravel()
     styles = {"real": ("#4c72b0", "o-", "real only"), "finetune": ("#dd8452", "s-", "synthetic → real fine-tune")}
     syn = [record_values(r) for r in records if r["regime"] == "synthetic"]
     for ax, col in zip(axes, LC_COLUMNS):
+        ticks: dict[float, int | None] = {}
         for regime, pts in learning_curve_data(records, col).items():
             c, st, lab = styles[regime]
             xs = [p[0] for p in pts]
             ax.errorbar(xs, [p[2] for p in pts], yerr=[p[3] for p in pts], fmt=st, color=c, capsize=3, label=lab)
             for p in pts:
-                if p[1] is not None:
-                    ax.annotate(f"{p[1]}", (p[0], p[2]), textcoords="offset points", xytext=(3, -10), fontsize=6, color=c)
+                ticks[p[0]] = ticks.get(p[0]) or p[1]
         if syn:
             m, sd, _ = _mean_std([v[col] for v in syn])
             ax.axhline(m, color="#8c8c8c", ls="--", label="synthetic only")
         ax.set_xscale("log")
-        ax.set_xlabel("fraction of the real training split (images annotated)")
+        ax.xaxis.set_minor_locator(NullLocator())
+        if ticks:
+            fs = sorted(ticks)
+            ax.set_xticks(fs, [f"{f:.0%}" + (f"\n{ticks[f]} img" if ticks[f] else "") for f in fs], fontsize=7)
+            ax.set_xlim(min(fs) / 1.3, max(fs) * 1.3)
+        ax.set_xlabel("share of the real training split used (images)", fontsize=8)
         ax.set_title(col + (" (paper protocol)" if "mIoU" in col else " (dataset level)"), fontsize=9)
         ax.set_ylim(0, 100)
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("×100")
+    axes[2].set_ylabel("×100")
     axes[0].legend(fontsize=7)
     fig.suptitle(title or "Learning curve on the real test split (mean ± std over seeds)", fontsize=10)
     fig.tight_layout()

@@ -78,9 +78,10 @@ def checkpoint_config(path: str | os.PathLike):
 
 
 def check_init_compatible(init: str | os.PathLike, real: str | os.PathLike, split: str = "train",
-                          layout_size: int | None = None, R: int | None = None, image_size: int | None = None):
-    """Before fine-tuning: the checkpoint's R (shelves) must match the real dataset's and the
-    requested layout size D / input size must match the checkpoint's. Returns the model config."""
+                          layout_size: int | None = None, R: int | None = None):
+    """Before fine-tuning: the checkpoint's R (shelves) must match the real dataset's and a
+    requested layout size D must match the checkpoint's (the input size may differ: the network
+    is convolutional). Returns the model config."""
     cfg = checkpoint_config(init)
     data_R, data_D = dataset_shape(real, split)
     if R is not None and R != cfg.R:
@@ -91,8 +92,6 @@ def check_init_compatible(init: str | os.PathLike, real: str | os.PathLike, spli
     if layout_size is not None and layout_size != cfg.layout_size:
         raise ValueError(f"{init}: checkpoint predicts {cfg.layout_size}x{cfg.layout_size} layouts (D), "
                          f"but layout size {layout_size} was requested")
-    if image_size is not None and image_size != cfg.image_size:
-        raise ValueError(f"{init}: checkpoint takes {cfg.image_size}px inputs, but image size {image_size} was requested")
     missing = [v for v in cfg.views if v not in RackLayRoot(real).views()]
     if missing:
         raise DataError(f"{real}: has no {'/'.join(missing)} layouts, which checkpoint {init} predicts")
@@ -127,14 +126,14 @@ def train_on_real(real, out, name: str, seed: int = 0, init=None, augment: bool 
     train_split = kw.pop("train_split", None) or "train"
     require_split(real, train_split, "real")
     if init is not None:
-        mcfg = check_init_compatible(init, real, train_split, layout_size=kw.get("layout_size"),
-                                     R=kw.get("R"), image_size=kw.get("image_size"))
+        mcfg = check_init_compatible(init, real, train_split, layout_size=kw.get("layout_size"), R=kw.get("R"))
         # the architecture comes from the checkpoint
         kw.setdefault("layout_size", mcfg.layout_size)
         kw.setdefault("image_size", mcfg.image_size)
         kw.setdefault("R", mcfg.R)
         kw.setdefault("views", tuple(mcfg.views))
         kw.setdefault("decoder", mcfg.decoder)
+        kw.setdefault("disc", mcfg.disc)
         if lr is None:
             lr = default_lr() * FINETUNE_LR_RATIO
     cfg = train_config(data=str(real), out=str(out), name=name, seed=seed, init=str(init) if init else None,
@@ -155,3 +154,18 @@ def best_weights(run_dir: str | os.PathLike) -> Path:
         if (run_dir / n).is_file():
             return run_dir / n
     raise FileNotFoundError(f"{run_dir}: no best.safetensors or last.safetensors (training did not finish?)")
+
+
+def train_images(run_dir: str | os.PathLike) -> int | None:
+    """How many training images a run used (its config.yaml through racklay.train.split_ids)."""
+    from racklay.train import TrainConfig, split_ids
+
+    p = Path(run_dir) / "config.yaml"
+    if not p.is_file():
+        return None
+    return len(split_ids(TrainConfig.from_yaml(p))[0])
+
+
+def has_partial_run(out: str | os.PathLike, name: str) -> bool:
+    """A killed run left OUT/NAME/last.safetensors: continue it with resume=True."""
+    return (Path(out) / name / "last.safetensors").is_file()

@@ -1,7 +1,7 @@
 """transfer compare: Table 2 of the paper (synthetic only / real only / fine-tuned) + learning curve."""
 from __future__ import annotations
 
-from . import add_model_args, train_kwargs
+from . import add_model_args
 
 
 def _floats(s: str) -> list[float]:

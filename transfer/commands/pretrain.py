@@ -15,7 +15,6 @@ def register(sub) -> None:
     p.add_argument("--out", default="runs/pretrain", help="run folder (default runs/pretrain)")
     p.add_argument("--imagenet-weights", metavar="FILE",
                    help="local torchvision resnet18 weights to initialise the encoder (nothing is downloaded)")
-    p.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
     add_model_args(p)
     add_train_args(p)
     p.set_defaults(func=run)
@@ -26,8 +25,6 @@ def run(args) -> int:
 
     out, name = split_out(args.out)
     kw = {**model_kwargs(args), **train_kwargs(args)}
-    if args.resume:
-        kw["resume"] = True
     run_dir = pretrain(args.synthetic, out, name=name, seed=args.seed, lr=args.lr,
                        imagenet_weights=args.imagenet_weights, **kw)
     print_run(run_dir)
