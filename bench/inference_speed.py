@@ -31,14 +31,17 @@ def build_runners(decoder: str, size: int, bf16: bool, onnx: bool, threads: int 
     from racklay.model import ModelConfig, RackLayNet
 
     torch.manual_seed(0)
-    cfg = ModelConfig(image_size=size, layout_size=size, views=("top", "front"), decoder=decoder)
+    encoder_only = decoder == "encoder"
+    cfg = ModelConfig(image_size=size, layout_size=size, views=("top", "front"),
+                      decoder="light" if encoder_only else decoder)
     model = RackLayNet(cfg).eval()
     x = torch.randn(1, 3, size, size)
     runners = {}
+    part = (lambda m: m.encoder) if encoder_only else (lambda m: m)
 
     def fp32():
         with torch.inference_mode():
-            model(x)
+            part(model)(x)
 
     runners["torch fp32"] = fp32
     if bf16:
@@ -48,10 +51,10 @@ def build_runners(decoder: str, size: int, bf16: bool, onnx: bool, threads: int 
 
         def bf():
             with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16):
-                model_cl(x_cl)
+                part(model_cl)(x_cl)
 
         runners["torch bf16+CL"] = bf
-    if onnx:
+    if onnx and not encoder_only:
         import onnxruntime as ort
 
         from racklay.export import export_onnx_bytes
@@ -80,19 +83,23 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512], help="square input = layout sizes")
     ap.add_argument("--bf16", action="store_true", help="add a bf16 autocast + channels_last column")
     ap.add_argument("--onnx", action="store_true", help="add an onnxruntime column")
+    ap.add_argument("--encoder", action="store_true",
+                    help="add a row timing the shared ResNet-18 encoder alone (the floor of any decoder)")
     add_common_args(ap, rounds=3, calls=5, warmup=2)
     args = ap.parse_args(argv)
     start(args)
     results = {}
     rows = []
     for size in args.sizes:
-        runners = {dec: build_runners(dec, size, args.bf16, args.onnx, args.threads) for dec in ("light", "paper")}
+        decs = ("light", "paper") + (("encoder",) if args.encoder else ())
+        runners = {dec: build_runners(dec, size, args.bf16, args.onnx, args.threads) for dec in decs}
         times = interleaved({(d, k): fn for d, rs in runners.items() for k, fn in rs.items()}, args)
         cols = list(runners["light"])
         st = {key: summarise(v, 1000.0) for key, v in times.items()}
         results[size] = {f"{d} {k}": st[(d, k)] for (d, k) in times}
-        for d in ("light", "paper"):
-            rows.append([f"{size}->{size}", d] + [cell(st[(d, k)]) for k in cols])
+        for d in decs:
+            rows.append([f"{size}->{size}", "ResNet-18 encoder only" if d == "encoder" else d] +
+                        [cell(st[(d, k)]) if (d, k) in st else "n/a" for k in cols])
         rows.append([f"{size}->{size}", "**paper / light**"] + [ratio(st[("paper", k)], st[("light", k)]) for k in cols])
         print(f"  {size}: " + ", ".join(f"{d} {k} {cell(st[(d, k)])}" for (d, k) in times), flush=True)
     header = ["input->layout", "decoder"] + [f"{k}: wall median (min), CPU ms" for k in cols]
