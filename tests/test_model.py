@@ -1,0 +1,191 @@
+"""RackLay networks and checkpoints: shapes of every variant, gradients through the
+discriminator, safetensors round trips, the torchvision-compatible ImageNet loader."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from racklay.checkpoint import load_checkpoint, load_model, save_checkpoint
+from racklay.model import (Discriminators, ModelConfig, RackLayNet, ResNet18Encoder, build_model,
+                           load_imagenet_weights, lsgan_discriminator_loss, lsgan_generator_loss,
+                           one_hot_layouts)
+
+IMG, LAY, R = 64, 32, 3
+
+
+def _x(n=2, seed=0):
+    return torch.randn(n, 3, IMG, IMG, generator=torch.Generator().manual_seed(seed))
+
+
+@pytest.mark.parametrize("decoder", ["light", "paper"])
+@pytest.mark.parametrize("views", [("top",), ("front",), ("top", "front")])
+@pytest.mark.parametrize("disc", [False, True])
+def test_output_shapes_of_every_variant(decoder, views, disc):
+    cfg = ModelConfig(R=R, image_size=IMG, layout_size=LAY, views=views, decoder=decoder, disc=disc)
+    assert cfg.variant() == "RackLay-" + ("D" if len(views) == 2 else "S") + ("-disc" if disc else "")
+    net = RackLayNet(cfg).eval()
+    with torch.no_grad():
+        out = net(_x())
+    assert set(out) == set(views)
+    for v in views:
+        assert out[v].shape == (2, R, 3, LAY, LAY)
+        assert torch.isfinite(out[v]).all()
+    if disc:
+        d = Discriminators(cfg)
+        score = d(views[0], out[views[0]].softmax(2))
+        assert score.shape == (2, 1, LAY // 16, LAY // 16)
+
+
+def test_layout_size_independent_of_image_size():
+    for decoder in ("light", "paper"):
+        net = RackLayNet(ModelConfig(R=2, image_size=96, layout_size=40, decoder=decoder)).eval()
+        with torch.no_grad():
+            out = net(torch.randn(1, 3, 96, 96))
+        assert out["front"].shape == (1, 2, 3, 40, 40)
+
+
+def test_paper_decoder_over_resolves_then_pools():
+    """The authors' decoder works at 2·S before its max-pool; the light one never exceeds S."""
+    net = RackLayNet(ModelConfig(R=2, image_size=IMG, layout_size=LAY, views=("top",), decoder="paper")).eval()
+    seen = []
+    net.decoders["top"].pool.register_forward_hook(lambda m, i, o: seen.append((i[0].shape[-1], o.shape[-1])))
+    with torch.no_grad():
+        net(_x(1))
+    assert seen == [(2 * LAY, LAY)]
+    light = RackLayNet(ModelConfig(R=2, image_size=IMG, layout_size=LAY, views=("top",))).eval()
+    sizes = []
+    for m in light.decoders["top"].modules():
+        if isinstance(m, torch.nn.Conv2d):
+            m.register_forward_hook(lambda m, i, o: sizes.append(o.shape[-1]))
+    with torch.no_grad():
+        light(_x(1))
+    assert max(sizes) == LAY
+
+
+@pytest.mark.parametrize("decoder", ["light", "paper"])
+def test_discriminator_gradient_reaches_decoder(decoder):
+    cfg = ModelConfig(R=2, image_size=IMG, layout_size=LAY, decoder=decoder, disc=True)
+    net, disc = RackLayNet(cfg), Discriminators(cfg)
+    out = net(_x(1))
+    adv = sum(lsgan_generator_loss(disc(v, out[v].softmax(2))) for v in out)
+    adv.backward()
+    for v in cfg.views:
+        g = net.decoders[v].head.weight.grad
+        assert g is not None and g.abs().sum() > 0, f"no adversarial gradient on the {v} decoder"
+    assert net.encoder.conv1.weight.grad.abs().sum() > 0
+    # the discriminator's own loss separates real one-hot layouts from predictions
+    target = torch.randint(0, 3, (1, 2, LAY, LAY))
+    dl = lsgan_discriminator_loss(disc("top", one_hot_layouts(target)), disc("top", out["top"].softmax(2).detach()))
+    assert dl.item() > 0
+    assert one_hot_layouts(target).sum(2).eq(1).all()
+
+
+def test_model_config_validation():
+    with pytest.raises(ValueError, match="views"):
+        ModelConfig(views=("side",))
+    with pytest.raises(ValueError, match="decoder"):
+        ModelConfig(decoder="huge")
+    with pytest.raises(ValueError, match="multiple of 32"):
+        ModelConfig(image_size=100)
+    assert ModelConfig.from_dict(ModelConfig(R=2).to_dict()) == ModelConfig(R=2)
+
+
+def test_checkpoint_round_trip_is_exact(tmp_path):
+    cfg = ModelConfig(R=2, image_size=IMG, layout_size=LAY, decoder="paper", disc=True)
+    net, disc = RackLayNet(cfg), Discriminators(cfg)
+    opt = torch.optim.Adam(net.parameters(), 1e-3)
+    net.train()
+    loss = sum(o.square().mean() for o in net(_x()).values())
+    loss.backward()
+    opt.step()                                    # optimiser state + BN running stats change
+    path = save_checkpoint(tmp_path / "m.safetensors", net, cfg, optimizer={"gen": opt},
+                           extra={"epoch": 3, "note": "x"}, disc=disc)
+    net.eval()
+    model, cfg2, meta = load_model(path)
+    assert cfg2 == cfg and meta == {"epoch": 3, "note": "x"}
+    assert not model.training
+    x = _x(seed=1)
+    with torch.no_grad():
+        a, b = net(x), model(x)
+    for v in a:
+        assert torch.equal(a[v], b[v])
+    ck = load_checkpoint(path)
+    opt2 = torch.optim.Adam(model.parameters(), 1e-3)
+    ck.load_optimizer(opt2, "gen")
+    s1, s2 = opt.state_dict()["state"], opt2.state_dict()["state"]
+    assert s1.keys() == s2.keys()
+    assert all(torch.equal(s1[k]["exp_avg_sq"], s2[k]["exp_avg_sq"]) for k in s1)
+    d2 = Discriminators(cfg)
+    ck.load_discriminators(d2)
+    assert all(torch.equal(p, q) for p, q in zip(disc.state_dict().values(), d2.state_dict().values()))
+
+
+def test_load_model_rejects_bad_files(tmp_path):
+    from safetensors.torch import save_file
+
+    junk = tmp_path / "junk.safetensors"
+    junk.write_bytes(b"\x00\x01not a checkpoint" * 10)
+    with pytest.raises(ValueError, match="junk.safetensors"):
+        load_model(junk)
+    foreign = tmp_path / "foreign.safetensors"
+    save_file({"w": torch.zeros(2)}, str(foreign))
+    with pytest.raises(ValueError, match="foreign.safetensors.*metadata"):
+        load_model(foreign)
+    with pytest.raises(FileNotFoundError, match="missing.safetensors"):
+        load_model(tmp_path / "missing.safetensors")
+    # right format, wrong shapes for the recorded config
+    cfg = ModelConfig(R=2, image_size=IMG, layout_size=LAY)
+    p = save_checkpoint(tmp_path / "r2.safetensors", RackLayNet(cfg), ModelConfig(R=3, image_size=IMG, layout_size=LAY))
+    with pytest.raises(ValueError, match="r2.safetensors.*do not match"):
+        load_model(p)
+
+
+def _fake_torchvision_state(seed=0):
+    torch.manual_seed(seed)
+    sd = {k: torch.randn_like(v.float()).to(v.dtype) if v.dtype.is_floating_point else v
+          for k, v in ResNet18Encoder().state_dict().items()}
+    sd["fc.weight"] = torch.randn(1000, 512)
+    sd["fc.bias"] = torch.randn(1000)
+    return sd
+
+
+@pytest.mark.parametrize("fmt", ["pth", "safetensors"])
+def test_imagenet_loader_accepts_torchvision_names(tmp_path, fmt):
+    sd = _fake_torchvision_state()
+    # torchvision's names, spelled out: a renamed encoder would fail here
+    for k in ("conv1.weight", "bn1.running_mean", "layer1.0.conv1.weight", "layer2.0.downsample.0.weight",
+              "layer4.1.bn2.weight", "layer3.0.downsample.1.num_batches_tracked"):
+        assert k in sd
+    path = tmp_path / f"resnet18.{fmt}"
+    if fmt == "pth":
+        torch.save(sd, path)
+    else:
+        from safetensors.torch import save_file
+        save_file(sd, str(path))
+    net = build_model(ModelConfig(R=2, image_size=IMG, layout_size=LAY), imagenet_weights=path)
+    assert torch.equal(net.encoder.layer3[1].conv2.weight, sd["layer3.1.conv2.weight"])
+    assert torch.equal(net.encoder.bn1.running_var, sd["bn1.running_var"])
+
+
+def test_imagenet_loader_rejects_wrong_files(tmp_path):
+    enc = ResNet18Encoder()
+    text = tmp_path / "notes.pth"
+    text.write_text("hello")
+    with pytest.raises(ValueError, match="notes.pth"):
+        load_imagenet_weights(enc, text)
+    sd = _fake_torchvision_state()
+    del sd["layer2.1.conv1.weight"]
+    missing = tmp_path / "partial.pth"
+    torch.save(sd, missing)
+    with pytest.raises(ValueError, match="partial.pth.*missing.*layer2.1.conv1.weight"):
+        load_imagenet_weights(enc, missing)
+    sd = _fake_torchvision_state()
+    sd["conv1.weight"] = torch.randn(64, 3, 3, 3)
+    shaped = tmp_path / "resnet34ish.pth"
+    torch.save(sd, shaped)
+    with pytest.raises(ValueError, match="resnet34ish.pth.*shape"):
+        load_imagenet_weights(enc, shaped)
+    a_list = tmp_path / "list.pth"
+    torch.save([1, 2], a_list)
+    with pytest.raises(ValueError, match="list.pth.*state dict"):
+        load_imagenet_weights(enc, a_list)
