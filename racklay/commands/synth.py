@@ -29,6 +29,10 @@ def register(sub) -> None:
                    help="llvmpipe threads per worker (LP_NUM_THREADS; default: 1 with --workers > 1)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a recipe key, YAML value: --set box_density=[0.2,0.9] --set shadows=false")
+    p.add_argument("--fsync", action="store_true",
+                   help="force every file to disk before its rename (survives power loss; slower). Without it "
+                        "files are still written to a temporary name and renamed, so an interrupted run never "
+                        "leaves half a file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -53,7 +57,7 @@ def run(args) -> int:
     if args.workers < 1:
         raise CLIError(f"--workers must be >= 1, got {args.workers}")
     res = generate_dataset(recipe, args.n, args.out, seed=args.seed, shard=args.shard, workers=args.workers,
-                           progress=not args.no_progress, lp_threads=args.lp_threads)
+                           progress=not args.no_progress, lp_threads=args.lp_threads, fsync=args.fsync)
     done = len(res.generated)
     rate = done / res.wall * 60 if res.wall > 0 and done else 0.0
     splits = ", ".join(f"{k}={v}" for k, v in res.splits.items())

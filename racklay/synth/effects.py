@@ -7,11 +7,12 @@ from __future__ import annotations
 import numpy as np
 
 
-def distortion_maps(K: np.ndarray, k1: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+def distortion_maps(K: np.ndarray, k1: float, width: int, height: int,
+                    offset: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
     """cv2.remap maps that turn an undistorted (pinhole) render into the image of a camera with
     radial distortion x_d = x_u (1 + k1 r_u^2) (normalised coordinates, OpenCV's model with
     only k1). For every distorted output pixel the undistorted source is found by fixed-point
-    iteration."""
+    iteration. `offset` = (px, py): the render has px / py extra pixels on each side."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     u, v = np.meshgrid(np.arange(width, dtype=np.float64) + 0.5, np.arange(height, dtype=np.float64) + 0.5)
     xd, yd = (u - cx) / fx, (v - cy) / fy
@@ -20,7 +21,8 @@ def distortion_maps(K: np.ndarray, k1: float, width: int, height: int) -> tuple[
         f = 1 + k1 * (xu * xu + yu * yu)
         xu, yu = xd / f, yd / f
     # remap uses pixel-index coordinates (pixel i's centre is at i)
-    return (xu * fx + cx - 0.5).astype(np.float32), (yu * fy + cy - 0.5).astype(np.float32)
+    return ((xu * fx + cx + offset[0] - 0.5).astype(np.float32),
+            (yu * fy + cy + offset[1] - 0.5).astype(np.float32))
 
 
 def distort_points(K: np.ndarray, k1: float, uv: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import numpy as np
 from .. import layout as L
 from .effects import distort_points
 from .render import RenderOutput
-from .scene import CATEGORY_NAMES, SEM, SEMANTIC_CLASSES, Scene
+from .scene import CATEGORY_NAMES, SEMANTIC_CLASSES, Scene, cuboid_corners
 
 
 def scene_layouts(scene: Scene, grid: L.Grid, R: int) -> tuple[np.ndarray, np.ndarray]:
@@ -28,14 +28,6 @@ def semantic_map(scene: Scene, instance: np.ndarray) -> np.ndarray:
 def depth_png(depth: np.ndarray) -> np.ndarray:
     """Camera-frame z in millimetres as uint16 (0 = no surface; clipped at 65.535 m)."""
     return np.clip(np.rint(depth * 1000.0), 0, 65535).astype(np.uint16)
-
-
-def normals_png(normals: np.ndarray) -> np.ndarray:
-    """Camera-frame unit normals -> RGB uint8 ((n + 1) / 2 * 255); (0, 0, 0) = no surface."""
-    valid = np.any(normals != 0, axis=-1)
-    out = np.clip(np.rint((normals + 1.0) * 127.5), 0, 255).astype(np.uint8)
-    out[~valid] = 0
-    return out
 
 
 def _r(v, nd=5):
@@ -66,15 +58,16 @@ def object_annotations(scene: Scene, instance: np.ndarray, coco: bool = True) ->
     slices = ndimage.find_objects(instance.astype(np.int32), max_label=len(scene.objects))
     chan = {si: c for c, si in enumerate(scene.visible)}
     out = []
-    for i, o in enumerate(scene.objects):
-        if o.category < 0:
-            continue
+    sel = [i for i, o in enumerate(scene.objects) if o.category >= 0 and (counts[i + 1] > 0 or o.shelf >= 0)]
+    all_corners = cuboid_corners([scene.objects[i] for i in sel])
+    uv_all, z_all = cam.project(all_corners.reshape(-1, 3))
+    uv_all, z_all = uv_all.reshape(-1, 8, 2), z_all.reshape(-1, 8)
+    c_cam_all = cam.to_cam(np.array([scene.objects[i].center for i in sel]).reshape(-1, 3))
+    for k, i in enumerate(sel):
+        o = scene.objects[i]
         iid = i + 1
         vis = int(counts[iid])
-        if vis == 0 and o.shelf < 0:
-            continue
-        corners = o.corners()
-        uv, zc = cam.project(corners)
+        uv, zc = uv_all[k], z_all[k]
         in_front = bool((zc > 0.05).all())
         amodal = None
         frac, trunc = 0.0, 1.0
@@ -98,7 +91,7 @@ def object_annotations(scene: Scene, instance: np.ndarray, coco: bool = True) ->
                 cs, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
                 seg = [(c.reshape(-1, 2) + [xs.start, ys.start]).ravel().tolist() for c in cs if len(c) >= 3]
         c_world = np.array(o.center)
-        c_cam = cam.to_cam(c_world[None])[0]
+        c_cam = c_cam_all[k]
         heading = cam.R @ np.array([math.cos(o.yaw), math.sin(o.yaw), 0.0])
         ann = {
             "id": iid, "category": CATEGORY_NAMES[o.category], "category_id": o.category + 1,

@@ -19,7 +19,7 @@ import numpy as np
 from .scene import Scene
 from .textures import TextureBank
 
-MAX_LIGHTS = 8  # array size in the shader; scenes use up to 5
+MAX_LIGHTS = 4  # key light + 3 fill lights (array size in the shader)
 NEAR, FAR = 0.05, 300.0
 
 
@@ -28,7 +28,7 @@ class RenderOutput:
     rgb: np.ndarray        # (H, W, 3) uint8
     instance: np.ndarray   # (H, W) uint32: object index + 1, 0 = nothing
     depth: np.ndarray      # (H, W) float32 camera-frame z in metres (0 = nothing)
-    normals: np.ndarray    # (H, W, 3) float32 camera-frame unit normals (0 = nothing)
+    normals: np.ndarray    # (H, W, 3) uint8 camera-frame unit normals as (n + 1) / 2 * 255 (0 = nothing)
 
 
 class Renderer(Protocol):
@@ -145,7 +145,7 @@ void main() {
     f_id = v_id; f_depth = v_zcam;
     vec3 n = normalize(v_ncam);
     if (!gl_FrontFacing) n = -n;
-    f_normal = vec4(n, 1.0);
+    f_normal = vec4(n * 0.5 + 0.5, 1.0);
 }
 """
 
@@ -154,8 +154,9 @@ COLOR_FS = """
 in vec3 v_world; in vec3 v_nworld; in vec3 v_ncam; in float v_zcam; in vec3 v_uvl; in vec3 v_tint;
 in vec4 v_mat; flat in uint v_id; in vec4 v_lpos;
 uniform sampler2DArray tex; uniform sampler2DShadow shadow_map; uniform int use_shadow;
-uniform vec3 cam_pos; uniform vec3 ambient; uniform int n_lights; uniform float falloff;
-uniform vec3 light_pos[8]; uniform vec3 light_col[8];
+uniform vec3 cam_pos; uniform vec3 ambient; uniform float falloff;
+#define N_FILL 3
+uniform vec3 light_pos[4]; uniform vec3 light_col[4];
 out vec4 f_color;
 float shadow_factor(vec3 n, vec3 l) {
     if (use_shadow == 0) return 1.0;
@@ -171,15 +172,23 @@ void main() {
     if (!gl_FrontFacing) n = -n;
     vec3 v = normalize(cam_pos - v_world);
     vec3 col = albedo * ambient * (0.8 + 0.2 * n.z);
-    for (int i = 0; i < n_lights; ++i) {
-        vec3 l = light_pos[i] - v_world;
+    // key light: Lambert + Blinn-Phong, shadowed
+    {
+        vec3 l = light_pos[0] - v_world;
         float d = length(l); l /= d;
         float att = 1.0 / (1.0 + (d / falloff) * (d / falloff));
-        float sh = (i == 0) ? shadow_factor(n, l) : 1.0;
         float ndl = max(dot(n, l), 0.0);
+        float sh = shadow_factor(n, l);
         vec3 h = normalize(l + v);
         float spec = ndl > 0.0 ? v_mat.y * pow(max(dot(n, h), 0.0), v_mat.z) : 0.0;
-        col += light_col[i] * att * sh * (albedo * ndl + spec);
+        col += light_col[0] * att * sh * (albedo * ndl + spec);
+    }
+    // fill lights: Lambert only (fixed count; unused ones have zero colour)
+    for (int i = 1; i < N_FILL + 1; ++i) {
+        vec3 l = light_pos[i] - v_world;
+        float d2 = dot(l, l);
+        float ndl = max(dot(n, l), 0.0) * inversesqrt(d2);
+        col += light_col[i] * (albedo * ndl / (1.0 + d2 / (falloff * falloff)));
     }
     col += albedo * v_mat.w;
     f_color = vec4(clamp(col, 0.0, 1.0), 1.0);
@@ -207,10 +216,30 @@ def perspective(fovy, aspect, near, far) -> np.ndarray:
                      [0, 0, (far + near) / (near - far), 2 * far * near / (near - far)], [0, 0, -1, 0]])
 
 
-def instance_array(scene: Scene, bank: TextureBank) -> tuple[np.ndarray, np.ndarray]:
-    """Per-instance attributes (N, 17) float32 for boxes and cylinders (two arrays)."""
+def frustum_keep(scene: Scene, cam, margin: float = 1.5) -> np.ndarray:
+    """Boolean per object: its bounding sphere comes within `margin` metres of the camera's
+    view frustum (objects farther out can neither be seen nor shadow what is seen, given the
+    key light sits above the camera's corridor)."""
+    c = np.array([o.center for o in scene.objects], np.float64)
+    rad = 0.5 * np.linalg.norm(np.array([o.size for o in scene.objects], np.float64), axis=1)
+    pc = cam.to_cam(c)
+    K = cam.K
+    keep = pc[:, 2] > -rad - margin
+    for a, axis, sign in (((cam.width - K[0, 2]) / K[0, 0], 0, 1), (K[0, 2] / K[0, 0], 0, -1),
+                          ((cam.height - K[1, 2]) / K[1, 1], 1, 1), (K[1, 2] / K[1, 1], 1, -1)):
+        d = (sign * pc[:, axis] - a * pc[:, 2]) / np.sqrt(1 + a * a)
+        keep &= d <= rad + margin
+    return keep
+
+
+def instance_array(scene: Scene, bank: TextureBank, cam=None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-instance attributes (N, 17) float32 for boxes and cylinders (two arrays), for the
+    objects near the view frustum of `cam`."""
     rows_box, rows_cyl = [], []
+    keep = frustum_keep(scene, cam if cam is not None else scene.camera)
     for i, o in enumerate(scene.objects):
+        if not keep[i]:
+            continue
         m = bank.materials[o.material]
         side = m.side[i % len(m.side)]
         top = m.top[i % len(m.top)]
@@ -258,7 +287,7 @@ class GLRenderer:
         # G-buffer (exact, no AA)
         self.id_tex = ctx.texture((width, height), 1, dtype="u4")
         self.z_tex = ctx.texture((width, height), 1, dtype="f4")
-        self.n_tex = ctx.texture((width, height), 4, dtype="f4")
+        self.n_tex = ctx.texture((width, height), 4, dtype="f1")
         for t in (self.id_tex, self.z_tex, self.n_tex):
             t.filter = (moderngl.NEAREST, moderngl.NEAREST)
         gdepth = ctx.depth_renderbuffer((width, height))
@@ -299,12 +328,14 @@ class GLRenderer:
             if n:
                 vao.render(self.moderngl.TRIANGLES, instances=n)
 
-    def render(self, scene: Scene) -> RenderOutput:
+    def render(self, scene: Scene, camera=None) -> RenderOutput:
+        """Render `scene` through `camera` (default: scene.camera; a padded camera is used when
+        the image is distorted afterwards)."""
         ctx, mgl = self.ctx, self.moderngl
-        cam = scene.camera
+        cam = camera if camera is not None else scene.camera
         if (cam.width, cam.height) != (self.W, self.H):
-            raise ValueError(f"renderer is {self.W}x{self.H}, scene camera is {cam.width}x{cam.height}")
-        boxes, cyls = instance_array(scene, self.bank)
+            raise ValueError(f"renderer is {self.W}x{self.H}, camera is {cam.width}x{cam.height}")
+        boxes, cyls = instance_array(scene, self.bank, cam)
         if max(len(boxes), len(cyls)) > self.capacity:
             raise ValueError(f"scene has {len(boxes)} solids, renderer capacity is {self.capacity}")
         counts = []
@@ -313,7 +344,7 @@ class GLRenderer:
                 buf.write(arr.tobytes())
             counts.append(len(arr))
         # light setup
-        lights = scene.lights[:getattr(self, "_nl", MAX_LIGHTS)]
+        lights = scene.lights[:MAX_LIGHTS]
         key = np.array(lights[0].position, np.float64)
         target = np.array([0.0, 0.0, scene.shelves[len(scene.shelves) // 2].board_top])
         dist = float(np.linalg.norm(target - key))
@@ -346,21 +377,20 @@ class GLRenderer:
             self._draw(self.gbuf_prog, counts)
             # 3) colour
             p = self.color_prog
-            p["tex"].value = 0
-            p["shadow_map"].value = 1
-            p["use_shadow"].value = use_shadow
-            p["cam_pos"].value = tuple(float(v) for v in cam.center)
+            _set(p, "tex", 0)
+            _set(p, "shadow_map", 1)
+            _set(p, "use_shadow", use_shadow)
+            _set(p, "cam_pos", tuple(float(v) for v in cam.center))
             amb = scene.ambient
-            p["ambient"].value = tuple(float(amb * c) for c in scene.ambient_color)
-            p["n_lights"].value = len(lights)
-            p["falloff"].value = float(getattr(scene, "light_falloff", 6.0))
+            _set(p, "ambient", tuple(float(amb * c) for c in scene.ambient_color))
+            _set(p, "falloff", float(getattr(scene, "light_falloff", 6.0)))
             pos = np.zeros((MAX_LIGHTS, 3), np.float32)
             col = np.zeros((MAX_LIGHTS, 3), np.float32)
             for i, l in enumerate(lights):
                 pos[i] = l.position
                 col[i] = np.array(l.color) * l.intensity
-            p["light_pos"].write(pos.tobytes())
-            p["light_col"].write(col.tobytes())
+            _set(p, "light_pos", data=pos.tobytes())
+            _set(p, "light_col", data=col.tobytes())
             self.tex.use(0)
             self.shadow_tex.use(1)
             self.color_ms.use()
@@ -379,12 +409,21 @@ class GLRenderer:
             rgb = np.frombuffer(self.color_out.read(components=3, alignment=1), np.uint8).reshape(H, W, 3)[::-1]
             ids = np.frombuffer(self.id_tex.read(alignment=1), np.uint32).reshape(H, W)[::-1]
             z = np.frombuffer(self.z_tex.read(alignment=1), np.float32).reshape(H, W)[::-1]
-            nrm = np.frombuffer(self.n_tex.read(alignment=1), np.float32).reshape(H, W, 4)[::-1, :, :3]
+            nrm = np.frombuffer(self.n_tex.read(alignment=1), np.uint8).reshape(H, W, 4)[::-1, :, :3]
         return RenderOutput(rgb=np.ascontiguousarray(rgb), instance=np.ascontiguousarray(ids),
                             depth=np.ascontiguousarray(z), normals=np.ascontiguousarray(nrm))
 
     def release(self) -> None:
         self.ctx.release()
+
+
+def _set(prog, name: str, value=None, data: bytes | None = None) -> None:
+    """Set a uniform if the (compiled) program still has it."""
+    if name in prog._members:
+        if data is not None:
+            prog[name].write(data)
+        else:
+            prog[name].value = value
 
 
 def _skip(fmt: str) -> str:

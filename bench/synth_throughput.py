@@ -1,0 +1,79 @@
+"""WareSynth throughput: generate N images of a recipe (default: 300 x complex at 470x280)
+with everything written (RGB, layouts, depth, normals, semantic, instance, KITTI, meta, COCO,
+splits), then print images/min, the per-stage breakdown and the ratio to WareSynth's 80/min
+(Blender on an RTX 2080Ti, paper Sec. 3).
+
+    .venv/bin/python bench/synth_throughput.py --n 300 --workers 2
+
+Stage times are wall seconds measured inside each worker (summed over workers, per image);
+with K workers on K cores they add up to about K x the wall time per image. The machine's
+load average is printed because the numbers depend on what else runs.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+WARESYNTH_PER_MIN = 80.0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--recipe", default="complex")
+    ap.add_argument("--n", type=int, default=300)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--lp-threads", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default=None, help="output folder (default: a temporary one, removed afterwards)")
+    ap.add_argument("--set", action="append", default=[])
+    args = ap.parse_args(argv)
+
+    from racklay.synth.generate import STAGES, generate_dataset
+    from racklay.synth.recipe import load_recipe
+
+    recipe = load_recipe(args.recipe, args.set)
+    tmp = None
+    out = args.out
+    if out is None:
+        tmp = tempfile.mkdtemp(prefix="synth_bench_")
+        out = os.path.join(tmp, "ds")
+    load0 = os.getloadavg()
+    t0 = time.perf_counter()
+    res = generate_dataset(recipe, args.n, out, seed=args.seed, workers=args.workers, lp_threads=args.lp_threads,
+                           progress=True)
+    wall = time.perf_counter() - t0
+    load1 = os.getloadavg()
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN), resource.getrusage(resource.RUSAGE_SELF)
+    cpu = sum(r.ru_utime + r.ru_stime for r in ru)
+    n = len(res.generated)
+    size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
+    rate = n / wall * 60
+    print(f"\nWareSynth throughput: recipe {recipe.name}, {recipe.image_width}x{recipe.image_height}, "
+          f"{n} images, {args.workers} worker(s) x LP_NUM_THREADS={args.lp_threads}, "
+          f"layouts {recipe.R}x{recipe.layout_size}^2 x 2 views")
+    print(f"  wall {wall:.1f} s (incl. start-up and finalize)  ->  {rate:.0f} images/min  "
+          f"({rate / WARESYNTH_PER_MIN:.1f}x WareSynth's {WARESYNTH_PER_MIN:.0f}/min)")
+    print(f"  CPU time {cpu:.1f} s = {cpu / max(n, 1) * 1000:.0f} ms/image  "
+          f"(-> {60 / (cpu / max(n, 1)) * os.cpu_count():.0f} images/min if {os.cpu_count()} cores were ours alone)")
+    print(f"  load average before {load0[0]:.1f}, after {load1[0]:.1f} on {os.cpu_count()} cores (shared machine)")
+    print(f"  dataset on disk: {size / 1e6:.0f} MB ({size / max(n, 1) / 1e6:.2f} MB/image)")
+    tot = sum(res.timings.get(s, 0.0) for s in STAGES)
+    print("  per-stage wall time inside workers (ms/image, share):")
+    for s in STAGES:
+        v = res.timings.get(s, 0.0)
+        print(f"    {s:12s} {v / max(n, 1) * 1000:7.1f}  {100 * v / max(tot, 1e-9):5.1f}%")
+    if tmp:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

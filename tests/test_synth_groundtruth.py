@@ -1,0 +1,236 @@
+"""WareSynth ground truth agrees with the picture and with the scene geometry.
+
+The reference for "the picture" is an independent numpy ray caster over the scene's cuboids
+(written here, not shared with the renderer)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from racklay import layout as L
+from racklay.synth.groundtruth import object_annotations, scene_layouts
+from racklay.synth.recipe import load_recipe
+from racklay.synth.scene import CATEGORIES, Obj, cuboid_corners, sample_scene
+
+SMALL = {"image_width": 240, "image_height": 144, "focal_px": [170.0, 260.0]}
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    from racklay.synth.render import GLRenderer
+    from racklay.synth.textures import build_bank
+
+    r = load_recipe("complex", SMALL)
+    ren = GLRenderer(build_bank(r.texture_family, 0), r.image_width, r.image_height, msaa=0)
+    yield r, ren
+    ren.release()
+
+
+def raycast(scene, pix_uv):
+    """Nearest object index and camera z for rays through pixel coordinates (N, 2)."""
+    cam = scene.camera
+    d_cam = np.c_[pix_uv, np.ones(len(pix_uv))] @ np.linalg.inv(cam.K).T  # z component = 1
+    d = d_cam @ cam.R  # world directions (R^T d)
+    o = cam.center
+    best_t = np.full(len(pix_uv), np.inf)
+    best_i = np.full(len(pix_uv), -1)
+    for i, ob in enumerate(scene.objects):
+        c, s = math.cos(-ob.yaw), math.sin(-ob.yaw)
+        rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+        ol = rot @ (o - np.array(ob.center))
+        dl = d @ rot.T
+        h = np.array(ob.size) / 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (-h - ol) / dl
+            t2 = (h - ol) / dl
+        tmin = np.nanmax(np.minimum(t1, t2), axis=1)
+        tmax = np.nanmin(np.maximum(t1, t2), axis=1)
+        hit = (tmax >= np.maximum(tmin, 0)) & (tmin > 0) & (tmin < best_t)
+        best_t[hit] = tmin[hit]
+        best_i[hit] = i
+    return best_i, best_t  # t along d_cam (z = 1) is the camera z
+
+
+def hull_mask(uv8, W, H):
+    """Pixels whose centre lies inside the convex hull of projected corners."""
+    import cv2
+
+    hull = cv2.convexHull(uv8.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+    x0, y0 = np.floor(hull.min(0)).astype(int)
+    x1, y1 = np.ceil(hull.max(0)).astype(int)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)
+    m = np.zeros((H, W), bool)
+    if x0 >= x1 or y0 >= y1:
+        return m
+    px, py = np.meshgrid(np.arange(x0, x1) + 0.5, np.arange(y0, y1) + 0.5)
+    inside = np.ones(px.shape, bool)
+    n = len(hull)
+    area = sum(hull[k, 0] * hull[(k + 1) % n, 1] - hull[(k + 1) % n, 0] * hull[k, 1] for k in range(n))
+    sgn = 1 if area > 0 else -1
+    for k in range(n):
+        a, b = hull[k], hull[(k + 1) % n]
+        cross = (b[0] - a[0]) * (py - a[1]) - (b[1] - a[1]) * (px - a[0])
+        inside &= sgn * cross >= 0
+    m[y0:y1, x0:x1] = inside
+    return m
+
+
+def test_projected_hull_matches_instance_mask_and_depth(renderer):
+    r, ren = renderer
+    tested = 0
+    for index in range(4):
+        scene = sample_scene(r, 3, index)
+        out = ren.render(scene)
+        W, H = r.image_width, r.image_height
+        items = [i for i, o in enumerate(scene.objects) if o.shelf >= 0]
+        corners = cuboid_corners([scene.objects[i] for i in items])
+        for k, i in enumerate(items):
+            uv, z = scene.camera.project(corners[k])
+            if (z <= 0.1).any() or uv[:, 0].min() < 0 or uv[:, 1].min() < 0 or uv[:, 0].max() > W or uv[:, 1].max() > H:
+                continue  # only boxes fully inside the image
+            hm = hull_mask(uv, W, H)
+            if hm.sum() < 80:
+                continue
+            ys, xs = np.nonzero(hm)
+            nearest, tz = raycast(scene, np.c_[xs + 0.5, ys + 0.5])
+            if (nearest != i).any():
+                continue  # occluded (by the independent ray caster): not part of this check
+            inst = out.instance == i + 1
+            iou = (hm & inst).sum() / (hm | inst).sum()
+            assert iou >= 0.95, f"scene {index}, box {i}: hull/mask IoU {iou:.3f}"
+            # depth at the visible faces = ray-cast distance to the box (within 1 cm)
+            dz = np.abs(out.depth[ys, xs] - tz)
+            interior = inst[ys, xs]
+            assert dz[interior].max() < 0.01, f"scene {index}, box {i}: depth off by {dz[interior].max():.4f} m"
+            tested += 1
+    assert tested >= 5, f"only {tested} unoccluded boxes found to test"
+
+
+def test_written_depth_png_is_millimetres(renderer):
+    from racklay.synth.groundtruth import depth_png
+
+    r, ren = renderer
+    out = ren.render(sample_scene(r, 0, 0))
+    mm = depth_png(out.depth)
+    valid = out.depth > 0
+    assert mm.dtype == np.uint16
+    assert np.abs(mm[valid] / 1000.0 - out.depth[valid]).max() <= 0.0005 + 1e-6
+
+
+def test_box_at_known_coordinates_lands_on_the_right_layout_pixels():
+    r = load_recipe("complex")
+    scene = sample_scene(r, 5, 11)
+    assert 1 <= len(scene.visible) <= r.R
+    grid = L.Grid(512, 8.0)
+    target = scene.visible[-1]
+    # clear every shelf, then put one known box on the highest visible shelf
+    for sh in scene.shelves:
+        sh.items = []
+    b = L.Box(cx=0.30, cy=-0.10, sx=0.40, sy=0.30, sz=0.25, z0=0.0, yaw=0.0)
+    z_board = scene.shelves[target].board_top
+    scene.objects.append(Obj((0.30, -0.10, z_board + 0.125), (0.40, 0.30, 0.25), 0.0, "carton_small", 5,
+                             category=0, shelf=target, layout_box=b))
+    scene.shelves[target].items = [len(scene.objects) - 1]
+    top, front = scene_layouts(scene, grid, r.R)
+    c = len(scene.visible) - 1
+    # pixels whose centre lies inside the box (the convention's rule)
+    xc, yc = grid.centers(), grid.row_centers()
+    cols = np.nonzero((xc >= 0.10) & (xc < 0.50))[0]
+    rows = np.nonzero((yc >= -0.25) & (yc < 0.05))[0]
+    assert len(cols) == round(0.40 / grid.res) and len(rows) == round(0.30 / grid.res)
+    assert cols[0] == 256 + round(0.10 / grid.res) and rows[0] == 256 - round(0.05 / grid.res)
+    assert (top[c][np.ix_(rows, cols)] == L.BOX).all()
+    assert (top[c] == L.BOX).sum() == len(rows) * len(cols)
+    frows = np.nonzero((yc >= 0.0) & (yc < 0.25))[0]  # z rows: board top on the centre boundary, up is up
+    assert frows[-1] == 255 and len(frows) == 16
+    assert (front[c][np.ix_(frows, cols)] == L.BOX).all()
+    assert (front[c] == L.BOX).sum() == len(frows) * len(cols)
+    # the shelf itself: length x depth in the top view, length x (clear height + 5 cm) in front
+    sh = scene.shelves[target]
+    assert (top[c] != L.BACKGROUND).sum() == L.fill_axis_rect(np.zeros((512, 512), np.uint8), grid,
+        -scene.rack_length / 2, scene.rack_length / 2, -scene.rack_depth / 2, scene.rack_depth / 2, 1).sum()
+    assert (front[c] != L.BACKGROUND).sum() == L.fill_axis_rect(np.zeros((512, 512), np.uint8), grid,
+        -scene.rack_length / 2, scene.rack_length / 2, 0, sh.clear_height + L.FRONT_CLEARANCE_PAD_M, 1).sum()
+    # empty visible shelves: shelf pixels, no box pixels; missing channels: all zero
+    for k in range(len(scene.visible) - 1):
+        assert (top[k] == L.BOX).sum() == 0 and (front[k] == L.BOX).sum() == 0
+        assert (top[k] == L.SHELF).sum() > 0
+    for k in range(len(scene.visible), r.R):
+        assert not top[k].any() and not front[k].any()
+
+
+def _footprints_overlap(a: L.Box, b: L.Box) -> bool:
+    """Separating-axis test of two rotated rectangles (shelf frame, top view)."""
+    pa, pb = a.corners_xy(), b.corners_xy()
+    for poly in (pa, pb):
+        for k in range(4):
+            e = poly[(k + 1) % 4] - poly[k]
+            n = np.array([-e[1], e[0]])
+            sa, sb = pa @ n, pb @ n
+            if sa.max() <= sb.min() + 1e-9 or sb.max() <= sa.min() + 1e-9:
+                return False
+    return True
+
+
+@pytest.mark.parametrize("recipe", ["simple", "complex", "proxy_real"])
+def test_boxes_stand_on_shelves_without_intersecting(recipe):
+    r = load_recipe(recipe)
+    n_stacked = 0
+    for index in range(25):
+        scene = sample_scene(r, 7, index)
+        for si, sh in enumerate(scene.shelves):
+            boxes = [scene.objects[i].layout_box for i in sh.items]
+            for b in boxes:
+                x0, x1 = b.x_range()
+                y0, y1 = b.y_range()
+                assert -scene.rack_length / 2 <= x0 and x1 <= scene.rack_length / 2, "box overhangs the board (x)"
+                assert -scene.rack_depth / 2 <= y0 and y1 <= scene.rack_depth / 2, "box overhangs the board (y)"
+                assert b.z0 + b.sz <= sh.max_item_top + 1e-9, "box reaches into the shelf above"
+                if b.z0 > 0:  # stacked: stands on a box whose top is at z0 and which holds its centre
+                    supports = [s for s in boxes if abs(s.z0 + s.sz - b.z0) < 1e-9 and
+                                s.corners_xy()[:, 0].min() <= b.cx <= s.corners_xy()[:, 0].max()]
+                    assert supports, f"floating box on shelf {si} of scene {index}"
+                    n_stacked += 1
+            for a_i in range(len(boxes)):
+                for b_i in range(a_i + 1, len(boxes)):
+                    a, b = boxes[a_i], boxes[b_i]
+                    z_overlap = min(a.z0 + a.sz, b.z0 + b.sz) - max(a.z0, b.z0) > 1e-9
+                    assert not (z_overlap and _footprints_overlap(a, b)), f"boxes intersect in scene {index}"
+            # world geometry = shelf frame + board top
+            for i in sh.items:
+                o = scene.objects[i]
+                b = o.layout_box
+                assert np.allclose(o.center, (b.cx, b.cy, sh.board_top + b.z0 + b.sz / 2))
+    assert n_stacked > 0
+
+
+def test_visible_shelves_rule_and_channels():
+    r = load_recipe("complex")
+    counts = set()
+    for index in range(30):
+        scene = sample_scene(r, 0, index)
+        assert 1 <= len(scene.visible) <= r.R
+        assert scene.visible == list(range(scene.visible[0], scene.visible[0] + len(scene.visible)))
+        counts.add(len(scene.visible))
+    assert counts == set(range(1, r.R + 1)), counts  # every number of visible shelves occurs
+
+
+def test_object_annotations_match_instance_mask():
+    r = load_recipe("complex")
+    scene = sample_scene(r, 0, 2)
+    W, H = scene.camera.width, scene.camera.height
+    # a synthetic instance map: paint a block for the first target item
+    i = scene.shelves[scene.visible[0]].items[0] if scene.shelves[scene.visible[0]].items else None
+    inst = np.zeros((H, W), np.uint32)
+    if i is not None:
+        inst[10:20, 30:50] = i + 1
+    anns = object_annotations(scene, inst)
+    on_rack = [a for a in anns if a["shelf"] is not None]
+    assert len(on_rack) == sum(len(s.items) for s in scene.shelves)
+    if i is not None:
+        a = next(a for a in anns if a["id"] == i + 1)
+        assert a["bbox_visible"] == [30, 10, 50, 20] and a["visible_pixels"] == 200
+        assert a["category"] == CATEGORIES[scene.objects[i].category][0]
+        assert a["channel"] == 0
