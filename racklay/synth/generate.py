@@ -276,11 +276,11 @@ def finalize_dataset(out: str | os.PathLike, recipe: Recipe, n: int, seed: int) 
         root.write_split(name, ids)
         counts[name] = len(ids)
         if recipe.write_coco:
-            write_coco(root, name, ids)
+            write_coco(root, name, ids, recipe.name)
     return counts
 
 
-def write_coco(root: RackLayRoot, split: str, ids: list[str]) -> Path:
+def write_coco(root: RackLayRoot, split: str, ids: list[str], recipe_name: str = "") -> Path:
     """annotations/instances_SPLIT.json (COCO instances: cartons and crates, polygons)."""
     from .scene import CATEGORY_NAMES
 
@@ -297,7 +297,7 @@ def write_coco(root: RackLayRoot, split: str, ids: list[str]) -> Path:
                          "bbox": [x0, y0, x1 - x0, y1 - y0], "area": o["visible_pixels"], "iscrowd": 0,
                          "segmentation": o["segmentation"],
                          "attributes": {"shelf_channel": o["channel"], "visible_fraction": o["visible_fraction"]}})
-    coco = {"info": {"description": f"WareSynth ({root.root.name}) {split}"},
+    coco = {"info": {"description": f"WareSynth recipe {recipe_name}, split {split}"},
             "categories": [{"id": i + 1, "name": n, "supercategory": "crate" if n.startswith("crate") else "carton"}
                            for i, n in enumerate(CATEGORY_NAMES)],
             "images": images, "annotations": anns}

@@ -1,0 +1,162 @@
+"""racklay synth end to end: valid RackLay datasets, determinism (runs, workers, shards),
+resume after an interruption, recipe errors before anything is written."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from racklay.cli import main as racklay_main
+from racklay.data import RackLayRoot, check_dataset
+from racklay.synth.generate import generate_dataset
+from racklay.synth.recipe import RecipeError, load_recipe
+
+TINY = ["image_width=160", "image_height=96", "focal_px=[110,175]", "layout_size=64", "clutter=[0,2]",
+        "bays_per_side=1", "rack_rows=1"]
+
+
+def tiny(name="complex", extra=()):
+    return load_recipe(name, TINY + list(extra))
+
+
+def files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref") / "ds"
+    generate_dataset(tiny(), 6, out, seed=3, progress=False)
+    return out
+
+
+def test_generated_set_is_valid_racklay(reference):
+    rep = check_dataset(reference)
+    assert rep.ok, rep.problems
+    assert rep.samples == 6 and rep.R == 4 and rep.D == 64 and set(rep.views) == {"top", "front"}
+    assert sum(rep.splits.values()) == 6
+    ds = RackLayRoot(reference)
+    for sid in ds.ids():
+        meta = ds.read_meta(sid)
+        top = ds.read_layouts("top", sid)
+        n_vis = len(meta["rack"]["visible_shelves"])
+        assert len(meta["shelf_heights"]) == n_vis
+        # channels of visible shelves hold the shelf, the others are empty
+        assert all(top[c].any() for c in range(n_vis)) and not top[n_vis:].any()
+        img = ds.read_image(sid)
+        assert img.shape == (96, 160, 3)
+        for extra, dtype in (("depth", np.uint16), ("instance", np.uint16), ("semantic", np.uint8), ("normals", np.uint8)):
+            import cv2
+            a = cv2.imread(str(reference / extra / f"{sid}.png"), cv2.IMREAD_UNCHANGED)
+            assert a is not None and a.dtype == dtype and a.shape[:2] == (96, 160)
+        assert (reference / "kitti" / f"{sid}.txt").exists()
+    coco = json.loads((reference / "annotations" / "instances_train.json").read_text())
+    assert coco["categories"][0]["name"] == "carton_small" and len(coco["categories"]) == 8
+    assert coco["images"] and coco["annotations"]
+
+
+def test_cli_check_data_passes_and_proxy_real(tmp_path, capsys):
+    out = tmp_path / "proxy"
+    rc = racklay_main(["synth", "--recipe", "proxy_real", "--n", "3", "--out", str(out), "--seed", "1",
+                       "--no-progress"] + sum((["--set", s] for s in TINY), []))
+    assert rc == 0
+    assert racklay_main(["check-data", str(out)]) == 0
+    meta = RackLayRoot(out).read_meta("000000")
+    assert meta["domain"] == "proxy-real" and meta["recipe"] == "proxy_real"
+
+
+def test_same_seed_same_bytes_across_runs_and_workers(tmp_path, reference):
+    a = tmp_path / "again"
+    generate_dataset(tiny(), 6, a, seed=3, progress=False)
+    assert files(a) == files(reference)
+    w = tmp_path / "workers"
+    generate_dataset(tiny(), 6, w, seed=3, progress=False, workers=2)
+    assert files(w) == files(reference)
+    other = tmp_path / "other_seed"
+    generate_dataset(tiny(), 2, other, seed=4, progress=False)
+    assert (other / "Images" / "000000.png").read_bytes() != (reference / "Images" / "000000.png").read_bytes()
+
+
+def test_shards_merge_into_the_full_dataset(tmp_path, reference):
+    merged = tmp_path / "merged"
+    for i in range(2):
+        part = tmp_path / f"shard{i}"
+        res = generate_dataset(tiny(), 6, part, seed=3, shard=f"{i}/2", progress=False)
+        assert sorted(res.generated) == list(range(i, 6, 2))
+        shutil.copytree(part, merged, dirs_exist_ok=True)
+    res = generate_dataset(tiny(), 6, merged, seed=3, progress=False)  # nothing left: rebuilds splits/COCO
+    assert res.generated == [] and res.skipped == 6
+    assert files(merged) == files(reference)
+
+
+def test_resume_after_interruption(tmp_path, reference):
+    out = tmp_path / "resumed"
+    generate_dataset(tiny(), 6, out, seed=3, progress=False, limit=3)  # "interrupted" after 3 images
+    assert len(RackLayRoot(out).ids()) == 3
+    # an index cut short mid-write: layouts written, no image and no meta yet
+    ref = RackLayRoot(reference)
+    (out / "topLayouts").mkdir(exist_ok=True)
+    shutil.copy(ref.layout_path("top", "000004"), RackLayRoot(out).layout_path("top", "000004"))
+    (out / "Images" / ".000004.png.tmp").write_bytes(b"partial")  # a temp file left by a kill
+    res = generate_dataset(tiny(), 6, out, seed=3, progress=False)
+    assert sorted(res.generated) == [3, 4, 5] and res.skipped == 3
+    (out / "Images" / ".000004.png.tmp").unlink()
+    assert files(out) == files(reference)
+
+
+def test_real_interrupt_leaves_no_partial_files(tmp_path):
+    """Kill a CLI run mid-way; every listed sample is complete and a rerun finishes the set."""
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "racklay", "synth", "--recipe", "simple", "--n", "40", "--out", str(out),
+           "--no-progress"] + sum((["--set", s] for s in TINY), [])
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    import time
+    t0 = time.time()
+    while time.time() - t0 < 60 and len(list((out / "meta").glob("*.json"))) < 2:
+        time.sleep(0.1)
+    proc.kill()
+    proc.wait()
+    ds = RackLayRoot(out)
+    for sid in ds.ids():  # every image that exists is a complete PNG
+        ds.read_image(sid)
+    res = generate_dataset(load_recipe("simple", TINY), 40, out, seed=0, progress=False, limit=1)
+    assert res.skipped >= 2
+    assert not [p for p in (out / "meta").glob("*.json") if not ds.image_path(p.stem).exists()]
+
+
+def test_recipe_errors_before_anything_is_written(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: bad\nbox_densty: [0, 1]\n")
+    with pytest.raises(RecipeError, match=r"bad.yaml: unknown key 'box_densty' \(did you mean 'box_density'\?\)"):
+        load_recipe(str(bad))
+    out = tmp_path / "never"
+    assert racklay_main(["synth", "--recipe", str(bad), "--n", "2", "--out", str(out)]) == 2
+    assert "box_densty" in capsys.readouterr().err
+    assert not out.exists()
+    for override, msg in (("yaw_max_deg=90", "out of range"), ("n_shelves=[5,2]", "lo > hi"),
+                          ("background={wall: 1, sky: 1}", "unknown choice"), ("shadows=maybe", "true or false"),
+                          ("splits={train: 0.9, test: 0.2}", "sum to"), ("nope=1", "unknown key 'nope'")):
+        with pytest.raises(RecipeError, match=msg):
+            load_recipe("complex", [override])
+        assert racklay_main(["synth", "--n", "2", "--out", str(out), "--set", override]) == 2
+        assert not out.exists()
+    with pytest.raises(RecipeError, match="not found"):
+        load_recipe("no_such_recipe")
+
+
+def test_existing_folder_with_other_settings_is_refused(tmp_path, reference):
+    out = tmp_path / "copy"
+    shutil.copytree(reference, out)
+    with pytest.raises(ValueError, match="different settings"):
+        generate_dataset(tiny(), 6, out, seed=4, progress=False)
+
+
+def test_atomic_write_without_fsync(tmp_path):
+    from racklay.atomic import atomic_write_bytes
+    p = atomic_write_bytes(tmp_path / "a" / "f.bin", b"xyz", fsync=False)
+    assert p.read_bytes() == b"xyz" and [q.name for q in p.parent.iterdir()] == ["f.bin"]
