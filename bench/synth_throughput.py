@@ -66,10 +66,14 @@ def main(argv=None) -> int:
     print(f"  load average before {load0[0]:.1f}, after {load1[0]:.1f} on {os.cpu_count()} cores (shared machine)")
     print(f"  dataset on disk: {size / 1e6:.0f} MB ({size / max(n, 1) / 1e6:.2f} MB/image)")
     tot = sum(res.timings.get(s, 0.0) for s in STAGES)
-    print("  per-stage wall time inside workers (ms/image, share):")
+    ctot = sum(res.timings.get("cpu_" + s, 0.0) for s in STAGES)
+    print("  per-stage time inside the workers, ms/image (share):   wall            CPU (process, incl. llvmpipe)")
     for s in STAGES:
-        v = res.timings.get(s, 0.0)
-        print(f"    {s:12s} {v / max(n, 1) * 1000:7.1f}  {100 * v / max(tot, 1e-9):5.1f}%")
+        v, c = res.timings.get(s, 0.0), res.timings.get("cpu_" + s, 0.0)
+        print(f"    {s:12s}                                  {v / max(n, 1) * 1000:7.1f} ({100 * v / max(tot, 1e-9):4.1f}%)"
+              f"   {c / max(n, 1) * 1000:7.1f} ({100 * c / max(ctot, 1e-9):4.1f}%)")
+    print(f"    {'total':12s}                                  {tot / max(n, 1) * 1000:7.1f}          "
+          f"{ctot / max(n, 1) * 1000:7.1f}")
     if tmp:
         shutil.rmtree(tmp, ignore_errors=True)
     return 0

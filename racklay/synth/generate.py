@@ -96,10 +96,10 @@ class Generator:
         from .scene import Camera, sample_scene
 
         r = self.recipe
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         scene = sample_scene(r, self.seed, index)
         scene.shadows = r.shadows
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         cam = scene.camera
         px, py = self.pad
         rcam = None
@@ -109,7 +109,7 @@ class Generator:
             K[1, 2] += py
             rcam = Camera(K=K, R=cam.R, t=cam.t, width=cam.width + 2 * px, height=cam.height + 2 * py)
         out = self.renderer.render(scene, rcam)
-        t2 = time.perf_counter()
+        t2, c2 = time.perf_counter(), time.process_time()
         rgb, inst, depth, normals = out.rgb, out.instance, out.depth, out.normals
         if r.antialias == 1:
             rgb = edge_antialias(rgb, inst)
@@ -124,9 +124,11 @@ class Generator:
         objects = object_annotations(scene, inst, coco=r.write_coco)
         meta = scene_meta(scene, r, self.grid, objects)
         kitti = kitti_lines(objects) if r.write_kitti else None
-        t3 = time.perf_counter()
+        t3, c3 = time.perf_counter(), time.process_time()
         maps = {"instance": inst, "depth": depth, "normals": normals}
-        return scene, rgb, maps, top, front, meta, kitti, {"sample": t1 - t0, "render": t2 - t1, "groundtruth": t3 - t2}
+        times = {"sample": t1 - t0, "render": t2 - t1, "groundtruth": t3 - t2,
+                 "cpu_sample": c1 - c0, "cpu_render": c2 - c1, "cpu_groundtruth": c3 - c2}
+        return scene, rgb, maps, top, front, meta, kitti, times
 
     def generate(self, index: int) -> dict:
         """Make and write one sample (meta last: it marks the index finished); returns per-stage seconds."""
@@ -134,7 +136,7 @@ class Generator:
 
         scene, rgb, maps, top, front, meta, kitti, t = self.make(index)
         r, root, sid, fs = self.recipe, self.root.root, sample_id(index), self.fsync
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         if r.write_depth:
             atomic_write_bytes(root / "depth" / f"{sid}.png", png_bytes(depth_png(maps["depth"])), fsync=fs)
         if r.write_normals:
@@ -150,6 +152,7 @@ class Generator:
         atomic_write_bytes(self.root.image_path(sid), png_bytes(rgb), fsync=fs)
         atomic_write_json(self.root.meta_path(sid), meta, indent=None, fsync=fs)
         t["write"] = time.perf_counter() - t0
+        t["cpu_write"] = time.process_time() - c0
         return t
 
 

@@ -1,0 +1,53 @@
+"""Regenerate docs/img/waresynth_examples.png: a few images of each WareSynth recipe with their
+per-shelf top/front layouts, drawn with `racklay show`.
+
+    .venv/bin/python bench/synth_examples.py [--per-recipe 2] [--out docs/img/waresynth_examples.png]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--per-recipe", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=2)
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "img" / "waresynth_examples.png"))
+    args = ap.parse_args(argv)
+
+    import cv2
+    import numpy as np
+
+    from racklay.atomic import atomic_save_png
+    from racklay.cli import main as racklay_main
+    from racklay.data import read_image
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for recipe in ("simple", "complex", "proxy_real"):
+            ds = Path(tmp) / recipe
+            assert racklay_main(["synth", "--recipe", recipe, "--n", str(args.per_recipe), "--out", str(ds),
+                                 "--seed", str(args.seed), "--no-progress"]) == 0
+            figs = []
+            for i in range(args.per_recipe):
+                fig = Path(tmp) / f"{recipe}_{i}.png"
+                assert racklay_main(["show", str(ds), "--index", str(i), "--out", str(fig)]) == 0
+                figs.append(read_image(fig))
+            h = min(f.shape[0] for f in figs)
+            rows.append(np.concatenate([cv2.resize(f, (int(f.shape[1] * h / f.shape[0]), h)) for f in figs], axis=1))
+    w = min(r.shape[1] for r in rows)
+    grid = np.concatenate([cv2.resize(r, (w, int(r.shape[0] * w / r.shape[1]))) for r in rows], axis=0)
+    scale = min(1.0, 2400 / grid.shape[1])
+    grid = cv2.resize(grid, (int(grid.shape[1] * scale), int(grid.shape[0] * scale)), interpolation=cv2.INTER_AREA)
+    atomic_save_png(args.out, grid)
+    print(f"wrote {args.out} ({grid.shape[1]}x{grid.shape[0]})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
