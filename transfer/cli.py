@@ -10,6 +10,7 @@ COMMANDS: list[str] = [
     "transfer.commands.pretrain",
     "transfer.commands.finetune",
     "transfer.commands.compare",
+    "transfer.commands.demo",
 ]
 DESCRIPTION = ("Sim-to-real transfer for RackLay: pretrain on synthetic data, fine-tune on a small real "
                "set with colour-jitter and flip augmentation, and compare synthetic / real / fine-tuned.")

@@ -218,6 +218,12 @@ class Compare:
 
     def run(self) -> dict:
         validate(self.cfg)
+        if self.cfg.pretrained:
+            # one architecture for all three regimes: the checkpoint's
+            m = workflow.checkpoint_config(self.cfg.pretrained)
+            for k in ("image_size", "layout_size", "R", "decoder", "disc"):
+                if getattr(self.cfg, k) is None:
+                    setattr(self.cfg, k, getattr(m, k))
         self.out.mkdir(parents=True, exist_ok=True)
         _check_resume(self.out, self.cfg)
         jobs = self.jobs()

@@ -1,22 +1,35 @@
-"""racklay demo: the main job on an embedded default."""
+"""racklay demo: the main job end to end (synthetic -> real transfer, see transfer/demo.py);
+`--toy` keeps the quick schematic demo of the data/metrics layer (seconds, no training)."""
 from __future__ import annotations
 
 from pathlib import Path
 
 
 def register(sub) -> None:
+    from transfer.commands.demo import DESCRIPTION, add_demo_args
+
     p = sub.add_parser(
-        "demo", help="run the end-to-end demo on built-in data",
-        description="Build a small schematic dataset with the layout module, validate it with "
-                    "check-data, score a degraded copy of its layouts against the truth, and write a "
-                    "paper-style figure. Prints where every output went.")
-    p.add_argument("--out", default="outputs/demo", help="output folder (default: outputs/demo)")
-    p.add_argument("--n", type=int, default=24, help="number of samples (default 24)")
-    p.add_argument("--seed", type=int, default=0)
+        "demo", help="the main job end to end: synthetic -> real transfer (~15 min on CPU; --toy: seconds)",
+        description=DESCRIPTION + " With --toy instead: build a small schematic dataset with the layout "
+                    "module, validate it with check-data, score a degraded copy of its layouts against "
+                    "the truth, and write a paper-style figure (seconds, no training).")
+    add_demo_args(p)
+    p.add_argument("--toy", action="store_true", help="the quick schematic demo of the data/metrics layer")
+    p.add_argument("--n", type=int, default=24, help="--toy: number of schematic samples (default 24)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    if not args.toy:
+        from transfer.commands.demo import run as transfer_demo
+
+        return transfer_demo(args)
+    if args.out == "outputs/transfer-demo":
+        args.out = "outputs/demo"
+    return run_toy(args)
+
+
+def run_toy(args) -> int:
     import numpy as np
 
     from racklay import layout as L

@@ -26,6 +26,39 @@ def add_train_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--max-minutes", type=float, help="time budget for the run; stops cleanly and keeps the best")
     g.add_argument("--seed", type=int, default=0, help="seed for init, data order and augmentation (default 0)")
     g.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same settings)")
+    add_set_arg(g)
+
+
+def add_set_arg(g) -> None:
+    g.add_argument("--set", dest="train_set", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other racklay.train.TrainConfig field, YAML value (repeatable): "
+                        "--set amp=bf16 --set warmup_steps=20")
+
+
+def parse_sets(items) -> dict:
+    """['amp=bf16', 'warmup_steps=20'] -> {'amp': 'bf16', 'warmup_steps': 20} (checked against TrainConfig)."""
+    import dataclasses
+
+    import yaml
+
+    from racklay.train import TrainConfig
+
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    out = {}
+    for item in items or []:
+        key, eq, val = item.partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
+        if key not in names:
+            import difflib
+            close = difflib.get_close_matches(key, sorted(names), n=1)
+            raise ValueError(f"--set: TrainConfig has no field {key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+        try:
+            out[key] = yaml.safe_load(val)
+        except yaml.YAMLError:
+            raise ValueError(f"--set {key}: not a YAML value: {val!r}") from None
+    return out
 
 
 def model_kwargs(args) -> dict:
@@ -38,7 +71,7 @@ def model_kwargs(args) -> dict:
 
 def train_kwargs(args) -> dict:
     return dict(epochs=args.epochs, batch_size=args.batch_size, patience=args.patience, workers=args.workers,
-                max_minutes=args.max_minutes, resume=True if args.resume else None)
+                max_minutes=args.max_minutes, resume=True if args.resume else None, **parse_sets(args.train_set))
 
 
 def split_out(out: str):

@@ -1,7 +1,7 @@
 """transfer compare: Table 2 of the paper (synthetic only / real only / fine-tuned) + learning curve."""
 from __future__ import annotations
 
-from . import add_model_args
+from . import add_model_args, add_set_arg, parse_sets
 
 
 def _floats(s: str) -> list[float]:
@@ -56,6 +56,7 @@ def register(sub) -> None:
     g.add_argument("--patience", type=int, help="early stopping patience (epochs)")
     g.add_argument("--workers", type=int, help="DataLoader workers")
     g.add_argument("--max-minutes", type=float, help="time budget per real-only / fine-tune run")
+    add_set_arg(g)
     p.set_defaults(func=run)
 
 
@@ -73,7 +74,7 @@ def run(args) -> int:
         finetune_lr=args.finetune_lr, freeze_encoder_epochs=args.freeze_encoder_epochs,
         imagenet_weights=args.imagenet_weights, val_fraction=args.val_fraction, patience=args.patience,
         augment=not args.no_augment, max_minutes=args.max_minutes, pretrain_max_minutes=args.pretrain_max_minutes,
-        workers=args.workers, eval_batch_size=args.eval_batch_size)
+        workers=args.workers, eval_batch_size=args.eval_batch_size, train_overrides=parse_sets(args.train_set))
     res = compare(cfg)
     print()
     print((res["paths"]["table_md"]).read_text())

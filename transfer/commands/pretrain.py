@@ -9,7 +9,7 @@ def register(sub) -> None:
         "pretrain", help="train on synthetic data (step 1 of sim-to-real transfer)",
         description="Train RackLay on a synthetic RackLay-format dataset (e.g. from `racklay synth "
                     "--recipe complex`). Uses the dataset's val split when it has one, otherwise carves "
-                    "10%% of train. This is racklay.train.train with the transfer defaults; the "
+                    "10% of train. This is racklay.train.train with the transfer defaults; the "
                     "checkpoint it writes (RUN/best.safetensors) is what `transfer finetune --init` takes.")
     p.add_argument("--synthetic", required=True, metavar="ROOT", help="synthetic RackLay-format dataset root")
     p.add_argument("--out", default="runs/pretrain", help="run folder (default runs/pretrain)")
