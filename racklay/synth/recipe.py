@@ -186,6 +186,12 @@ def _check_value(key: str, value, src: str):
     raise AssertionError(kind)
 
 
+def _unknown_key(key, src: str) -> RecipeError:
+    close = difflib.get_close_matches(str(key), list(_FIELDS), n=1)
+    hint = f" (did you mean '{close[0]}'?)" if close else ""
+    return RecipeError(f"{src}: unknown key '{key}'{hint}")
+
+
 def recipe_from_dict(data: dict, src: str = "recipe") -> Recipe:
     """Validate a mapping and build a Recipe; unknown keys and bad values raise RecipeError."""
     if data is None:
@@ -195,9 +201,7 @@ def recipe_from_dict(data: dict, src: str = "recipe") -> Recipe:
     kw = {}
     for key, value in data.items():
         if key not in _FIELDS:
-            close = difflib.get_close_matches(str(key), list(_FIELDS), n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
-            raise RecipeError(f"{src}: unknown key '{key}'{hint}")
+            raise _unknown_key(key, src)
         kw[key] = _check_value(key, value, src)
     r = Recipe(**kw)
     if r.layout_size % 2:
@@ -251,9 +255,7 @@ def load_recipe(name_or_path: str | None = None, overrides: list[str] | dict | N
         items = overrides.items() if isinstance(overrides, dict) else (parse_override(o) for o in overrides)
         for k, v in items:
             if k not in _FIELDS:
-                close = difflib.get_close_matches(str(k), list(_FIELDS), n=1)
-                hint = f" (did you mean '{close[0]}'?)" if close else ""
-                raise RecipeError(f"--set: unknown key '{k}'{hint}")
+                raise _unknown_key(k, "--set")
             data[k] = v
         src = f"{src} with --set overrides"
     return recipe_from_dict(data, src)
