@@ -45,11 +45,16 @@ def parse_shard(text: str | None) -> tuple[int, int]:
 
 def png_bytes(arr: np.ndarray) -> bytes:
     """PNG bytes (RGB uint8, or single-channel uint8/uint16), zlib level 1 with the RLE
-    strategy: ~1.5x faster than the default filter search here and no larger. Deterministic."""
+    strategy (and the SUB filter for RGB): 1.5-2x faster to encode than OpenCV's default
+    here, at most ~40 % larger. Deterministic."""
     import cv2
 
-    a = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR) if arr.ndim == 3 else arr
-    ok, buf = cv2.imencode(".png", a, [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE])
+    params = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
+    a = arr
+    if arr.ndim == 3:
+        a = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
+        params += [cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]
+    ok, buf = cv2.imencode(".png", a, params)
     if not ok:
         raise ValueError("could not encode PNG")
     return buf.tobytes()
@@ -98,7 +103,6 @@ class Generator:
         r = self.recipe
         t0, c0 = time.perf_counter(), time.process_time()
         scene = sample_scene(r, self.seed, index)
-        scene.shadows = r.shadows
         t1, c1 = time.perf_counter(), time.process_time()
         cam = scene.camera
         px, py = self.pad

@@ -32,7 +32,7 @@ class RenderOutput:
 
 
 class Renderer(Protocol):
-    def render(self, scene: Scene) -> RenderOutput: ...
+    def render(self, scene: Scene, camera=None) -> RenderOutput: ...
 
     def release(self) -> None: ...
 
@@ -352,64 +352,63 @@ class GLRenderer:
         light_vp32 = light_vp.T.astype(np.float32).tobytes()
         ctx.enable(mgl.DEPTH_TEST)
         ctx.disable(mgl.CULL_FACE)
-        use_shadow = int(bool(getattr(scene, "shadows", True)))
-        if True:
-            # 1) shadow map
-            if use_shadow:
-                self.shadow_fbo.use()
-                self.shadow_fbo.clear(depth=1.0)
-                self.shadow_prog["light_vp"].write(light_vp32)
-                self._draw(self.shadow_prog, counts)
-            # camera uniforms
-            K = cam.K
-            proj = (2 * K[0, 0] / self.W, 2 * K[0, 2] / self.W - 1, 2 * K[1, 1] / self.H, 1 - 2 * K[1, 2] / self.H)
-            Rwc = cam.R.astype(np.float32)
-            for prog in (self.gbuf_prog, self.color_prog, self.depth_prog):
-                prog["Rwc"].write(Rwc.T.tobytes())  # GLSL mat3 is column-major
-                prog["twc"].value = tuple(float(v) for v in cam.t)
-                prog["proj"].value = tuple(float(v) for v in proj)
-                prog["nf"].value = (NEAR, FAR)
-                if "light_vp" in prog._members:
-                    prog["light_vp"].write(light_vp32)
-            # 2) G-buffer
-            self.gbuf_fbo.use()
-            self.gbuf_fbo.clear(0, 0, 0, 0, depth=1.0)
-            self._draw(self.gbuf_prog, counts)
-            # 3) colour
-            p = self.color_prog
-            _set(p, "tex", 0)
-            _set(p, "shadow_map", 1)
-            _set(p, "use_shadow", use_shadow)
-            _set(p, "cam_pos", tuple(float(v) for v in cam.center))
-            amb = scene.ambient
-            _set(p, "ambient", tuple(float(amb * c) for c in scene.ambient_color))
-            _set(p, "falloff", float(getattr(scene, "light_falloff", 6.0)))
-            pos = np.zeros((MAX_LIGHTS, 3), np.float32)
-            col = np.zeros((MAX_LIGHTS, 3), np.float32)
-            for i, l in enumerate(lights):
-                pos[i] = l.position
-                col[i] = np.array(l.color) * l.intensity
-            _set(p, "light_pos", data=pos.tobytes())
-            _set(p, "light_col", data=col.tobytes())
-            self.tex.use(0)
-            self.shadow_tex.use(1)
-            self.color_ms.use()
-            if self.msaa:  # depth pre-pass so that only visible fragments are shaded
-                self.color_ms.clear(0.1, 0.1, 0.11, 1.0, depth=1.0)
-                self._draw(self.depth_prog, counts)
-            else:
-                self.color_ms.clear(0.1, 0.1, 0.11, 1.0)
-            ctx.depth_func = "<="
-            self._draw(p, counts)
-            ctx.depth_func = "<"
-            if self.msaa:
-                ctx.copy_framebuffer(self.color_out, self.color_ms)
-            # read back (GL rows are bottom-up)
-            W, H = self.W, self.H
-            rgb = np.frombuffer(self.color_out.read(components=3, alignment=1), np.uint8).reshape(H, W, 3)[::-1]
-            ids = np.frombuffer(self.id_tex.read(alignment=1), np.uint32).reshape(H, W)[::-1]
-            z = np.frombuffer(self.z_tex.read(alignment=1), np.float32).reshape(H, W)[::-1]
-            nrm = np.frombuffer(self.n_tex.read(alignment=1), np.uint8).reshape(H, W, 4)[::-1, :, :3]
+        use_shadow = int(scene.shadows)
+        # 1) shadow map
+        if use_shadow:
+            self.shadow_fbo.use()
+            self.shadow_fbo.clear(depth=1.0)
+            self.shadow_prog["light_vp"].write(light_vp32)
+            self._draw(self.shadow_prog, counts)
+        # camera uniforms
+        K = cam.K
+        proj = (2 * K[0, 0] / self.W, 2 * K[0, 2] / self.W - 1, 2 * K[1, 1] / self.H, 1 - 2 * K[1, 2] / self.H)
+        Rwc = cam.R.astype(np.float32)
+        for prog in (self.gbuf_prog, self.color_prog, self.depth_prog):
+            prog["Rwc"].write(Rwc.T.tobytes())  # GLSL mat3 is column-major
+            prog["twc"].value = tuple(float(v) for v in cam.t)
+            prog["proj"].value = tuple(float(v) for v in proj)
+            prog["nf"].value = (NEAR, FAR)
+            if "light_vp" in prog._members:
+                prog["light_vp"].write(light_vp32)
+        # 2) G-buffer
+        self.gbuf_fbo.use()
+        self.gbuf_fbo.clear(0, 0, 0, 0, depth=1.0)
+        self._draw(self.gbuf_prog, counts)
+        # 3) colour
+        p = self.color_prog
+        _set(p, "tex", 0)
+        _set(p, "shadow_map", 1)
+        _set(p, "use_shadow", use_shadow)
+        _set(p, "cam_pos", tuple(float(v) for v in cam.center))
+        amb = scene.ambient
+        _set(p, "ambient", tuple(float(amb * c) for c in scene.ambient_color))
+        _set(p, "falloff", float(scene.light_falloff))
+        pos = np.zeros((MAX_LIGHTS, 3), np.float32)
+        col = np.zeros((MAX_LIGHTS, 3), np.float32)
+        for i, l in enumerate(lights):
+            pos[i] = l.position
+            col[i] = np.array(l.color) * l.intensity
+        _set(p, "light_pos", data=pos.tobytes())
+        _set(p, "light_col", data=col.tobytes())
+        self.tex.use(0)
+        self.shadow_tex.use(1)
+        self.color_ms.use()
+        if self.msaa:  # depth pre-pass so that only visible fragments are shaded
+            self.color_ms.clear(0.1, 0.1, 0.11, 1.0, depth=1.0)
+            self._draw(self.depth_prog, counts)
+        else:
+            self.color_ms.clear(0.1, 0.1, 0.11, 1.0)
+        ctx.depth_func = "<="
+        self._draw(p, counts)
+        ctx.depth_func = "<"
+        if self.msaa:
+            ctx.copy_framebuffer(self.color_out, self.color_ms)
+        # read back (GL rows are bottom-up)
+        W, H = self.W, self.H
+        rgb = np.frombuffer(self.color_out.read(components=3, alignment=1), np.uint8).reshape(H, W, 3)[::-1]
+        ids = np.frombuffer(self.id_tex.read(alignment=1), np.uint32).reshape(H, W)[::-1]
+        z = np.frombuffer(self.z_tex.read(alignment=1), np.float32).reshape(H, W)[::-1]
+        nrm = np.frombuffer(self.n_tex.read(alignment=1), np.uint8).reshape(H, W, 4)[::-1, :, :3]
         return RenderOutput(rgb=np.ascontiguousarray(rgb), instance=np.ascontiguousarray(ids),
                             depth=np.ascontiguousarray(z), normals=np.ascontiguousarray(nrm))
 

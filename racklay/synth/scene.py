@@ -138,6 +138,8 @@ class Scene:
     occupancy: list            # rows of the bay occupancy map (strings, '#' rack, '.' free, '=' corridor)
     effects: dict
     domain: str = "synthetic"
+    shadows: bool = True          # the key light casts shadows
+    light_falloff: float = 6.0    # metres at which a light's intensity has halved
 
     def layout_inputs(self) -> list[tuple[L.Shelf, list[L.Box]]]:
         """(Shelf, boxes in the shelf frame) of each visible shelf, lowest first."""
@@ -496,7 +498,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     return Scene(index=index, seed=seed, recipe=r.name, objects=B.objects, shelves=shelves, rack_length=length,
                  rack_depth=depth, visible=visible, camera=cam, lights=lights, ambient=ambient,
                  ambient_color=(1.0, 1.0, 1.0), main_light=0, background=background, occupancy=occ_rows,
-                 effects=effects, domain=r.domain)
+                 effects=effects, domain=r.domain, shadows=r.shadows)
 
 
 def rotation_world_to_cam(yaw: float, pitch: float, roll: float) -> np.ndarray:
