@@ -41,6 +41,7 @@ def test_generated_set_is_valid_racklay(reference):
     assert rep.samples == 6 and rep.R == 4 and rep.D == 64 and set(rep.views) == {"top", "front"}
     assert sum(rep.splits.values()) == 6
     ds = RackLayRoot(reference)
+    n_items = 0
     for sid in ds.ids():
         meta = ds.read_meta(sid)
         top = ds.read_layouts("top", sid)
@@ -48,6 +49,17 @@ def test_generated_set_is_valid_racklay(reference):
         assert len(meta["shelf_heights"]) == n_vis
         # channels of visible shelves hold the shelf, the others are empty
         assert all(top[c].any() for c in range(n_vis)) and not top[n_vis:].any()
+        # every item on a visible shelf sits on BOX pixels of its channel, in both views
+        from racklay.layout import BOX, Grid
+        g = Grid(64, 8.0)
+        front = ds.read_layouts("front", sid)
+        on_rack = [o for o in meta["objects"] if o["channel"] is not None]
+        n_items += len(on_rack)
+        for o in on_rack:
+            f = o["shelf_frame"]
+            col = int(g.x_to_col(f["cx"]))
+            assert top[o["channel"], int(g.y_to_row(f["cy"])), col] == BOX
+            assert front[o["channel"], int(g.z_to_row(f["z0"] + o["size"][2] / 2)), col] == BOX
         img = ds.read_image(sid)
         assert img.shape == (96, 160, 3)
         for extra, dtype in (("depth", np.uint16), ("instance", np.uint16), ("semantic", np.uint8), ("normals", np.uint8)):
@@ -55,6 +67,7 @@ def test_generated_set_is_valid_racklay(reference):
             a = cv2.imread(str(reference / extra / f"{sid}.png"), cv2.IMREAD_UNCHANGED)
             assert a is not None and a.dtype == dtype and a.shape[:2] == (96, 160)
         assert (reference / "kitti" / f"{sid}.txt").exists()
+    assert n_items >= 5
     coco = json.loads((reference / "annotations" / "instances_train.json").read_text())
     assert coco["categories"][0]["name"] == "carton_small" and len(coco["categories"]) == 8
     assert coco["images"] and coco["annotations"]

@@ -234,3 +234,25 @@ def test_object_annotations_match_instance_mask():
         assert a["bbox_visible"] == [30, 10, 50, 20] and a["visible_pixels"] == 200
         assert a["category"] == CATEGORIES[scene.objects[i].category][0]
         assert a["channel"] == 0
+
+
+def test_clutter_stays_in_corridors_and_out_of_the_view_of_the_rack():
+    from racklay.synth.scene import SEM
+
+    r = load_recipe("complex", {"clutter": [8, 12]})
+    seen = 0
+    for index in range(60):
+        s = sample_scene(r, 1, index)
+        racks = [o for o in s.objects if o.semantic in (SEM["rack"], SEM["shelf"])]
+        rc = cuboid_corners(racks)
+        rmin, rmax = rc.min(1), rc.max(1)
+        clutter = [o for o in s.objects if o.semantic == SEM["clutter"]]
+        cc = cuboid_corners(clutter)
+        for a, b in zip(cc.min(1), cc.max(1)):
+            seen += 1
+            assert not ((a[None] < rmax - 1e-6).all(1) & (b[None] > rmin + 1e-6).all(1)).any(), "clutter inside a rack"
+            between = (b[0] > -s.rack_length / 2 and a[0] < s.rack_length / 2 and b[1] < -s.rack_depth / 2
+                       and a[1] > s.camera.center[1])
+            assert not between, "clutter between the camera and the considered rack"
+            assert a[2] >= -1e-9, "clutter below the floor"
+    assert seen > 100

@@ -429,9 +429,11 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
 
     # lights along the corridors of the occupancy map, plus ambient
     cam_corr_y = -depth / 2 - corridor / 2
-    corr_ys = [cam_corr_y]
+    corr_ys, corridors = [cam_corr_y], [corridor]
     for a, b in zip(range(2, len(rows_y), 2), range(1, len(rows_y), 2)):
-        corr_ys.append((rows_y[a] - depths[a] / 2 + rows_y[b] + depths[b] / 2) / 2)
+        lo, hi = rows_y[b] + depths[b] / 2, rows_y[a] - depths[a] / 2
+        corr_ys.append((lo + hi) / 2)
+        corridors.append(hi - lo)
     spacing = _u(rng, r.light_spacing)
     warm = _u(rng, r.light_warmth)
     lcolor = (1.0 + 0.25 * warm, 1.0 + 0.05 * warm, 1.0 - 0.3 * warm)
@@ -459,27 +461,32 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     n_clutter = _ui(rng, r.clutter)
     for _ in range(n_clutter):
         kind = rng.choice(["pallet", "forklift", "extinguisher"], p=[0.5, 0.2, 0.3])
+        # clearance from the rack fronts: half the item's extent across the corridor + 10 cm
+        clear = {"pallet": 0.55, "forklift": 0.65, "extinguisher": 0.2}[kind]
+        along = {"pallet": 0.7, "forklift": 2.2, "extinguisher": 0.15}[kind]  # half length along x
         if background == "busy" and len(corr_ys) > 1 and rng.uniform() < 0.6:
-            cy = corr_ys[int(rng.integers(1, len(corr_ys)))] + float(rng.uniform(-0.6, 0.6))
+            k = int(rng.integers(1, len(corr_ys)))
+            half = corridors[k] / 2 - clear
+            cy = corr_ys[k] + float(rng.uniform(-half, half)) * 0.8
             cx = float(rng.uniform(-8, 8))
         else:
             side = 1 if rng.uniform() < 0.5 else -1
-            cx = side * (length / 2 + r.upright_width + float(rng.uniform(0.5, 4.0)))
-            cy = -depth / 2 - float(rng.uniform(0.4, max(0.5, corridor - 0.8)))
+            cx = side * (length / 2 + r.upright_width + along + float(rng.uniform(0.0, 3.5)))
+            cy = -depth / 2 - clear - float(rng.uniform(0.0, max(0.05, corridor - 2 * clear)))
         if kind == "extinguisher":
             # stands next to an upright of the considered row
             hh = float(rng.uniform(0.45, 0.6))
             B.add((cx, cy, hh / 2), (0.17, 0.17, hh), "paint", SEM["clutter"], tint=(0.8, 0.06, 0.05), shape="cylinder")
             B.add((cx, cy, hh + 0.04), (0.06, 0.06, 0.08), "paint", SEM["clutter"], tint=(0.1, 0.1, 0.1), shape="cylinder")
         elif kind == "pallet":
-            yaw = float(rng.uniform(0, math.pi))
+            yaw = float(rng.uniform(-0.15, 0.15))  # long side along the corridor
             B.add((cx, cy, 0.072), (1.2, 0.8, 0.144), "pallet", SEM["clutter"], yaw=yaw)
             if rng.uniform() < 0.6:
                 cat = _pick(rng, CARTONS)
                 sz = float(rng.uniform(0.3, 1.2))
                 B.add((cx, cy, 0.144 + sz / 2), (1.1, 0.7, sz), CATEGORY_NAMES[cat], SEM["box"], yaw=yaw, category=cat)
         else:
-            yaw = float(rng.uniform(-math.pi, math.pi))
+            yaw = (1 if rng.uniform() < 0.5 else -1) * math.pi / 2 + float(rng.uniform(-0.1, 0.1))  # along the corridor
             col = _tint(rng, 0.1, (0.95, 0.7, 0.05) if rng.uniform() < 0.6 else (0.9, 0.3, 0.1))
             c, s = math.cos(yaw), math.sin(yaw)
             B.add((cx, cy, 0.65), (1.0, 2.0, 1.0), "paint", SEM["clutter"], yaw=yaw, tint=col)
