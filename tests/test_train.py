@@ -37,6 +37,7 @@ def _rows(run: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 def test_overfit_a_handful_of_samples(tmp_path, toy):
     """4 distinct samples (each stored 4 times, so an epoch has 4 steps): 60 steps must take the
     dataset-level IoU of shelf and box far above an all-background guess (0) and the untrained
@@ -80,6 +81,7 @@ def _tiny_flags(toy, out, name):
             "--no-progress"]
 
 
+@pytest.mark.slow
 def test_sigkill_then_resume_matches_uninterrupted_run(tmp_path, toy):
     """14 training images, batch 4 -> 4 steps per epoch; the discriminators join at epoch 2.
     The process is SIGKILLed after global step 6 (mid-epoch 2; last checkpoint at step 5), then
@@ -108,6 +110,7 @@ def test_sigkill_then_resume_matches_uninterrupted_run(tmp_path, toy):
     assert r.returncode == 0 and "already finished" in r.stdout
 
 
+@pytest.mark.slow
 def test_torchrun_two_processes(tmp_path, toy):
     r = _cli(*_tiny_flags(toy, tmp_path, "ddp"), "--epochs", "1", "--no-disc", torchrun=True)
     assert r.returncode == 0, (r.stdout[-1500:], r.stderr[-3000:])
