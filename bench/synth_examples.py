@@ -31,10 +31,21 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for recipe in ("simple", "complex", "proxy_real"):
             ds = Path(tmp) / recipe
-            assert racklay_main(["synth", "--recipe", recipe, "--n", str(args.per_recipe), "--out", str(ds),
+            n = 4 * args.per_recipe
+            assert racklay_main(["synth", "--recipe", recipe, "--n", str(n), "--out", str(ds),
                                  "--seed", str(args.seed), "--no-progress"]) == 0
+            # show variety: prefer samples whose (background, visible shelves) differ
+            from racklay.data import RackLayRoot
+            root, picked, keys = RackLayRoot(ds), [], set()
+            for i in range(n):
+                m = root.read_meta(f"{i:06d}")
+                key = (m["background"], len(m["rack"]["visible_shelves"]))
+                if key[0] not in {k[0] for k in keys} or (len(keys) and key not in keys and len(picked) > 1):
+                    picked.append(i)
+                    keys.add(key)
+            picked = (picked + [i for i in range(n) if i not in picked])[:args.per_recipe]
             figs = []
-            for i in range(args.per_recipe):
+            for i in picked:
                 fig = Path(tmp) / f"{recipe}_{i}.png"
                 assert racklay_main(["show", str(ds), "--index", str(i), "--out", str(fig)]) == 0
                 figs.append(read_image(fig))
