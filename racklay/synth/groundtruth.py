@@ -9,7 +9,6 @@ import numpy as np
 
 from .. import layout as L
 from .effects import distort_points
-from .render import RenderOutput
 from .scene import CATEGORY_NAMES, SEMANTIC_CLASSES, Scene, cuboid_corners
 
 

@@ -10,7 +10,6 @@ key light + up to 7 point lights + ambient, MSAA-resolved).
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 from typing import Protocol
 

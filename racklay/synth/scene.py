@@ -409,7 +409,6 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
         occ.append(row)
 
     # racks: uprights are shared between neighbouring bays of a row
-    shelf_infos = shelves
     for ri, (yc, d2) in enumerate(zip(rows_y, depths)):
         row = occ[ri]
         for ci, col in enumerate(range(-K, K + 1)):
@@ -418,7 +417,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             left_shared = ci > 0 and row[ci - 1]
             is_target = ri == 0 and col == 0
             B.rack(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, beam_tint, filled=True,
-                   shelf_infos=shelf_infos if is_target else None, uprights=(not left_shared, True))
+                   shelf_infos=shelves if is_target else None, uprights=(not left_shared, True))
 
     # building: floor, ceiling, walls, lamps
     fl_tint = _tint(rng, 0.12)
