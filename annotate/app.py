@@ -101,7 +101,7 @@ class Tool:
         self.user = user
         self._images: OrderedDict[str, np.ndarray] = OrderedDict()
         self._preds: OrderedDict[str, dict] = OrderedDict()
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()
 
     # --- state ---------------------------------------------------------------------------
     def open(self, name: str | None) -> dict:

@@ -81,5 +81,21 @@ def test_import_round_trip(tmp_path, capsys):
     assert ann["status"] == "needs review"
     lay = read_imported(p2, ann)
     np.testing.assert_array_equal(lay["front"], RackLayRoot(out).read_layouts("front", "000000"))
+    # the tool shows the imported layouts read-only beside the photo, and over it once the
+    # rack and shelves are marked
+    from annotate.app import Tool
+    tool = Tool(p2)
+    st = tool.open("ds_000000.png")
+    pv = tool.render_preview(st)
+    assert pv is not None and pv.shape[0] > 2 * 150
+    src = proj.load("p0.png")
+    st = tool.act(st, lambda a: a.update(rack=src["rack"], shelves=src["shelves"]))
+    before = tool.image("ds_000000.png").copy()
+    photo = tool.render_photo(st)
+    from annotate.app import C_IMPORT
+    import cv2
+    photo = cv2.resize(photo, before.shape[1::-1], interpolation=cv2.INTER_NEAREST)
+    assert (np.abs(photo.astype(int) - C_IMPORT).sum(axis=2) < 30).sum() > 100  # imported boxes outlined
+    assert proj.load("p0.png")["boxes"]  # (source project untouched)
     assert annotate_main(["import", str(out), str(rev)]) == 2
     assert "already in the project" in capsys.readouterr().err

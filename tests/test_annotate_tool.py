@@ -1,0 +1,198 @@
+"""The annotation tool's server logic (annotate.app.Tool) without a browser: the click workflow,
+editing, undo/redo, zoom, conflicts between two labellers, invalid files, and model-assisted
+proposals with a stand-in predictor that follows racklay.predict.Predictor's contract."""
+import json
+
+import numpy as np
+import pytest
+
+from annotate import geometry as G
+from annotate.app import Tool, build_app
+from annotate.store import Project
+from racklay import layout as L
+from racklay.atomic import encode_png
+
+from test_annotate_geometry import BOARDS, BOXES, GRID, Camera, clicks, iou, true_layouts
+
+CAM = Camera([-1.2, -2.4, 1.6], [1.0, 0.0, 0.9])
+
+
+@pytest.fixture
+def proj(tmp_path):
+    (tmp_path / "r.png").write_bytes(encode_png(np.full((480, 640, 3), 90, np.uint8)))
+    p = Project(tmp_path)
+    p.save_settings(dict(p.settings, D=256, extent=4.0))
+    return p
+
+
+def disp(tool, st, pt):
+    """Image pixel -> display pixel (inverse of Tool.display_to_image)."""
+    x0, y0, s = tool.view(st)
+    return (pt[0] - x0 + 0.5) * s - 0.5, (pt[1] - y0 + 0.5) * s - 0.5
+
+
+def label_by_clicks(tool, st, ann):
+    for c in ann["rack"]["corners"]:
+        st = tool.click(st, *disp(tool, st, c))
+    assert st["mode"] == "shelves"
+    for s in ann["shelves"]:
+        st = tool.click(st, *disp(tool, st, s["point"]))
+    st["mode"] = "boxes"
+    for b in ann["boxes"]:
+        st = tool.click(st, *disp(tool, st, b["p0"]))
+        st = tool.click(st, *disp(tool, st, b["p1"]))
+    return st
+
+
+def test_click_workflow_matches_ground_truth(proj):
+    tool = Tool(proj)
+    st = tool.open("r.png")
+    truth = clicks(CAM)
+    st = label_by_clicks(tool, st, truth)
+    for b, t in zip(st["ann"]["boxes"], truth["boxes"]):  # depth / offset are typed per box
+        st["sel"] = ["box", b["id"]]
+        st = tool.set_box_field(st, "depth", t["depth"])
+        st = tool.set_box_field(st, "front_offset", t["front_offset"])
+    saved = proj.load("r.png")
+    assert saved["status"] == "in progress" and len(saved["boxes"]) == len(BOXES)
+    _, top, front = tool.layouts(saved)
+    ttop, tfront = true_layouts()
+    for i in range(3):
+        assert iou(top[i] == L.BOX, ttop[i] == L.BOX) >= 0.9
+        assert iou(front[i] == L.BOX, tfront[i] == L.BOX) >= 0.9
+    pv = tool.render_preview(st)
+    assert pv.ndim == 3 and tool.render_photo(st).shape[:2] == (640, 853)  # enlarged for display
+    assert "S3" in tool.summary(st) and "0 of 1 done" in tool.header(st)
+
+
+def test_select_move_resize_delete_undo_redo(proj):
+    tool = Tool(proj)
+    st = label_by_clicks(tool, tool.open("r.png"), clicks(CAM))
+    b0 = dict(st["ann"]["boxes"][0])
+    centre = [(b0["p0"][0] + b0["p1"][0]) / 2, (b0["p0"][1] + b0["p1"][1]) / 2]
+    st["mode"] = "select"
+    st = tool.click(st, *disp(tool, st, centre))
+    assert st["sel"] == ["box", 0]
+    st["mode"] = "move"
+    st = tool.click(st, *disp(tool, st, [centre[0] + 10, centre[1]]))
+    moved = st["ann"]["boxes"][0]
+    assert moved["p0"][0] == pytest.approx(b0["p0"][0] + 10, abs=0.05)
+    st["mode"] = "resize"
+    st = tool.click(st, *disp(tool, st, [moved["p1"][0] + 7, moved["p1"][1]]))
+    assert st["ann"]["boxes"][0]["p1"][0] == pytest.approx(moved["p1"][0] + 7, abs=0.05)
+    n = len(st["ann"]["boxes"])
+    st = tool.delete(st)
+    assert len(proj.load("r.png")["boxes"]) == n - 1
+    st = tool.undo(st)
+    assert len(proj.load("r.png")["boxes"]) == n
+    assert proj.load("r.png")["boxes"][0]["p1"][0] == pytest.approx(moved["p1"][0] + 7, abs=0.05)
+    st = tool.undo(st, redo=True)
+    assert len(proj.load("r.png")["boxes"]) == n - 1
+    # a shelf line and a corner can be picked too
+    st["mode"] = "select"
+    st = tool.click(st, *disp(tool, st, st["ann"]["rack"]["corners"][0]))
+    assert st["sel"] == ["corner", 0]
+
+
+def test_zoom_maps_clicks_back(proj):
+    tool = Tool(proj)
+    st = tool.open("r.png")
+    st["zoom"], st["center"] = 4.0, [500.0, 100.0]
+    x0, y0, s = tool.view(st)
+    assert (x0, y0) == (420.0, 40.0) and s == pytest.approx(4 * 1.333, abs=0.01)
+    st = tool.click(st, *disp(tool, st, [512.25, 77.5]))
+    assert st["ann"]["rack"]["corners"][0] == pytest.approx([512.25, 77.5], abs=0.01)
+    assert tool.render_photo(st).shape[:2] == (640, 853)
+
+
+def test_two_labellers_conflict_is_refused_with_message(proj):
+    ana, ben = Tool(proj, user="ana"), Tool(proj, user="ben")
+    sa, sb = ana.open("r.png"), ben.open("r.png")
+    sa = ana.click(sa, 100, 100)
+    sb = ben.click(sb, 300, 300)
+    assert "⚠" in sb["msg"] and "ana changed this image meanwhile" in sb["msg"]
+    assert proj.load("r.png")["rack"]["corners"] == [pytest.approx(ana.display_to_image(sa, 100, 100), abs=0.01)]
+    sb = ben.open("r.png")  # reloading shows ana's work, and ben can go on
+    sb = ben.click(sb, 300, 300)
+    assert len(proj.load("r.png")["rack"]["corners"]) == 2
+
+
+def test_invalid_file_is_shown_not_overwritten(proj):
+    p = proj.annotation_path("r.png")
+    p.parent.mkdir(exist_ok=True)
+    p.write_text("{broken")
+    tool = Tool(proj)
+    st = tool.open("r.png")
+    assert "not valid JSON" in st["msg"] and st["ann"] is None
+    st = tool.click(st, 10, 10)
+    assert p.read_text() == "{broken"
+
+
+class StandIn:
+    """Follows racklay.predict.Predictor's contract; returns the true scene's layouts."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def predict(self, rgb):
+        assert rgb.dtype == np.uint8 and rgb.ndim == 3
+        self.calls += 1
+        top, front = true_layouts()
+        probs = {v: np.eye(3, dtype=np.float32)[a].transpose(0, 3, 1, 2) for v, a in (("top", top), ("front", front))}
+        return {"top": top, "front": front, "probs": probs, "grid": GRID}
+
+
+def test_model_proposals_accept_edit_reject(proj):
+    pred = StandIn()
+    tool = Tool(proj, predictor=pred)
+    truth = clicks(CAM)
+    truth["boxes"] = []
+    st = label_by_clicks(tool, tool.open("r.png"), truth)
+    props = st["ann"]["proposals"]
+    assert len(props) == len(BOXES) and pred.calls == 1  # predicted once, cached
+    # each proposal, mapped back through the geometry, is the true box
+    scene = G.build_scene(st["ann"], proj.settings)
+    got = sorted((G.metric_box(scene.plane, p, scene.shelf_v, 0.6, 0.6).shelf, p["depth"]) for p in props)
+    want = sorted((s, d) for s, *_, d in BOXES)
+    assert [g[0] for g in got] == [w[0] for w in want]
+    np.testing.assert_allclose([g[1] for g in got], [w[1] for w in want], atol=2 * GRID.res)
+    # select one proposal by clicking inside it, accept it
+    p = props[0]
+    st["mode"] = "select"
+    st = tool.click(st, *disp(tool, st, [(p["p0"][0] + p["p1"][0]) / 2, (p["p0"][1] + p["p1"][1]) / 2]))
+    assert st["sel"] == ["proposal", p["id"]]
+    st = tool.accept(st)
+    assert len(st["ann"]["boxes"]) == 1 and st["ann"]["boxes"][0]["source"] == "model"
+    assert len(st["ann"]["proposals"]) == len(BOXES) - 1
+    # reject the next one: it is remembered and not proposed again when a shelf moves
+    q = st["ann"]["proposals"][0]
+    st["sel"] = ["proposal", q["id"]]
+    st = tool.reject(st)
+    assert len(st["ann"]["rejected"]) == 1
+    shelf = st["ann"]["shelves"][0]
+    st["sel"], st["mode"] = ["shelf", shelf["id"]], "move"
+    st = tool.click(st, *disp(tool, st, [shelf["point"][0] + 0.4, shelf["point"][1]]))
+    assert len(st["ann"]["proposals"]) == len(BOXES) - 2
+    st = tool.accept(st, all_=True)
+    assert len(st["ann"]["boxes"]) == len(BOXES) - 1 and not st["ann"]["proposals"]
+    assert pred.calls == 1
+
+
+def test_real_predictor_contract(proj):
+    """racklay.predict.Predictor (a tiny random model) plugs into the tool."""
+    torch = pytest.importorskip("torch")
+    from racklay.model import ModelConfig, RackLayNet
+    from racklay.predict import Predictor
+
+    torch.manual_seed(0)
+    cfg = ModelConfig(R=4, image_size=64, layout_size=64, decoder="light")
+    predictor = Predictor.from_model(RackLayNet(cfg).eval(), cfg)
+    tool = Tool(proj, predictor=predictor)
+    st = label_by_clicks(tool, tool.open("r.png"), dict(clicks(CAM), boxes=[]))
+    assert isinstance(st["ann"]["proposals"], list)
+    assert "⚠" not in st["msg"]
+
+
+def test_build_app_smoke(proj):
+    demo = build_app(proj)
+    assert demo.tool.project is proj
