@@ -190,7 +190,8 @@ class RackResult:
                 f"and {self.free_m3:.2f} m³ of free space available{pct}")
         incomplete = sum(not s.complete for s in self.shelves)
         if incomplete:
-            line += f" [{incomplete} shelf view(s) missing: volume of those shelves not included]"
+            line += (f" [{incomplete} shel{'f' if incomplete == 1 else 'ves'} seen in one view only: "
+                     f"not in the volume]")
         return line
 
     def to_dict(self) -> dict:
