@@ -124,27 +124,18 @@ def table_markdown(records: list[dict], fraction: float = 1.0, title: str = "") 
     lines.append("Paper protocol (Table 2 layout; per image × shelf, a shelf empty in both counts 1; "
                  "'prec.' is the pixel precision the paper calls mAP):")
     lines.append("")
-    lines.append("| training | " + " | ".join(lab for *_, lab in PAPER_CELLS) + " |")
-    lines.append("|---|" + "---|" * len(PAPER_CELLS))
-    for regime in REGIMES:
-        if regime in s:
-            lines.append(f"| {REGIME_LABELS[regime]} | " + " | ".join(_cell(s[regime][lab]) for *_, lab in PAPER_CELLS) + " |")
+    labels = [lab for *_, lab in PAPER_CELLS]
+    lines += _md_table(labels, [(REGIME_LABELS[r], [_cell(s[r][lab]) for lab in labels]) for r in REGIMES if r in s])
     lines.append("")
     lines.append("Dataset level (confusion matrix over all pixels of all shelves; an all-background "
                  "prediction scores 0 here — judge by these):")
     lines.append("")
-    lines.append("| training | " + " | ".join(lab for *_, lab in DATASET_CELLS) + " |")
-    lines.append("|---|" + "---|" * len(DATASET_CELLS))
-    for regime in REGIMES:
-        if regime in s:
-            lines.append(f"| {REGIME_LABELS[regime]} | " + " | ".join(_cell(s[regime][lab]) for *_, lab in DATASET_CELLS) + " |")
+    dlabels = [lab for *_, lab in DATASET_CELLS]
+    lines += _md_table(dlabels, [(REGIME_LABELS[r], [_cell(s[r][lab]) for lab in dlabels]) for r in REGIMES if r in s])
     lines.append("")
     lines.append("Paper's Table 2 (RackLay-D-disc, authors' 100 real test images, for reference):")
     lines.append("")
-    lines.append("| training | " + " | ".join(lab for *_, lab in PAPER_CELLS) + " |")
-    lines.append("|---|" + "---|" * len(PAPER_CELLS))
-    for regime in REGIMES:
-        lines.append(f"| {REGIME_LABELS[regime]} (paper) | " + " | ".join(f"{x:.2f}" for x in PAPER_TABLE2[regime]) + " |")
+    lines += _md_table(labels, [(REGIME_LABELS[r] + " (paper)", [f"{x:.2f}" for x in PAPER_TABLE2[r]]) for r in REGIMES])
     lines.append("")
     lines.append("Targets (on the means above):")
     lines.append("")
@@ -152,6 +143,11 @@ def table_markdown(records: list[dict], fraction: float = 1.0, title: str = "") 
         mark = "not measured" if ok is None else ("MET" if ok else "NOT MET")
         lines.append(f"- {name}: **{mark}** — {detail}")
     return "\n".join(lines) + "\n"
+
+
+def _md_table(labels: list[str], rows: list[tuple[str, list[str]]]) -> list[str]:
+    out = ["| training | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels)]
+    return out + [f"| {name} | " + " | ".join(cells) + " |" for name, cells in rows]
 
 
 def table_csv(records: list[dict], fraction: float = 1.0) -> str:
