@@ -299,3 +299,15 @@ def test_corrupt_checkpoint_is_a_clear_error(tiny_data, tmp_path, capsys):
     bad.write_bytes(b"not a checkpoint")
     assert main(["finetune", "--init", str(bad), "--real", str(tiny_data / "real"), "--out", str(tmp_path / "f")]) == 2
     assert f"{bad}: not a readable safetensors checkpoint" in capsys.readouterr().err
+
+
+def test_compare_plan_is_seed_major_and_scores_a_shared_checkpoint_once(tmp_path):
+    from transfer.compare import Compare, CompareConfig
+
+    per_seed = Compare(CompareConfig(real="r", out=str(tmp_path), synthetic="s", seeds=[0, 1], fractions=[0.5, 1.0]))
+    assert per_seed.jobs() == [(0, "synthetic", None), (0, "real", 1.0), (0, "finetune", 1.0), (0, "real", 0.5),
+                               (0, "finetune", 0.5), (1, "synthetic", None), (1, "real", 1.0), (1, "finetune", 1.0),
+                               (1, "real", 0.5), (1, "finetune", 0.5)]
+    shared = Compare(CompareConfig(real="r", out=str(tmp_path), pretrained="p.safetensors", seeds=[0, 1], fractions=[1.0]))
+    assert [j for j in shared.jobs() if j[1] == "synthetic"] == [(0, "synthetic", None)]
+    assert shared.job_dir(1, "finetune", 1.0) == tmp_path / "runs" / "seed1" / "finetune_f1"

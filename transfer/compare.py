@@ -35,7 +35,7 @@ class CompareConfig:
     real: str
     out: str
     synthetic: str | None = None
-    pretrained: str | None = None          # use this checkpoint instead of pretraining
+    pretrained: str | None = None          # one checkpoint for every seed instead of pretraining per seed
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
     fractions: list[float] = field(default_factory=lambda: [0.1, 0.25, 0.5, 1.0])
     real_train_split: str = "train"
@@ -136,7 +136,9 @@ class Compare:
         largest fraction first."""
         js = []
         for s in self.cfg.seeds:
-            js.append((s, "synthetic", None))
+            if not self.cfg.pretrained or s == self.cfg.seeds[0]:
+                # with --pretrained there is one synthetic-only model: score it once
+                js.append((s, "synthetic", None))
             for f in sorted(self.cfg.fractions, reverse=True):
                 js.append((s, "real", f))
                 js.append((s, "finetune", f))

@@ -27,7 +27,8 @@ def register(sub) -> None:
                     "again to resume a killed compare without redoing finished runs.")
     p.add_argument("--synthetic", metavar="ROOT", help="synthetic RackLay-format root (pretrained here, once per seed)")
     p.add_argument("--pretrained", metavar="CHECKPOINT",
-                   help="use this pretrain checkpoint for every seed instead of --synthetic")
+                   help="use this pretrain checkpoint for every seed instead of pretraining on --synthetic "
+                        "per seed (cheaper; the synthetic-only row is then one model, scored once)")
     p.add_argument("--real", required=True, metavar="ROOT", help="real RackLay-format root with train and test splits")
     p.add_argument("--out", required=True, help="output folder (resumable)")
     p.add_argument("--seeds", type=int, default=3, help="number of seeds (0..N-1; default 3)")
