@@ -191,7 +191,7 @@ def monkeypatch_module():
 def test_compare_writes_table2_rows_and_files(killed_then_resumed_compare):
     out = Path(killed_then_resumed_compare["cfg"].out)
     md = (out / "table.md").read_text()
-    for row in ("| synthetic only |", "| real only |", "| synthetic → real fine-tune |"):
+    for row in ("| synthetic only (n=1) |", "| real only (n=1) |", "| synthetic → real fine-tune (n=1) |"):
         assert row in md
     assert "top box mIoU" in md and "top box IoU" in md and "Targets" in md
     lines = (out / "table.csv").read_text().splitlines()

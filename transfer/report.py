@@ -119,19 +119,23 @@ def table_markdown(records: list[dict], fraction: float = 1.0, title: str = "") 
     if title:
         lines += [f"### {title}", ""]
     lines.append(f"Real test split: {test_n} images; real training data: {fraction:.0%} of the training split; "
-                 f"seeds: {', '.join(map(str, seeds))} (mean ± sample std over seeds), ×100.")
+                 f"seeds: {', '.join(map(str, seeds))}; n = runs per row (mean ± sample std over them), ×100.")
     lines.append("")
     lines.append("Paper protocol (Table 2 layout; per image × shelf, a shelf empty in both counts 1; "
                  "'prec.' is the pixel precision the paper calls mAP):")
     lines.append("")
     labels = [lab for *_, lab in PAPER_CELLS]
-    lines += _md_table(labels, [(REGIME_LABELS[r], [_cell(s[r][lab]) for lab in labels]) for r in REGIMES if r in s])
+
+    def name(r):  # runs per row: rows may differ when a compare was stopped early or shares a checkpoint
+        return f"{REGIME_LABELS[r]} (n={max(v[2] for v in s[r].values())})"
+
+    lines += _md_table(labels, [(name(r), [_cell(s[r][lab]) for lab in labels]) for r in REGIMES if r in s])
     lines.append("")
     lines.append("Dataset level (confusion matrix over all pixels of all shelves; an all-background "
                  "prediction scores 0 here — judge by these):")
     lines.append("")
     dlabels = [lab for *_, lab in DATASET_CELLS]
-    lines += _md_table(dlabels, [(REGIME_LABELS[r], [_cell(s[r][lab]) for lab in dlabels]) for r in REGIMES if r in s])
+    lines += _md_table(dlabels, [(name(r), [_cell(s[r][lab]) for lab in dlabels]) for r in REGIMES if r in s])
     lines.append("")
     lines.append("Paper's Table 2 (RackLay-D-disc, authors' 100 real test images, for reference):")
     lines.append("")
