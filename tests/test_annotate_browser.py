@@ -17,11 +17,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PHOTO = REPO / "datasets" / "real-photos" / "10_loco_orange_crates_a.jpg"
-CHROMIUM = "/usr/bin/chromium"
 PHOTO_W = 416
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--host-resolver-rules=MAP * ~NOTFOUND , EXCLUDE 127.0.0.1, EXCLUDE localhost"]
 # clicks in image pixels (the photo is 416 x 416 and shown at natural size)
 # (the right-hand bay, seen obliquely: lowest beam to the third beam)
 CORNERS = [(222, 68), (395, 133), (390, 253), (222, 298)]
@@ -32,18 +28,13 @@ pytestmark = pytest.mark.browser
 
 
 def _need_browser():
-    missing = []
-    if not os.path.exists(CHROMIUM):
-        missing.append(f"{CHROMIUM} (apt-get install -y chromium)")
-    try:
-        import playwright.sync_api  # noqa: F401
-    except ImportError:
-        missing.append("playwright (pip install playwright)")
-    if missing:
-        msg = "browser test needs " + " and ".join(missing)
+    from annotate.browser import missing_browser
+
+    why = missing_browser()
+    if why:
         if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+            pytest.fail(f"browser test {why}")
+        pytest.skip(f"browser test {why}")
 
 
 def _free_port():
@@ -72,6 +63,7 @@ def server(tmp_path):
 def test_annotate_in_browser(server, tmp_path):
     from playwright.sync_api import expect, sync_playwright
 
+    from annotate.browser import click_image, launch
     from annotate.cli import main as annotate_main
     from racklay.data import check_dataset
     from racklay.viz import PALETTE
@@ -80,8 +72,7 @@ def test_annotate_in_browser(server, tmp_path):
     hosts = set()
     timings = {}
     with sync_playwright() as pw:
-        ctx = pw.chromium.launch_persistent_context(str(tmp_path / "chrome-profile"), executable_path=CHROMIUM,
-                                                    headless=True, args=FLAGS, viewport={"width": 1500, "height": 1350})
+        ctx = launch(pw, tmp_path / "chrome-profile")
         try:
             page = ctx.new_page()
             page.on("request", lambda r: hosts.add(urlparse(r.url).hostname))
@@ -93,12 +84,7 @@ def test_annotate_in_browser(server, tmp_path):
             expect(img).to_be_visible()
 
             def click(x, y, expect_msg):
-                box = img.bounding_box()
-                nw, nh = img.evaluate("e => [e.naturalWidth, e.naturalHeight]")
-                s = min(1.0, box["width"] / nw, box["height"] / nh)  # object-fit: scale-down, centred
-                ox, oy = (box["width"] - nw * s) / 2, (box["height"] - nh * s) / 2
-                k = nw / PHOTO_W  # the tool enlarges small photos for display
-                page.mouse.click(box["x"] + ox + (x + 0.5) * k * s, box["y"] + oy + (y + 0.5) * k * s)
+                click_image(page, x, y, PHOTO_W)
                 expect(message).to_contain_text(expect_msg, timeout=10000)
 
             t1 = time.perf_counter()
