@@ -198,16 +198,18 @@ def validate_annotation(d: Any, source: str = "annotation") -> dict:
     return d
 
 
-def load_annotation(path: str | os.PathLike) -> dict:
-    """Read and validate an annotation file. Raises SchemaError naming the file."""
-    path = Path(path)
+def _read_json(path: Path):
     try:
-        d = json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as e:
         raise SchemaError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}, column {e.colno})") from None
     except UnicodeDecodeError:
         raise SchemaError(f"{path}: not UTF-8 text") from None
-    return validate_annotation(d, str(path))
+
+
+def load_annotation(path: str | os.PathLike) -> dict:
+    """Read and validate an annotation file. Raises SchemaError naming the file."""
+    return validate_annotation(_read_json(Path(path)), str(path))
 
 
 # --- project settings -------------------------------------------------------------------------
@@ -254,12 +256,8 @@ def validate_settings(d: Any, source: str = "project settings") -> dict:
 
 
 def load_settings(path: str | os.PathLike) -> dict:
-    path = Path(path)
-    try:
-        d = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as e:
-        raise SchemaError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}, column {e.colno})") from None
-    return validate_settings(d, str(path))
+    """Read and validate a project settings file. Raises SchemaError naming the file."""
+    return validate_settings(_read_json(Path(path)), str(path))
 
 
 def preset(settings: dict, name: str | None) -> dict | None:
