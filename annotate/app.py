@@ -636,6 +636,10 @@ class Tool:
             lines += [f"- ⚠ {w}" for w in scene.warnings]
         else:
             lines.append(f"- {len(a['shelves'])} shelf click(s), {len(a['boxes'])} box(es)")
+        R = self.project.settings["R"]
+        if len(a["shelves"]) > R:
+            lines.append(f"- ⚠ {len(a['shelves'])} shelves marked but the project has R={R} channels: "
+                         f"delete {len(a['shelves']) - R} (the export refuses this image)")
         if a.get("proposals"):
             lines.append(f"- {len(a['proposals'])} model proposal(s) waiting (green)")
         return "\n".join(lines)

@@ -178,17 +178,27 @@ class Project:
 
     # --- progress ---
     def statuses(self) -> dict[str, str]:
-        """Status of every image ('todo' when never saved, 'invalid' when its file is bad)."""
+        """Status of every image ('todo' when never saved, 'invalid' when its file is bad).
+        Files are re-read only when their modification time or size changed."""
         out = {}
+        cache = self.__dict__.setdefault("_status_cache", {})
         for name in self.images():
             p = self.annotation_path(name)
-            if not p.exists():
+            try:
+                stt = p.stat()
+            except FileNotFoundError:
                 out[name] = "todo"
+                continue
+            key = (stt.st_mtime_ns, stt.st_size, stt.st_ino)
+            hit = cache.get(name)
+            if hit and hit[0] == key:
+                out[name] = hit[1]
                 continue
             try:
                 out[name] = S.load_annotation(p)["status"]
             except S.SchemaError:
                 out[name] = "invalid"
+            cache[name] = (key, out[name])
         return out
 
     def progress(self) -> tuple[int, int]:
