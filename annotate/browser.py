@@ -26,6 +26,17 @@ UPDATED_JS = ("t => document.querySelector('#message').innerText.includes(t) && 
               "(e => e && e.complete && e.naturalWidth > 0)(document.querySelector('#photo img'))")
 
 
+def require_browser() -> None:
+    """In a pytest test: skip when the browser is missing, but fail under CI (CI=true)."""
+    import pytest
+
+    why = missing_browser()
+    if why:
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(f"browser test {why}")
+        pytest.skip(f"browser test {why}")
+
+
 def launch(pw, profile_dir, viewport=(1500, 1350)):
     return pw.chromium.launch_persistent_context(str(profile_dir), executable_path=CHROMIUM, headless=True,
                                                  args=CHROMIUM_FLAGS,

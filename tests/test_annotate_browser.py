@@ -27,16 +27,6 @@ BOXES = [((228, 297), (262, 232)), ((268, 282), (337, 210)), ((228, 189), (305, 
 pytestmark = pytest.mark.browser
 
 
-def _need_browser():
-    from annotate.browser import missing_browser
-
-    why = missing_browser()
-    if why:
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(f"browser test {why}")
-        pytest.skip(f"browser test {why}")
-
-
 def _free_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -45,7 +35,9 @@ def _free_port():
 
 @pytest.fixture
 def server(tmp_path):
-    _need_browser()
+    from annotate.browser import require_browser
+
+    require_browser()
     from annotate.app import build_app, launch_kwargs
     from annotate.store import Project
 

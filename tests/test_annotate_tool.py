@@ -196,3 +196,15 @@ def test_real_predictor_contract(proj):
 def test_build_app_smoke(proj):
     demo = build_app(proj)
     assert demo.tool.project is proj
+
+
+def test_missing_browser_fails_in_ci_and_skips_elsewhere(monkeypatch):
+    import annotate.browser as B
+
+    monkeypatch.setattr(B, "CHROMIUM", "/nonexistent/chromium")
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match="chromium"):
+        B.require_browser()
+    monkeypatch.setenv("CI", "")
+    with pytest.raises(pytest.skip.Exception, match="chromium"):
+        B.require_browser()
