@@ -379,7 +379,8 @@ class Tool:
     def set_box_field(self, st: dict, field: str, value) -> dict:
         sel = st.get("sel")
         if not sel or sel[0] not in ("box", "proposal"):
-            st["msg"] = "select a box first"
+            if value is not None:
+                st["msg"] = "select a box first"
             return st
         if value is not None and (not np.isfinite(value) or value < 0 or (field == "depth" and value == 0)):
             st["msg"] = f"⚠ {field.replace('_', ' ')} must be a positive number of metres"
@@ -398,6 +399,7 @@ class Tool:
     def set_rack(self, st: dict, preset_name=None, width=None, height=None, depth=None) -> dict:
         def upd(a):
             r = a["rack"]
+            before_rack = dict(r)
             if preset_name is not None:
                 p = S.preset(self.project.settings, preset_name)
                 if p is None:
@@ -405,12 +407,12 @@ class Tool:
                 r.update(width=p["width"], height=p["height"], depth=p["depth"], preset=p["name"])
                 return f"rack preset {p['name']}"
             for k, v in (("width", width), ("height", height), ("depth", depth)):
-                if v is not None:
+                if v is not None and v != r.get(k):
                     if not (np.isfinite(v) and 0 < v <= 100):
                         return f"⚠ rack {k} must be between 0 and 100 m"
                     r[k] = float(v)
                     r["preset"] = None
-            return "rack size changed"
+            return "rack size changed" if r != before_rack else ""
         return self.act(st, upd)
 
     def set_status(self, st: dict, status: str) -> dict:
@@ -840,11 +842,14 @@ def build_app(project: Project, predictor=None, user: str | None = None):
         for m, b in mode_btns.items():
             b.click(set_mode(m), [state], outputs)
         preset_dd.input(wrap(lambda st, p: tool.set_rack(st, preset_name=p)), [state, preset_dd], outputs)
-        width_n.input(wrap(lambda st, v: tool.set_rack(st, width=v)), [state, width_n], outputs)
-        height_n.input(wrap(lambda st, v: tool.set_rack(st, height=v)), [state, height_n], outputs)
-        depth_n.input(wrap(lambda st, v: tool.set_rack(st, depth=v)), [state, depth_n], outputs)
-        box_depth.input(wrap(lambda st, v: tool.set_box_field(st, "depth", v)), [state, box_depth], outputs)
-        box_off.input(wrap(lambda st, v: tool.set_box_field(st, "front_offset", v)), [state, box_off], outputs)
+        # numbers are applied on Enter or when the field loses focus (not on every keystroke)
+        for comp, fn in ((width_n, lambda st, v: tool.set_rack(st, width=v)),
+                         (height_n, lambda st, v: tool.set_rack(st, height=v)),
+                         (depth_n, lambda st, v: tool.set_rack(st, depth=v)),
+                         (box_depth, lambda st, v: tool.set_box_field(st, "depth", v)),
+                         (box_off, lambda st, v: tool.set_box_field(st, "front_offset", v))):
+            comp.submit(wrap(fn), [state, comp], outputs)
+            comp.blur(wrap(fn), [state, comp], outputs)
         btn_delete.click(wrap(tool.delete), [state], outputs)
         btn_accept.click(wrap(tool.accept), [state], outputs)
         btn_reject.click(wrap(tool.reject), [state], outputs)

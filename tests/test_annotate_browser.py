@@ -100,7 +100,14 @@ def test_annotate_in_browser(server, tmp_path):
             pv = cv2.imdecode(np.frombuffer(page.request.get(src).body(), np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
             assert (np.abs(pv.astype(int) - PALETTE[2]).sum(axis=2) == 0).sum() > 200  # box colour present
             assert (np.abs(pv.astype(int) - PALETTE[1]).sum(axis=2) == 0).sum() > 200  # shelf colour present
+            # typing into a field applies on Enter and is not taken as shortcuts ("5" = move mode)
+            field = page.locator("#rack-depth input")
+            field.fill("0.55")
+            field.press("Enter")
+            expect(summary).to_contain_text("× 0.55 m")
+            expect(page.locator("#mode-help")).to_contain_text("boxes")
             # undo / redo by keyboard
+            page.locator("#header").click()  # focus back on the page
             page.keyboard.press("z")
             expect(message).to_contain_text("undone")
             page.keyboard.press("y")

@@ -208,3 +208,18 @@ def test_missing_browser_fails_in_ci_and_skips_elsewhere(monkeypatch):
     monkeypatch.setenv("CI", "")
     with pytest.raises(pytest.skip.Exception, match="chromium"):
         B.require_browser()
+
+
+def test_rack_size_and_preset(proj):
+    tool = Tool(proj)
+    st = tool.click(tool.open("r.png"), 10, 10)  # first corner applies the default preset
+    assert st["ann"]["rack"]["preset"] == proj.settings["default_preset"]
+    v = st["ann"]["version"]
+    st = tool.set_rack(st, width=st["ann"]["rack"]["width"])  # unchanged value (a blur): no save
+    assert st["ann"]["version"] == v and st["ann"]["rack"]["preset"]
+    st = tool.set_rack(st, depth=0.45)
+    assert proj.load("r.png")["rack"]["depth"] == 0.45 and proj.load("r.png")["rack"]["preset"] is None
+    st = tool.set_rack(st, width=-1)
+    assert "⚠" in st["msg"] and proj.load("r.png")["rack"]["width"] > 0
+    st = tool.set_rack(st, preset_name="longspan 2.4 × 2.4 × 0.8 m")
+    assert proj.load("r.png")["rack"]["depth"] == 0.8
