@@ -450,7 +450,8 @@ class Tool:
             return f"model ready ({n} shelf channel(s) with boxes): mark the shelves to see its box proposals"
         probs = pred.get("probs", {}).get("front")
         props = G.front_box_rects(pred["front"], pred.get("top"), pred["grid"], scene.shelf_v, scene.width,
-                                  scene.depth, probs_box=None if probs is None else probs[:, L.BOX])
+                                  scene.depth, probs_box=None if probs is None else probs[:, L.BOX],
+                                  tops=[v + c for v, c in zip(scene.shelf_v, scene.clear)])
         have = [(b.shelf, (b.u0, b.u1, b.v0, b.v1)) for b in scene.boxes]
         rejected = [(int(r[0]), tuple(r[1:])) for r in ann.get("rejected", [])]
         out = []

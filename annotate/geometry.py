@@ -246,10 +246,11 @@ class Proposal:
 
 def front_box_rects(front: np.ndarray, top: np.ndarray | None, grid: L.Grid, shelf_v, width: float,
                     rack_depth: float, probs_box: np.ndarray | None = None,
-                    min_px: int = 4) -> list[Proposal]:
+                    min_px: int = 4, tops=None) -> list[Proposal]:
     """Turn every connected component of BOX pixels in each shelf's front layout into a metric
     rectangle on the rack plane. Only shelves with a marked board height (shelf_v) are used.
-    Depth and front offset come from the top layout's BOX rows in the same columns, if given."""
+    Depth and front offset come from the top layout's BOX rows in the same columns, if given.
+    `tops` (plane heights, one per shelf) clips each rectangle to the space below the next board."""
     import cv2
 
     out = []
@@ -273,9 +274,12 @@ def front_box_rects(front: np.ndarray, top: np.ndarray | None, grid: L.Grid, she
                     depth = float(np.clip(yb - ya, grid.res, rack_depth - off)) if rack_depth - off > 0 else None
             score = float(probs_box[i][lab == k].mean()) if probs_box is not None else None
             u0, u1 = np.clip([xa + width / 2, xb + width / 2], 0.0, width)
-            if u1 <= u0:
+            v0, v1 = v + max(za, 0.0), v + zb
+            if tops is not None:
+                v1 = min(v1, tops[i])
+            if u1 <= u0 or v1 <= v0:
                 continue
-            out.append(Proposal(i, float(u0), float(u1), v + max(za, 0.0), v + zb, depth, off, score))
+            out.append(Proposal(i, float(u0), float(u1), float(v0), float(v1), depth, off, score))
     return out
 
 

@@ -157,3 +157,10 @@ def test_too_many_shelves_for_R():
     scene = G.build_scene(ann, SETTINGS)
     with pytest.raises(G.GeometryError, match="R=2"):
         scene.layouts(2, GRID)
+
+
+def test_proposals_clipped_below_next_board():
+    front = np.zeros((4, GRID.size, GRID.size), np.uint8)
+    L.fill_axis_rect(front[0], GRID, -0.5, 0.5, 0.0, 1.5, L.BOX)  # a 1.5 m "box" on a 0.65 m shelf
+    props = G.front_box_rects(front, None, GRID, [0.1], W, DEPTH, tops=[0.75])
+    assert len(props) == 1 and props[0].v1 == pytest.approx(0.75) and props[0].v0 == pytest.approx(0.1)
