@@ -390,11 +390,16 @@ def fuse_views(t_boxes: Sequence[np.ndarray], f_boxes: Sequence[np.ndarray], gri
         if not hits:
             unmatched_top += 1
             continue
-        for e in hits:
-            piece = t & e["cols"][None, :] if len(hits) > 1 else t
-            if len(hits) > 1 and piece.sum() < min_px:
-                continue  # a bridge or sliver in a gap of the front view
-            e["pieces"].append((piece, len(hits) > 1))
+        if len(hits) == 1:
+            hits[0]["pieces"].append((t, False))
+            continue
+        pieces = [(e, t & e["cols"][None, :]) for e in hits]
+        kept = [(e, p) for e, p in pieces if p.sum() >= min_px]  # drop bridges / slivers in gaps
+        if not kept:  # only slivers: the whole footprint goes with its largest overlap
+            e = max(pieces, key=lambda ep: int(ep[1].sum()))[0]
+            kept = [(e, t)]
+        for e, p in kept:
+            e["pieces"].append((p, len(kept) > 1))
 
     stacks: list[BoxStack] = []
     unmatched_front = 0

@@ -160,6 +160,17 @@ def test_touching_in_top_view_but_not_front_is_split_at_front_gaps():
     assert [q.volume_m3 for q in got] == pytest.approx([expected_volume(a), expected_volume(b)])
 
 
+def test_top_footprint_touching_two_front_regions_by_slivers_is_kept_whole():
+    # a (mis)predicted pair of views: the footprint lies in the front view's gap except for one
+    # column at each end; it is neither dropped nor cut into slivers
+    top = L.rasterize_shelf(SHELF, [L.Box(0.2, 0.0, 0.4, 0.2, 0.3)], G).top       # x [0, 0.4)
+    front = L.rasterize_shelf(SHELF, [L.Box(-0.085, 0, 0.23, 0.3, 0.3),            # x [-0.2, 0.03)
+                                      L.Box(0.485, 0, 0.23, 0.3, 0.3)], G).front   # x [0.37, 0.6)
+    s = analyze_shelf(top, front, G)
+    assert len(s.boxes) == 1 and not s.boxes[0].split
+    assert s.unmatched_front == 1 and s.unmatched_top == 0
+
+
 def test_noise_blobs_below_min_size_are_ignored_and_unmatched_blobs_not_counted():
     box = L.Box(-0.5, 0.0, 0.3, 0.3, 0.3)
     lay = L.rasterize_shelf(SHELF, [box], G)
