@@ -493,6 +493,10 @@ def train(cfg: TrainConfig, transform=None) -> Path:
             for name, opt in optimizers.items():
                 resume_ck.load_optimizer(opt, name)
             state.update({k: resume_ck.meta[k] for k in state if k in resume_ck.meta})
+            budget_left = cfg.max_minutes is None or state["elapsed_s"] < cfg.max_minutes * 60
+            if (state["finished"] and state["stop_reason"].startswith("time budget") and budget_left
+                    and state["epoch"] < cfg.epochs):
+                state["finished"] = False       # a larger --max-minutes extends a budget-stopped run
             if state["finished"]:
                 if dist.main:
                     print(f"{run_dir}: run already finished ({state['stop_reason']})")
@@ -526,7 +530,7 @@ def train(cfg: TrainConfig, transform=None) -> Path:
                 save_checkpoint(last_path, model, mcfg, optimizer=optimizers, extra=meta, disc=disc)
 
         def budget_over() -> bool:
-            over = cfg.max_minutes is not None and state["elapsed_s"] + time.time() - t_start >= cfg.max_minutes * 60
+            over = cfg.max_minutes is not None and base_elapsed + time.time() - t_start >= cfg.max_minutes * 60
             return dist.broadcast_flag(over)
 
         base_elapsed = state["elapsed_s"]
@@ -635,9 +639,11 @@ def train(cfg: TrainConfig, transform=None) -> Path:
             if early and not stop:
                 stop = True
                 state["stop_reason"] = f"early stop: no improvement for {cfg.patience} epochs"
-            state["epoch"] += 1
-            state["step"] = 0
-            state["epoch_sums"] = None
+            if state["step"] >= len(all_batches) or not stop or early:
+                state["epoch"] += 1
+                state["step"] = 0
+                state["epoch_sums"] = None
+            # else: stopped by the time budget mid-epoch; a resume with more time finishes the epoch
             if state["epoch"] >= cfg.epochs and not stop:
                 stop = True
                 state["stop_reason"] = f"{cfg.epochs} epochs done"

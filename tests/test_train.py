@@ -181,3 +181,20 @@ def test_epoch_order_is_a_function_of_seed_and_epoch():
     shards = [sum(epoch_batches(20, 4, 3, 7, 2, r), []) for r in (0, 1)]
     assert sorted(shards[0] + shards[1]) == list(range(20))
     assert np.intersect1d(shards[0], shards[1]).size == 0
+
+
+def test_time_budget_stops_mid_epoch_and_a_larger_budget_finishes_it(tmp_path, toy):
+    base = dict(data=str(toy), out=str(tmp_path), name="budget", epochs=1, disc=False, patience=None,
+                checkpoint_every=0, **TINY)
+    run = train(TrainConfig(max_minutes=1e-4, **base))       # over after the first step
+    ck = load_checkpoint(run / "last.safetensors")
+    assert ck.meta["finished"] and ck.meta["stop_reason"].startswith("time budget")
+    assert (ck.meta["epoch"], ck.meta["step"], ck.meta["global_step"]) == (0, 1, 1)
+    assert (run / "best.safetensors").exists() and len(_rows(run)) == 1
+    # same budget: nothing to do; a larger one finishes the interrupted epoch (4 steps)
+    train(TrainConfig(max_minutes=1e-4, resume=True, **base))
+    assert load_checkpoint(run / "last.safetensors").meta["global_step"] == 1
+    train(TrainConfig(max_minutes=60, resume=True, **base))
+    ck = load_checkpoint(run / "last.safetensors")
+    assert ck.meta["finished"] and ck.meta["global_step"] == 4 and ck.meta["stop_reason"] == "1 epochs done"
+    assert [r["step"] for r in _rows(run)] == ["1", "4"]
