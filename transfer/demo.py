@@ -42,7 +42,7 @@ class DemoConfig:
     pretrain_max_minutes: float = 4.0
     max_minutes: float = 1.5
     batch_size: int = 8
-    amp: str = "none"
+    amp: str = "bf16"              # CPU autocast; --amp none for fp32 (slower, on CPUs without AMX bf16 gains little)
     photos: str = str(PHOTOS)
     workers: int = 1                # WareSynth workers
 

@@ -11,7 +11,7 @@ def add_demo_args(p) -> None:
     p.add_argument("--n-synthetic", type=int, default=d.n_synthetic, help=f"synthetic images (default {d.n_synthetic})")
     p.add_argument("--n-real", type=int, default=d.n_real, help=f"proxy-real images (default {d.n_real})")
     p.add_argument("--amp", choices=("none", "bf16"), default=d.amp,
-                   help="bf16 autocast for training (≈2-3x faster on CPUs with AMX; accuracy not measured)")
+                   help=f"training precision (default {d.amp}: CPU bf16 autocast, ≈2-3x faster on CPUs with AMX; none = fp32)")
     p.add_argument("--quick", action="store_true", help="a 2-3 minute smoke run with tiny sizes (not meaningful numbers)")
 
 
