@@ -33,6 +33,12 @@ import torch.nn.functional as F
 from .layout import DEFAULT_EXTENT_M, DEFAULT_R, NUM_CLASSES, VIEWS
 
 DECODERS = ("light", "paper")
+#: initial logits (background, shelf, box) of every shelf channel: log of the class frequencies
+#: of WareSynth complex layouts (~97 / 2 / 0.4 % of pixels) times the default CE weights [1, 5, 5].
+#: Without it the light decoder's 1x1 head needs ~100 Adam steps to learn "mostly background";
+#: measured on 96 complex images (128 px in, 64 out, batch 8): validation score after 120 steps
+#: 0.264 with this prior vs 0.186 without.
+HEAD_PRIOR_LOGITS = (0.0, -2.3, -3.7)
 
 
 @dataclass
@@ -246,6 +252,9 @@ class RackLayNet(nn.Module):
 
         self.decoders = nn.ModuleDict({v: make() for v in cfg.views})
         init_weights(self)
+        with torch.no_grad():   # start from the class prior, not from uniform logits
+            for dec in self.decoders.values():
+                dec.head.bias.view(cfg.R, NUM_CLASSES)[:] = torch.tensor(HEAD_PRIOR_LOGITS)
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         feats = self.encoder(x)
