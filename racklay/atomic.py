@@ -11,6 +11,16 @@ from pathlib import Path
 import numpy as np
 
 
+def _file_mode() -> int:
+    """The mode a plain open() would give a new file (0666 minus the umask): mkstemp makes its
+    temporary files 0600, which would leave datasets and annotations unreadable to teammates."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+_FILE_MODE = _file_mode()
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, fsync: bool = True) -> Path:
     """Write `data` to a temporary file beside `path`, then rename it over `path`. With
     fsync=False the data is not forced to disk before the rename: readers and interrupted
@@ -20,6 +30,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, fsync: bool = True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), _FILE_MODE)
             f.write(data)
             f.flush()
             if fsync:

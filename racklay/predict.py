@@ -24,7 +24,27 @@ import numpy as np
 from . import layout as L
 
 BACKENDS = ("torch", "onnx")
-PRECISIONS = ("fp32", "bf16")
+PRECISIONS = ("fp32", "bf16", "auto")
+
+
+def native_bf16() -> bool:
+    """True when this CPU computes bfloat16 natively (AVX512-BF16 or AMX), where bf16 autocast
+    roughly halves inference time (docs/benchmarks.md). Without it bf16 is emulated and slower."""
+    try:
+        import torch
+
+        return bool(torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
+    except Exception:  # noqa: BLE001 - an older/newer torch without these probes: stay in fp32
+        return False
+
+
+def resolve_precision(precision: str, backend: str = "torch") -> str:
+    """"auto" -> "bf16" for the torch backend on a CPU with native bf16, else "fp32"."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    if precision != "auto":
+        return precision
+    return "bf16" if backend == "torch" and native_bf16() else "fp32"
 #: metadata key under which `racklay export` stores the model config in the ONNX file
 ONNX_CONFIG_KEY = "racklay_model_config"
 
@@ -80,19 +100,20 @@ class Predictor:
     `racklay export` (backend "onnx" is implied by the suffix). With backend="onnx" and a
     checkpoint, the model is exported in memory and run by onnxruntime.
     threads: torch / onnxruntime intra-op threads (default: library default).
-    precision: "fp32" (default) or "bf16" (torch backend: bfloat16 autocast + channels_last;
-    about 3x faster on CPUs with AMX, see docs/benchmarks.md; logits differ slightly from fp32).
+    precision: "fp32" (default), "bf16" (torch backend: bfloat16 autocast + channels_last;
+    about 2x faster on CPUs with native bf16, see docs/benchmarks.md; logits differ slightly
+    from fp32, argmax agreement in docs/benchmarks.md) or "auto" (bf16 where the CPU has native
+    bf16 and the backend is torch, else fp32; the command-line default).
     """
 
     def __init__(self, weights, backend: str = "torch", threads: int | None = None, precision: str = "fp32"):
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-        self.precision = precision
         self.weights = Path(weights)
         if self.weights.suffix.lower() == ".onnx":
             backend = "onnx"
+        precision = resolve_precision(precision, backend)
+        self.precision = precision
         if backend == "onnx" and precision != "fp32":
             raise ValueError("precision bf16 is for the torch backend; onnxruntime runs fp32")
         self.backend = backend
@@ -122,7 +143,7 @@ class Predictor:
         """Wrap an in-memory model (e.g. during training) without a checkpoint file."""
         self = cls.__new__(cls)
         self.weights, self.backend, self.threads, self.session, self.meta = None, "torch", None, None, {}
-        self.cfg, self.precision = cfg, precision
+        self.cfg, self.precision = cfg, resolve_precision(precision)
         self._set_model(model)
         return self
 

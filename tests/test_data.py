@@ -156,3 +156,25 @@ def test_torch_dataset_transform_hook(toy_root):
     flipped = RackLayDataset(toy_root, split="val", layout_size=32, image_size=32, transform=flip)
     torch.testing.assert_close(flipped[0]["top"], plain[0]["top"].flip(-1))
     torch.testing.assert_close(flipped[0]["image"], plain[0]["image"].flip(-1))
+
+
+def test_atomic_writes_get_normal_file_permissions(tmp_path):
+    """Teammates must be able to read a dataset or project we wrote: atomic writes use mkstemp
+    (mode 0600) internally but the final file gets 0666 minus the umask, like open() would."""
+    import os
+    import stat
+
+    from racklay.atomic import atomic_write_text
+
+    old = os.umask(0o022)
+    try:
+        import importlib
+
+        import racklay.atomic as A
+        importlib.reload(A)
+        A.atomic_write_text(tmp_path / "a.txt", "x")
+    finally:
+        os.umask(old)
+        importlib.reload(A)
+    assert stat.S_IMODE((tmp_path / "a.txt").stat().st_mode) == 0o644
+    assert atomic_write_text  # the module-level import stays usable
