@@ -78,7 +78,7 @@ def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.nd
     fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout(rect=(0, 0.05, 1, 0.96 if title else 1))
+    fig.tight_layout(rect=(0, 0.05, 1, 0.96 if title else 1), h_pad=1.6)
     if out is not None:
         save_figure(fig, out, dpi=dpi)
     return fig
