@@ -134,17 +134,12 @@ class TrainConfig:
 
     @classmethod
     def from_yaml(cls, path, overrides: dict | None = None) -> "TrainConfig":
-        import yaml
+        from .yamlfile import read_yaml_mapping
 
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: config file not found")
-        try:
-            d = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise ValueError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-        if not isinstance(d, dict):
-            raise ValueError(f"{path}: expected a mapping of training options")
+        d = read_yaml_mapping(path, "training options")
         d.pop("model", None)   # config.yaml of a run also records the model config
         d.update(overrides or {})
         return cls.from_dict(d, str(path))

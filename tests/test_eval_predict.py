@@ -13,6 +13,7 @@ from racklay import layout as L
 from racklay.cli import main as racklay_main
 from racklay.data import RackLayRoot, read_image
 from racklay.toy import build_toy_dataset
+from racklay.predict import Predictor
 
 IMG, S, R = 64, 32, 4
 
@@ -200,7 +201,7 @@ def test_onnx_parity_and_backend(ckpt, onnx_file, toy, capsys):
 def test_predict_cli_onnx_matches_torch(ckpt, onnx_file, toy, tmp_path):
     img = RackLayRoot(toy).image_path(RackLayRoot(toy).ids()[0])
     outs = {}
-    for name, extra in (("torch", []), ("onnx", ["--backend", "onnx"])):
+    for name, extra in (("torch", ["--fp32"]), ("onnx", ["--backend", "onnx"])):
         o = tmp_path / name
         assert racklay_main(["predict", str(img), "--weights", str(ckpt), "--out", str(o),
                              "--no-figure", "--no-png"] + extra) == 0
@@ -216,3 +217,20 @@ def test_export_rejects_bad_file(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "x.safetensors" in err[0]
     assert not (tmp_path / "y.onnx").exists()
+
+
+def test_precision_auto_resolution(monkeypatch, ckpt, onnx_file):
+    """--precision auto (the CLI default) is bf16 only for torch on a CPU with native bf16;
+    onnxruntime always runs fp32 and an explicit bf16 request for it is refused."""
+    import racklay.predict as P
+
+    monkeypatch.setattr(P, "native_bf16", lambda: True)
+    assert P.resolve_precision("auto") == "bf16" and P.resolve_precision("auto", "onnx") == "fp32"
+    assert Predictor(ckpt, precision="auto").precision == "bf16"
+    assert Predictor(onnx_file, precision="auto").precision == "fp32"
+    monkeypatch.setattr(P, "native_bf16", lambda: False)
+    assert Predictor(ckpt, precision="auto").precision == "fp32"
+    with pytest.raises(ValueError, match="bf16 is for the torch backend"):
+        Predictor(onnx_file, precision="bf16")
+    with pytest.raises(ValueError, match="precision must be one of"):
+        P.resolve_precision("fp16")

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 
 def register(sub) -> None:
+    from racklay.predict import add_precision_args
+
     p = sub.add_parser(
         "eval", help="evaluate a trained model on a dataset split",
         description="Run a trained model (checkpoint from `racklay train`, or an ONNX file from "
@@ -22,14 +24,7 @@ def register(sub) -> None:
     p.add_argument("--native", action="store_true",
                    help="upsample predictions to the dataset's own layout resolution and score there")
     p.add_argument("--workers", type=int, default=0, help="DataLoader worker processes (default 0)")
-    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
-                   help="torch backend: auto (default) = bf16 autocast + channels_last on CPUs with "
-                        "native bf16 (about 2x faster; argmax agrees with fp32 on >99%% of pixels, "
-                        "docs/benchmarks.md), fp32 elsewhere; the onnx backend always runs fp32")
-    p.add_argument("--bf16", dest="precision", action="store_const", const="bf16",
-                   help="same as --precision bf16")
-    p.add_argument("--fp32", dest="precision", action="store_const", const="fp32",
-                   help="same as --precision fp32")
+    add_precision_args(p)
     p.add_argument("--threads", type=int, default=None, help="intra-op threads (default: library default)")
     p.add_argument("--save-predictions", default=None, metavar="DIR",
                    help="also write the predicted layouts as a RackLay dataset in DIR")

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 
 def register(sub) -> None:
+    from racklay.predict import add_precision_args
+
     p = sub.add_parser(
         "predict", help="predict per-shelf layouts for photos",
         description="Predict every shelf's top- and front-view layout for each photo (files, or every "
@@ -21,14 +23,7 @@ def register(sub) -> None:
     p.add_argument("--layout-size", type=int, default=None, metavar="D",
                    help="write layouts at D x D (nearest resize of the model's output, same metric extent), "
                         "e.g. 512 to score against the original RackLay data (default: the model's size)")
-    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
-                   help="torch backend: auto (default) = bf16 autocast + channels_last on CPUs with "
-                        "native bf16 (about 2x faster; argmax agrees with fp32 on >99%% of pixels, "
-                        "docs/benchmarks.md), fp32 elsewhere; the onnx backend always runs fp32")
-    p.add_argument("--bf16", dest="precision", action="store_const", const="bf16",
-                   help="same as --precision bf16")
-    p.add_argument("--fp32", dest="precision", action="store_const", const="fp32",
-                   help="same as --precision fp32")
+    add_precision_args(p)
     p.add_argument("--threads", type=int, default=None, help="intra-op threads (default: library default)")
     p.add_argument("--no-figure", action="store_true", help="skip the paper-style figures")
     p.add_argument("--no-png", action="store_true", help="skip the per-shelf colour PNGs")

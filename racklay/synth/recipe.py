@@ -16,6 +16,8 @@ from pathlib import Path
 
 import yaml
 
+from ..yamlfile import read_yaml_mapping
+
 RECIPE_DIR = Path(__file__).resolve().parents[2] / "datasets" / "recipes"
 
 
@@ -243,12 +245,7 @@ def load_recipe(name_or_path: str | None = None, overrides: list[str] | dict | N
     if name_or_path:
         path = resolve_recipe_path(name_or_path)
         src = str(path)
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise RecipeError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-        if not isinstance(data, dict):
-            raise RecipeError(f"{path}: expected a mapping of key: value")
+        data = read_yaml_mapping(path, "key: value", error=RecipeError)
         data.setdefault("name", path.stem)
         recipe_from_dict(data, src)  # errors in the file are reported against the file
     if overrides:
