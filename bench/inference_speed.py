@@ -10,7 +10,9 @@ Timing interleaves the models in rounds so that load from other processes hits a
 each cell gives the median (and minimum) wall time over all timed calls and the median process
 CPU time (ms): on a machine shared with other jobs, the minimum and the CPU time (best with
 --threads 1) are the least disturbed estimates of the model's own cost. Columns: torch fp32; with --bf16,
-torch autocast bfloat16 + channels_last; with --onnx, onnxruntime fp32 (CPU provider). Prints
+torch autocast bfloat16 + channels_last (plus an "as shipped" row: the paper decoder in fp32, as the
+authors ran it, against the default model in bf16, what `--precision auto` runs on a CPU with
+native bf16); with --onnx, onnxruntime fp32 (CPU provider). Prints
 numbers only; nothing is asserted.
 """
 from __future__ import annotations
@@ -101,6 +103,10 @@ def main(argv=None) -> int:
             rows.append([f"{size}->{size}", "ResNet-18 encoder only" if d == "encoder" else d] +
                         [cell(st[(d, k)]) if (d, k) in st else "n/a" for k in cols])
         rows.append([f"{size}->{size}", "**paper / light**"] + [ratio(st[("paper", k)], st[("light", k)]) for k in cols])
+        if ("light", "torch bf16+CL") in st:   # `racklay predict --precision auto` on a native-bf16 CPU
+            shipped = ratio(st[("paper", "torch fp32")], st[("light", "torch bf16+CL")])
+            rows.append([f"{size}->{size}", "**as shipped: paper fp32 / light bf16+CL**", shipped] +
+                        [""] * (len(cols) - 1))
         print(f"  {size}: " + ", ".join(f"{d} {k} {cell(st[(d, k)])}" for (d, k) in times), flush=True)
     header = ["input->layout", "decoder"] + [f"{k}: wall median (min), CPU ms" for k in cols]
     print()
