@@ -30,17 +30,17 @@ PHOTOS = REPO / "datasets" / "real-photos"
 class DemoConfig:
     out: str = "outputs/transfer-demo"
     seed: int = 0
-    n_synthetic: int = 400
+    n_synthetic: int = 600
     n_real: int = 150
     layout_d: int = 128             # D stored on disk (RackLay's own is 512; smaller = faster I/O)
     image_size: int = 128
-    layout_size: int = 64
-    pretrain_epochs: int = 12
-    epochs: int = 15
+    layout_size: int = 128
+    pretrain_epochs: int = 20
+    epochs: int = 20
     fractions: tuple = (0.25, 1.0)
     seeds: int = 1
-    pretrain_max_minutes: float = 4.0
-    max_minutes: float = 1.5
+    pretrain_max_minutes: float = 7.0
+    max_minutes: float = 2.0
     batch_size: int = 8
     amp: str = "bf16"              # CPU autocast; --amp none for fp32 (slower, on CPUs without AMX bf16 gains little)
     photos: str = str(PHOTOS)
