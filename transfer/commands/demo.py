@@ -12,7 +12,7 @@ def add_demo_args(p) -> None:
     p.add_argument("--n-real", type=int, default=d.n_real, help=f"proxy-real images (default {d.n_real})")
     p.add_argument("--amp", choices=("none", "bf16"), default=d.amp,
                    help=f"training precision (default {d.amp}: CPU bf16 autocast, ≈2-3x faster on CPUs with AMX; none = fp32)")
-    p.add_argument("--quick", action="store_true", help="a 2-3 minute smoke run with tiny sizes (not meaningful numbers)")
+    p.add_argument("--quick", action="store_true", help="a smoke run of well under a minute with tiny sizes (not meaningful numbers)")
 
 
 DESCRIPTION = ("Synthetic -> real transfer end to end, with nothing downloaded: render a small WareSynth "
@@ -21,7 +21,7 @@ DESCRIPTION = ("Synthetic -> real transfer end to end, with nothing downloaded: 
                "(synthetic only / real only / synthetic -> real fine-tune; 1 seed; real fractions 25% and "
                "100%), print the paper's Table 2 for it, write the bar chart and learning curve, and run "
                "the fine-tuned model on the real photos in datasets/real-photos/ (no labels: their "
-               "figures are shown, not scored). About 15 minutes on 2 free CPU cores; each training run "
+               "figures are shown, not scored). About 9 minutes on 2 free CPU cores (at most ~15); each training run "
                "has a time budget. Prints where every output went.")
 
 
