@@ -1,6 +1,6 @@
 """The one-command demo of the toolkit's main job: synthetic -> real transfer (paper §5.5).
 
-On a fresh machine with no GPU and nothing downloaded (≈15 minutes on 2 free cores):
+On a fresh machine with no GPU and nothing downloaded (≈9 minutes on 2 free cores):
 
 1. WareSynth renders a small `complex` synthetic set (train/val/test);
 2. and a small `proxy_real` set (train/test). **Proxy-real is rendered, not real**: a

@@ -1,4 +1,4 @@
-"""transfer demo: the toolkit's main job end to end on a fresh machine (≈15 min on 2 CPU cores)."""
+"""transfer demo: the toolkit's main job end to end on a fresh machine (≈9 min on 2 CPU cores)."""
 from __future__ import annotations
 
 
@@ -26,7 +26,7 @@ DESCRIPTION = ("Synthetic -> real transfer end to end, with nothing downloaded: 
 
 
 def register(sub) -> None:
-    p = sub.add_parser("demo", help="the main job end to end: synthetic -> real transfer (~15 min, CPU)",
+    p = sub.add_parser("demo", help="the main job end to end: synthetic -> real transfer (~9 min on 2 CPU cores)",
                        description=DESCRIPTION)
     add_demo_args(p)
     p.set_defaults(func=run)
