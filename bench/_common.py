@@ -1,6 +1,6 @@
 """Shared helpers for the speed benchmarks in bench/ (not part of the installed package).
 
-glibc's allocator dominates torch on this kind of VM (racklay-facts.md: a reference training
+glibc's allocator dominates torch on this kind of VM (measured here: a reference training
 step at 256 px fell from 7.2 s to 3.7 s with these settings). The variables are read by glibc
 when the process starts, so setting them from Python is too late: `ensure_malloc_env()`
 re-executes the script with them set unless they already are (the Makefile exports them too).

@@ -7,7 +7,7 @@
 # ends inside the time budget (the paper decoder's steps are slower); MINUTES stops a run anyway.
 set -euo pipefail
 DATA=${1:-/work/data/complex-2400}
-MIN=${2:-45}
+MIN=${2:-50}
 SIZE=${3:-128}
 LIGHT_EPOCHS=${LIGHT_EPOCHS:-25}
 PAPER_EPOCHS=${PAPER_EPOCHS:-12}

@@ -16,7 +16,7 @@ def register(sub) -> None:
                     "channel (albumentations). Lower learning rate than from scratch (default "
                     f"{FINETUNE_LR_RATIO:g}x TrainConfig's), optional encoder freezing for the first "
                     "epochs, early stopping on a validation set carved from the training split. The "
-                    "architecture (R, layout size, input size, decoder) comes from the checkpoint; a "
+                    "architecture (R, layout size, input size, decoder, discriminators) comes from the checkpoint; a "
                     "checkpoint whose R or layout size does not fit is refused with a clear error.")
     p.add_argument("--init", required=True, metavar="CHECKPOINT", help="pretrain checkpoint (.safetensors)")
     p.add_argument("--real", required=True, metavar="ROOT", help="real RackLay-format dataset root with split files")
