@@ -3,6 +3,7 @@ and exposes `register(subparsers)`; add new ones to COMMANDS."""
 from __future__ import annotations
 
 import argparse
+import os
 import importlib
 import sys
 
@@ -44,6 +45,16 @@ def _version() -> str:
     return __version__
 
 
+def os_error_line(e: OSError) -> str:
+    """One line for an OSError: 'PATH: reason' when the error names a path, else its message."""
+    if e.filename is None or not e.strerror:
+        return str(e).splitlines()[0] if str(e) else type(e).__name__
+    path = str(e.filename) + (f" -> {e.filename2}" if e.filename2 is not None else "")
+    if isinstance(e, FileExistsError) and os.path.isfile(e.filename):
+        return f"{path}: is a file, expected a folder"
+    return f"{path}: {e.strerror.lower()}"
+
+
 def run(parser: argparse.ArgumentParser, argv=None) -> int:
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
@@ -57,9 +68,14 @@ def run(parser: argparse.ArgumentParser, argv=None) -> int:
     except CLIError as e:
         print(f"{parser.prog}: error: {e}", file=sys.stderr)
         return 2
-    except (FileNotFoundError, ValueError) as e:
+    except ValueError as e:
         # DataError, LayoutError and friends carry a one-line message naming the file
         print(f"{parser.prog}: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        # a file we could not read or write (missing input, unwritable output, a folder where a
+        # file was expected, a busy port ...): one line naming the path, no traceback
+        print(f"{parser.prog}: error: {os_error_line(e)}", file=sys.stderr)
         return 2
     return int(rc or 0)
 

@@ -56,6 +56,35 @@ def test_score_missing_ground_truth_is_one_line_error(toy, tmp_path, capsys):
     assert len(err) == 1 and "top777777.npy" in err[0]
 
 
+def test_score_missing_prediction_is_an_error_not_a_smaller_denominator(toy, tmp_path, capsys):
+    pred = tmp_path / "pred"
+    shutil.copytree(toy, pred)
+    (pred / "topLayouts" / "top000002.npy").unlink()
+    capsys.readouterr()
+    # every predicted id: 000002 has a front prediction but no top one
+    assert main(["score", "--pred", str(pred), "--gt", str(toy)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "top000002.npy: prediction missing" in err[0]
+    # a split: every id of the split needs a prediction
+    ids = RackLayRoot(toy).split_ids("train")
+    for sid in ids[:2]:
+        for view, pre in (("topLayouts", "top"), ("frontLayouts", "front")):
+            (pred / view / f"{pre}{sid}.npy").unlink(missing_ok=True)
+    assert main(["score", "--pred", str(pred), "--gt", str(toy), "--split", "train"]) == 2
+    assert "prediction missing (and 1 more)" in capsys.readouterr().err
+
+
+def test_unwritable_output_is_one_line_error(toy, tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    assert main(["score", "--pred", str(toy), "--gt", str(toy), "--json", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(tmp_path) in err[0]
+    assert main(["show", str(toy), "--index", "0", "--out", str(afile / "fig.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(afile) in err[0] and "Traceback" not in err[0]
+
+
 def test_show_writes_figure(toy, tmp_path):
     out = tmp_path / "fig.png"
     assert main(["show", str(toy), "--index", "1", "--out", str(out)]) == 0

@@ -1,6 +1,8 @@
 """racklay score --pred PRED_ROOT --gt GT_ROOT"""
 from __future__ import annotations
 
+import os
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -11,7 +13,7 @@ def register(sub) -> None:
                     "dataset-level IoU / precision / recall from the accumulated confusion matrix.")
     p.add_argument("--pred", required=True, help="folder with predicted topLayouts/ and/or frontLayouts/")
     p.add_argument("--gt", required=True, help="ground-truth RackLay-format dataset")
-    p.add_argument("--split", default=None, help="score only this ground-truth split (default: every predicted id)")
+    p.add_argument("--split", default=None, help="score exactly the ids of this ground-truth split; every one needs a prediction (default: every predicted id)")
     p.add_argument("--json", default=None, help="write the metrics as JSON here")
     p.set_defaults(func=run)
 
@@ -22,21 +24,37 @@ def score_roots(pred_root, gt_root, split=None):
     from racklay.data import RackLayRoot, VIEW_DIRS, VIEW_PREFIX
     from racklay.metrics import LayoutMetrics
 
+    for root, what in ((pred_root, "predictions"), (gt_root, "ground-truth dataset")):
+        if not os.path.isdir(root):
+            raise CLIError(f"{root}: {what} folder not found")
     pred, gt = RackLayRoot(pred_root), RackLayRoot(gt_root)
     views = [v for v in pred.views() if v in gt.views()]
     if not views:
         raise CLIError(f"no common view: {pred.root} has {list(pred.views()) or 'no layouts'}, "
                        f"{gt.root} has {list(gt.views()) or 'no layouts'}")
-    m = LayoutMetrics()
-    n = 0
+    predicted = {}
     for view in views:
         pdir = pred.root / VIEW_DIRS[view]
-        ids = sorted(p.stem[len(VIEW_PREFIX[view]):] for p in pdir.glob(f"{VIEW_PREFIX[view]}*.npy"))
-        if split:
-            wanted = set(gt.split_ids(split))
-            ids = [i for i in ids if i in wanted]
+        predicted[view] = {p.stem[len(VIEW_PREFIX[view]):] for p in pdir.glob(f"{VIEW_PREFIX[view]}*.npy")}
+    if split:
+        ids = sorted(gt.resolve(split))
         if not ids:
-            raise CLIError(f"{pdir}: no predicted {view} layouts to score")
+            raise CLIError(f"{gt.root}: split {split!r} is empty")
+    else:
+        ids = sorted(set().union(*predicted.values()))
+        if not ids:
+            raise CLIError(f"{pred.root}: no predicted layouts to score")
+    # every image to score needs a prediction in every view scored: a missing file is an error,
+    # never a silently smaller denominator
+    for view in views:
+        missing = [i for i in ids if i not in predicted[view]]
+        if missing:
+            first = pred.root / VIEW_DIRS[view] / f"{VIEW_PREFIX[view]}{missing[0]}.npy"
+            more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+            raise CLIError(f"{first}: prediction missing{more}; "
+                           f"{len(ids)} image(s) to score in view {view}")
+    m = LayoutMetrics()
+    for view in views:
         for sid in ids:
             gpath = gt.layout_path(view, sid)
             if not gpath.exists():
@@ -44,7 +62,7 @@ def score_roots(pred_root, gt_root, split=None):
             g = gt.read_layouts(view, sid)
             p = pred.read_layouts(view, sid, R=g.shape[0], D=g.shape[1])
             m.update(view, p, g)
-        n = max(n, len(ids))
+    n = len(ids)
     return m.result(), n
 
 
