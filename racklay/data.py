@@ -38,6 +38,20 @@ class DataError(ValueError):
     """A file in a dataset that cannot be used; the message names the file."""
 
 
+def check_prediction_out(out: str | os.PathLike, data: str | os.PathLike | None = None) -> None:
+    """Refuse to write predicted layouts into a folder that holds ground truth: the dataset being
+    evaluated, or any dataset with split files or a WareSynth manifest. A folder of earlier
+    predictions (layouts without splits) may be overwritten."""
+    out = Path(out)
+    if data is not None and out.resolve() == Path(data).resolve():
+        raise DataError(f"{out}: is the dataset being scored; predictions would overwrite its ground "
+                        "truth; choose another output folder")
+    for marker in (SPLITS_DIR, "waresynth.json"):
+        if (out / marker).exists():
+            raise DataError(f"{out}: holds a dataset with ground truth ({marker} found); predictions "
+                            "would overwrite its layouts; choose another output folder")
+
+
 def read_image(path: str | os.PathLike) -> np.ndarray:
     """Read an image file as RGB uint8 (H, W, 3). Raises DataError naming the file."""
     import cv2

@@ -31,6 +31,7 @@ import csv
 import io
 import math
 import os
+import shutil
 import random
 import time
 from dataclasses import asdict, dataclass, field, fields
@@ -92,6 +93,7 @@ class TrainConfig:
     progress: bool = True                # tqdm bars
 
     def __post_init__(self):
+        self._check_types()
         self.views = tuple(self.views)
         self.class_weights = tuple(float(w) for w in self.class_weights)
         if len(self.class_weights) != len(CLASS_NAMES):
@@ -106,7 +108,43 @@ class TrainConfig:
             raise ValueError(f"val_fraction must be in (0, 1), got {self.val_fraction}")
         if self.epochs < 1 or self.batch_size < 1:
             raise ValueError("epochs and batch_size must be >= 1")
+        for name, lo in (("warmup_steps", 0), ("workers", 0), ("disc_start", 0), ("seed", 0),
+                         ("freeze_encoder_epochs", 0), ("checkpoint_every", 0), ("patience", 0),
+                         ("threads", 1)):
+            v = getattr(self, name)
+            if v is not None and v < lo:
+                raise ValueError(f"{name} must be >= {lo}, got {v}")
+        for name in ("lr", "disc_lr", "max_minutes"):
+            v = getattr(self, name)
+            if v is not None and not v > 0:
+                raise ValueError(f"{name} must be > 0, got {v}")
+        if self.weight_decay < 0 or self.disc_weight < 0:
+            raise ValueError("weight_decay and disc_weight must be >= 0")
         self.model_config()  # validates views, sizes, R
+
+    # field annotation (a string: `from __future__ import annotations`) -> accepted Python types
+    _TYPES = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str, os.PathLike),
+              "tuple": (tuple, list)}
+    _TYPE_WORDS = {"int": "an integer", "float": "a number", "bool": "true or false",
+                   "str": "a string", "tuple": "a list"}
+
+    def _check_types(self) -> None:
+        """A value of the wrong type (epochs: "lots", R: four) is a one-line error naming the
+        option, before anything runs, not a TypeError in the middle of training."""
+        for f in fields(self):
+            ann = str(f.type).replace(" ", "")
+            kinds = ann.split("|")
+            v = getattr(self, f.name)
+            if v is None and "None" in kinds:
+                continue
+            base = next((k for k in kinds if k in self._TYPES), None)
+            if base is None:
+                continue
+            ok = isinstance(v, self._TYPES[base]) and not (base in ("int", "float") and isinstance(v, bool))
+            if not ok:
+                raise ValueError(f"option {f.name!r}: expected {self._TYPE_WORDS[base]}, got {v!r}")
+            if base == "float":
+                setattr(self, f.name, float(v))
 
     def model_config(self) -> ModelConfig:
         return ModelConfig(R=self.R, image_size=self.image_size, layout_size=self.layout_size,
@@ -130,7 +168,10 @@ class TrainConfig:
         unknown = sorted(set(d) - names)
         if unknown:
             raise ValueError(f"{source}: unknown training option(s) {', '.join(unknown)}")
-        return cls(**d)
+        try:
+            return cls(**d)
+        except ValueError as e:
+            raise ValueError(f"{source}: {e}") from None
 
     @classmethod
     def from_yaml(cls, path, overrides: dict | None = None) -> "TrainConfig":
@@ -513,6 +554,7 @@ def train(cfg: TrainConfig, transform=None) -> Path:
         weight = torch.tensor(cfg.class_weights, dtype=torch.float32, device=device)
 
         if dist.main:
+            made_dir = not run_dir.exists()
             run_dir.mkdir(parents=True, exist_ok=True)
             write_config(run_dir, cfg)
             print(f"{mcfg.variant()} ({cfg.decoder} decoder), {len(train_ids)} train / {len(val_ids)} val images, "
@@ -652,6 +694,12 @@ def train(cfg: TrainConfig, transform=None) -> Path:
             print(f"{run_dir}: {state['stop_reason']}; best val score {state['best_score']:.4f} "
                   f"(epoch {state['best_epoch'] + 1}), {state['elapsed_s'] / 60:.1f} min")
         return run_dir
+    except BaseException:
+        # a run that fails before its first checkpoint (bad data, a mismatched R, Ctrl-C) leaves
+        # no folder behind: nothing in it could be resumed, and its name stays free
+        if dist.main and locals().get("made_dir") and not (run_dir / "last.safetensors").exists():
+            shutil.rmtree(run_dir, ignore_errors=True)
+        raise
     finally:
         dist.close()
 

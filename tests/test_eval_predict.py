@@ -234,3 +234,27 @@ def test_precision_auto_resolution(monkeypatch, ckpt, onnx_file):
         Predictor(onnx_file, precision="bf16")
     with pytest.raises(ValueError, match="precision must be one of"):
         P.resolve_precision("fp16")
+
+
+def test_outputs_never_overwrite_ground_truth_and_bad_inputs_write_nothing(toy, ckpt, tmp_path, capsys):
+    """eval --save-predictions into the dataset it scores, or predict into any dataset with splits,
+    is refused before the model runs; an empty input folder is an error, not "0 predicted";
+    export checks --image before writing the .onnx."""
+    before = (toy / "topLayouts" / "top000000.npy").read_bytes()
+    assert racklay_main(["eval", "--weights", str(ckpt), "--data", str(toy), "--save-predictions", str(toy)]) == 2
+    assert "would overwrite its ground truth" in capsys.readouterr().err
+    assert racklay_main(["predict", str(RackLayRoot(toy).image_path("000000")), "--weights", str(ckpt),
+                         "--out", str(toy)]) == 2
+    assert "holds a dataset with ground truth (splits found)" in capsys.readouterr().err
+    assert (toy / "topLayouts" / "top000000.npy").read_bytes() == before
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert racklay_main(["predict", str(empty), "--weights", str(ckpt), "--out", str(tmp_path / "o")]) == 2
+    assert "no files to predict" in capsys.readouterr().err
+    bad = tmp_path / "bad.png"
+    bad.write_text("not a png")
+    onnx = tmp_path / "m.onnx"
+    assert racklay_main(["export", "--weights", str(ckpt), "--onnx", str(onnx), "--image", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bad.png" in err[0]
+    assert not onnx.exists()

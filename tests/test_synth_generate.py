@@ -173,3 +173,20 @@ def test_atomic_write_without_fsync(tmp_path):
     from racklay.atomic import atomic_write_bytes
     p = atomic_write_bytes(tmp_path / "a" / "f.bin", b"xyz", fsync=False)
     assert p.read_bytes() == b"xyz" and [q.name for q in p.parent.iterdir()] == ["f.bin"]
+
+
+def test_synth_refuses_a_folder_holding_other_data(tmp_path, capsys):
+    """--out pointing at an existing dataset not made by synth (e.g. an annotate export) is
+    refused before anything is written: synth would rewrite its splits."""
+    from racklay.cli import main
+
+    other = tmp_path / "labelled"
+    (other / "splits").mkdir(parents=True)
+    (other / "splits" / "train.txt").write_text("Images/000000.png\n")
+    assert main(["synth", "--recipe", "simple", "--n", "2", "--out", str(other)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "files not made by racklay synth" in err[0]
+    assert sorted(p.name for p in other.rglob("*")) == ["splits", "train.txt"]
+    with pytest.raises(SystemExit) as e:   # argparse: one usage line, exit 2
+        main(["synth", "--recipe", "simple", "--n", "0", "--out", str(tmp_path / "x")])
+    assert e.value.code == 2 and not (tmp_path / "x").exists()

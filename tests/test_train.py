@@ -174,6 +174,26 @@ def test_cli_config_yaml_and_flag_precedence(tmp_path, toy):
     assert r.returncode == 2 and "--data is required" in r.stderr
 
 
+def test_wrongly_typed_options_and_failed_starts_leave_nothing(tmp_path, toy):
+    from racklay.cli import main
+
+    y = tmp_path / "c.yaml"
+    y.write_text(f"data: {toy}\nepochs: lots\n")
+    out = tmp_path / "runs"
+    assert main(["train", "--config", str(y), "--out", str(out)]) == 2
+    assert not out.exists()
+    with pytest.raises(ValueError, match="option 'R': expected an integer, got 'four'"):
+        TrainConfig(data=str(toy), R="four")
+    with pytest.raises(ValueError, match="threads must be >= 1"):
+        TrainConfig(data=str(toy), threads=0)
+    # the data have R = 4: a run with R = 3 fails on the first sample and leaves no run folder
+    cfg = TrainConfig(data=str(toy), out=str(out), name="r3", epochs=1, disc=False,
+                      **{**TINY, "R": 3})
+    with pytest.raises(ValueError):
+        train(cfg)
+    assert not (out / "r3").exists()
+
+
 def test_epoch_order_is_a_function_of_seed_and_epoch():
     a = epoch_batches(20, 4, 3, 7, 1, 0)
     assert a == epoch_batches(20, 4, 3, 7, 1, 0)

@@ -2,6 +2,8 @@
    racklay analyze --layouts ROOT [--split test] --out DIR"""
 from __future__ import annotations
 
+from racklay.cli import at_least, positive_float
+
 import sys
 from pathlib import Path
 
@@ -30,13 +32,13 @@ def register(sub) -> None:
     p.add_argument("--layouts", metavar="ROOT", help="analyse the ground-truth layouts of this RackLay dataset")
     p.add_argument("--split", default=None,
                    help="only this split (e.g. test) of the --layouts dataset or of dataset inputs; default all")
-    p.add_argument("--extent", type=float, default=None,
+    p.add_argument("--extent", type=positive_float, default=None,
                    help="with --layouts: metres covered by the layout grid (default: meta/ID.json's "
                         "grid.extent_m, else 8.0 as in RackLay)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--format", choices=FORMATS, default="glb", help="3D file(s) to write (default: glb)")
     p.add_argument("--no-render", action="store_true", help="skip the PNG render (about 1 s per image)")
-    p.add_argument("--limit", type=int, default=None, help="analyse at most this many images")
+    p.add_argument("--limit", type=at_least(1), default=None, help="analyse at most this many images")
     g = p.add_argument_group("analysis knobs (metric; see docs/reasoning.md)")
     g.add_argument("--open-m", type=float, default=None, help="opening kernel for box masks, metres (0.04)")
     g.add_argument("--min-box-area", type=float, default=None,

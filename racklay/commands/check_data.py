@@ -1,6 +1,8 @@
 """racklay check-data ROOT"""
 from __future__ import annotations
 
+from racklay.cli import at_least, positive_float
+
 import json
 import sys
 
@@ -13,10 +15,10 @@ def register(sub) -> None:
                     "pointing at missing files and duplicate entries. Prints a summary and one line "
                     "per problem naming the file; exits 0 only when the dataset is clean.")
     p.add_argument("root", help="dataset folder (Images/, topLayouts/, frontLayouts/, splits/)")
-    p.add_argument("--R", type=int, default=None, help="expected number of shelf channels")
-    p.add_argument("--D", type=int, default=None, help="expected layout size in pixels")
+    p.add_argument("--R", type=at_least(1), default=None, help="expected number of shelf channels")
+    p.add_argument("--D", type=at_least(1), default=None, help="expected layout size in pixels")
     p.add_argument("--json", default=None, help="also write the report as JSON here")
-    p.add_argument("--max-problems", type=int, default=200, help="print at most this many problem lines (all are counted)")
+    p.add_argument("--max-problems", type=at_least(1), default=200, help="print at most this many problem lines (all are counted)")
     p.set_defaults(func=run)
 
 

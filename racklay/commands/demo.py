@@ -2,6 +2,8 @@
 `--toy` keeps the quick schematic demo of the data/metrics layer (seconds, no training)."""
 from __future__ import annotations
 
+from racklay.cli import at_least, positive_float
+
 from pathlib import Path
 
 
@@ -15,7 +17,7 @@ def register(sub) -> None:
                     "the truth, and write a paper-style figure (seconds, no training).")
     add_demo_args(p)
     p.add_argument("--toy", action="store_true", help="the quick schematic demo of the data/metrics layer")
-    p.add_argument("--n", type=int, default=24, help="--toy: number of schematic samples (default 24)")
+    p.add_argument("--n", type=at_least(1), default=24, help="--toy: number of schematic samples (default 24)")
     p.set_defaults(func=run)
 
 

@@ -1,6 +1,8 @@
 """racklay eval --weights W --data ROOT --split test [--json out.json]"""
 from __future__ import annotations
 
+from racklay.cli import at_least, positive_float
+
 
 def register(sub) -> None:
     from racklay.predict import add_precision_args
@@ -17,15 +19,15 @@ def register(sub) -> None:
     p.add_argument("--weights", required=True, help="model checkpoint (.safetensors) or exported .onnx")
     p.add_argument("--data", required=True, help="RackLay-format dataset folder")
     p.add_argument("--split", default="test", help="split to evaluate (splits/NAME.txt), or 'all' (default: test)")
-    p.add_argument("--batch-size", type=int, default=8, help="images per forward pass (default 8)")
+    p.add_argument("--batch-size", type=at_least(1), default=8, help="images per forward pass (default 8)")
     p.add_argument("--backend", choices=("torch", "onnx"), default="torch",
                    help="run the model with torch (default) or onnxruntime")
-    p.add_argument("--limit", type=int, default=None, help="evaluate only the first N images of the split")
+    p.add_argument("--limit", type=at_least(1), default=None, help="evaluate only the first N images of the split")
     p.add_argument("--native", action="store_true",
                    help="upsample predictions to the dataset's own layout resolution and score there")
-    p.add_argument("--workers", type=int, default=0, help="DataLoader worker processes (default 0)")
+    p.add_argument("--workers", type=at_least(0), default=0, help="DataLoader worker processes (default 0)")
     add_precision_args(p)
-    p.add_argument("--threads", type=int, default=None, help="intra-op threads (default: library default)")
+    p.add_argument("--threads", type=at_least(1), default=None, help="intra-op threads (default: library default)")
     p.add_argument("--save-predictions", default=None, metavar="DIR",
                    help="also write the predicted layouts as a RackLay dataset in DIR")
     p.add_argument("--json", default=None, help="write the run description and metrics as JSON here")
@@ -43,8 +45,9 @@ def run(args) -> int:
 
     if not Path(args.weights).is_file():
         raise CLIError(f"{args.weights}: weights file not found")
-    if args.batch_size < 1:
-        raise CLIError(f"--batch-size must be >= 1, got {args.batch_size}")
+    if args.save_predictions:
+        from racklay.data import check_prediction_out
+        check_prediction_out(args.save_predictions, data=args.data)
     pred = Predictor(args.weights, backend=args.backend, threads=args.threads,
                      precision=args.precision)
     result = evaluate(pred, args.data, split=args.split, batch_size=args.batch_size, workers=args.workers,

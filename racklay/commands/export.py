@@ -1,6 +1,8 @@
 """racklay export --weights W --onnx out.onnx"""
 from __future__ import annotations
 
+from racklay.cli import at_least, positive_float
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -14,7 +16,7 @@ def register(sub) -> None:
     p.add_argument("--onnx", required=True, help="output .onnx file")
     p.add_argument("--opset", type=int, default=17, help="ONNX opset (default 17)")
     p.add_argument("--image", default=None, help="check parity on this photo instead of a random batch")
-    p.add_argument("--tol", type=float, default=1e-4,
+    p.add_argument("--tol", type=positive_float, default=1e-4,
                    help="fail (exit 1) when max |logit difference| exceeds TOL x max(1, max |logit|) "
                         "(default 1e-4: float32 rounding over a deep network, not a real mismatch)")
     p.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
@@ -32,17 +34,23 @@ def run(args) -> int:
         raise CLIError(f"{args.weights}: weights file not found")
     if Path(args.onnx).suffix.lower() != ".onnx":
         raise CLIError(f"{args.onnx}: output name must end in .onnx")
+    image = None
+    if args.image and not args.no_check:
+        from racklay.data import read_image
+        image = read_image(args.image)   # checked before anything is written
     model, cfg, _ = load_model(args.weights, map_location="cpu")
     model.eval()
-    path = export_onnx(model, cfg, args.onnx, opset=args.opset)
+    try:
+        path = export_onnx(model, cfg, args.onnx, opset=args.opset)
+    except (OSError, ValueError):
+        raise
+    except Exception as e:  # the exporter's own errors (e.g. an opset it cannot target)
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise CLIError(f"{args.onnx}: ONNX export at opset {args.opset} failed: {first}") from None
     size_mb = path.stat().st_size / 1e6
     print(f"exported {args.weights} -> {path} ({size_mb:.1f} MB, opset {args.opset}, views {'/'.join(cfg.views)})")
     if args.no_check:
         return 0
-    image = None
-    if args.image:
-        from racklay.data import read_image
-        image = read_image(args.image)
     res = parity(model, path, cfg, image=image)
     worst = max(res["max_abs_diff"][v] / max(1.0, res["logit_scale"][v]) for v in cfg.views)
     for v in cfg.views:
@@ -51,7 +59,9 @@ def run(args) -> int:
               f"{100 * res['class_mismatch'][v]:.4f}% of pixels")
     print(f"  batch {res['batch']}: torch {res['torch_ms']:.0f} ms, onnxruntime {res['onnx_ms']:.0f} ms (one call, cold)")
     if worst > args.tol:
-        print(f"parity check FAILED: relative difference {worst:.3g} > --tol {args.tol}")
+        path.unlink(missing_ok=True)
+        print(f"parity check FAILED: relative difference {worst:.3g} > --tol {args.tol}; {path} removed "
+              "(--no-check keeps an unchecked export)")
         return 1
     print(f"parity OK (relative difference {worst:.3g} <= {args.tol})")
     return 0

@@ -1,6 +1,8 @@
 """racklay predict IMAGES_OR_FOLDER... --weights W --out DIR"""
 from __future__ import annotations
 
+from racklay.cli import at_least, positive_float
+
 
 def register(sub) -> None:
     from racklay.predict import add_precision_args
@@ -24,7 +26,7 @@ def register(sub) -> None:
                    help="write layouts at D x D (nearest resize of the model's output, same metric extent), "
                         "e.g. 512 to score against the original RackLay data (default: the model's size)")
     add_precision_args(p)
-    p.add_argument("--threads", type=int, default=None, help="intra-op threads (default: library default)")
+    p.add_argument("--threads", type=at_least(1), default=None, help="intra-op threads (default: library default)")
     p.add_argument("--no-figure", action="store_true", help="skip the paper-style figures")
     p.add_argument("--no-png", action="store_true", help="skip the per-shelf colour PNGs")
     p.add_argument("--full", action="store_true", help="figures show the whole grid, not a crop")
@@ -39,8 +41,14 @@ def run(args) -> int:
 
     if not Path(args.weights).is_file():
         raise CLIError(f"{args.weights}: weights file not found")
+    from racklay.data import check_prediction_out
+
     out = Path(args.out).resolve()
-    for f in list_inputs(args.inputs):
+    files = list_inputs(args.inputs)
+    if not files:
+        raise CLIError(f"{' '.join(map(str, args.inputs))}: no files to predict (empty folder?)")
+    check_prediction_out(args.out)
+    for f in files:
         if f.resolve().parent == out / "Images":
             raise CLIError(f"{f}: input lies in the output's Images/ folder; choose another --out "
                            "(predictions would overwrite that dataset)")

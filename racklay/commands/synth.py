@@ -1,6 +1,8 @@
 """racklay synth --recipe complex --n 2000 --out datasets/generated/complex --seed 0"""
 from __future__ import annotations
 
+from racklay.cli import at_least, positive_float
+
 
 def register(sub) -> None:
     import argparse
@@ -20,12 +22,12 @@ def register(sub) -> None:
         epilog="recipe keys (override with --set key=value):\n" + _keys_help())
     p.add_argument("--recipe", default="complex",
                    help="recipe name in datasets/recipes/ (simple, complex, proxy_real) or a YAML path")
-    p.add_argument("--n", type=int, required=True, help="number of images in the whole dataset (all shards)")
+    p.add_argument("--n", type=at_least(1), required=True, help="number of images in the whole dataset (all shards)")
     p.add_argument("--out", required=True, help="output dataset folder")
     p.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
     p.add_argument("--shard", default=None, metavar="i/n", help="generate only indices with index %% n == i")
-    p.add_argument("--workers", type=int, default=1, help="worker processes (each with its own GL context)")
-    p.add_argument("--lp-threads", type=int, default=None,
+    p.add_argument("--workers", type=at_least(1), default=1, help="worker processes, each with its own GL context (default 1)")
+    p.add_argument("--lp-threads", type=at_least(1), default=None,
                    help="llvmpipe threads per worker (LP_NUM_THREADS; default: 1 with --workers > 1)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a recipe key, YAML value: --set box_density=[0.2,0.9] --set shadows=false")

@@ -198,6 +198,10 @@ def check_manifest(out: Path, recipe: Recipe, n: int, seed: int) -> dict:
             raise ValueError(f"{p}: {out} holds a dataset made with different settings ({', '.join(diffs[:5])}); "
                              f"use another --out or the same recipe/--n/--seed to resume")
     else:
+        stray = next((f for f in out.rglob("*") if f.is_file()), None) if out.is_dir() else None
+        if stray is not None:
+            raise ValueError(f"{out}: folder holds files not made by racklay synth (e.g. {stray}) and no "
+                             f"{MANIFEST}; use an empty or new --out")
         atomic_write_json(p, man)
     return man
 

@@ -1,6 +1,8 @@
 """`transfer` sub-commands. Shared argparse options for the training-based commands."""
 from __future__ import annotations
 
+from racklay.cli import at_least, positive_float
+
 import argparse
 
 
@@ -18,12 +20,12 @@ def add_model_args(p: argparse.ArgumentParser, from_checkpoint: bool = False) ->
 
 def add_train_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("training (defaults: racklay.train.TrainConfig's)")
-    g.add_argument("--epochs", type=int)
-    g.add_argument("--batch-size", type=int)
+    g.add_argument("--epochs", type=at_least(1), help="training epochs (default: TrainConfig's)")
+    g.add_argument("--batch-size", type=at_least(1), help="images per step (default: TrainConfig's)")
     g.add_argument("--lr", type=float, help="learning rate")
     g.add_argument("--patience", type=int, help="early stopping: epochs without validation improvement")
-    g.add_argument("--workers", type=int, help="DataLoader workers (0 is often fastest on 2 cores)")
-    g.add_argument("--max-minutes", type=float, help="time budget for the run; stops cleanly and keeps the best")
+    g.add_argument("--workers", type=at_least(0), help="DataLoader workers (0 is often fastest on 2 cores)")
+    g.add_argument("--max-minutes", type=positive_float, help="time budget for the run; stops cleanly and keeps the best")
     g.add_argument("--seed", type=int, default=0, help="seed for init, data order and augmentation (default 0)")
     g.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same settings)")
     add_set_arg(g)

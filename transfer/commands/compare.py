@@ -1,6 +1,8 @@
 """transfer compare: Table 2 of the paper (synthetic only / real only / fine-tuned) + learning curve."""
 from __future__ import annotations
 
+from racklay.cli import at_least, positive_float
+
 from . import add_model_args, add_set_arg, parse_sets
 
 
@@ -31,32 +33,32 @@ def register(sub) -> None:
                         "per seed (cheaper; the synthetic-only row is then one model, scored once)")
     p.add_argument("--real", required=True, metavar="ROOT", help="real RackLay-format root with train and test splits")
     p.add_argument("--out", required=True, help="output folder (resumable)")
-    p.add_argument("--seeds", type=int, default=3, help="number of seeds (0..N-1; default 3)")
+    p.add_argument("--seeds", type=at_least(1), default=3, help="number of seeds (0..N-1; default 3)")
     p.add_argument("--first-seed", type=int, default=0, help="first seed (default 0)")
     p.add_argument("--fractions", type=_floats, default=[0.1, 0.25, 0.5, 1.0],
                    help="fractions of the real training split for the learning curve (default 0.1,0.25,0.5,1.0); "
                         "Table 2 uses the largest")
     p.add_argument("--train-split", default="train", help="real training split (default train)")
     p.add_argument("--test-split", default="test", help="real test split (default test)")
-    p.add_argument("--pretrain-epochs", type=int, help="epochs on synthetic data")
-    p.add_argument("--pretrain-max-minutes", type=float, help="time budget per pretrain run")
+    p.add_argument("--pretrain-epochs", type=at_least(1), help="epochs on synthetic data")
+    p.add_argument("--pretrain-max-minutes", type=positive_float, help="time budget per pretrain run")
     p.add_argument("--finetune-lr", type=float,
                    help=f"fine-tune learning rate (default {FINETUNE_LR_RATIO:g}x the from-scratch one)")
-    p.add_argument("--freeze-encoder-epochs", type=int, default=0, help="fine-tune: frozen-encoder epochs (default 0)")
+    p.add_argument("--freeze-encoder-epochs", type=at_least(0), default=0, help="fine-tune: frozen-encoder epochs (default 0)")
     p.add_argument("--val-fraction", type=float, default=REAL_VAL_FRACTION,
                    help=f"share of the real training split held out for early stopping (default {REAL_VAL_FRACTION:g})")
     p.add_argument("--imagenet-weights", metavar="FILE",
                    help="local torchvision resnet18 weights for the encoder of from-scratch runs")
     p.add_argument("--no-augment", action="store_true", help="train on real data without the paper's augmentation")
-    p.add_argument("--eval-batch-size", type=int, default=8)
+    p.add_argument("--eval-batch-size", type=at_least(1), default=8, help="images per forward pass when scoring (default 8)")
     add_model_args(p)
     g = p.add_argument_group("training of every run (defaults: racklay.train.TrainConfig's)")
-    g.add_argument("--epochs", type=int, help="epochs of real-only and fine-tune runs")
-    g.add_argument("--batch-size", type=int)
+    g.add_argument("--epochs", type=at_least(1), help="epochs of real-only and fine-tune runs")
+    g.add_argument("--batch-size", type=at_least(1), help="images per step (default: TrainConfig's)")
     g.add_argument("--lr", type=float, help="learning rate of pretrain and real-only runs")
     g.add_argument("--patience", type=int, help="early stopping patience (epochs)")
-    g.add_argument("--workers", type=int, help="DataLoader workers")
-    g.add_argument("--max-minutes", type=float, help="time budget per real-only / fine-tune run")
+    g.add_argument("--workers", type=at_least(0), help="DataLoader workers")
+    g.add_argument("--max-minutes", type=positive_float, help="time budget per real-only / fine-tune run")
     add_set_arg(g)
     p.set_defaults(func=run)
 

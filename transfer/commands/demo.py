@@ -1,6 +1,8 @@
 """transfer demo: the toolkit's main job end to end on a fresh machine (≈9 min on 2 CPU cores)."""
 from __future__ import annotations
 
+from racklay.cli import at_least
+
 
 def add_demo_args(p) -> None:
     from ..demo import DemoConfig
@@ -8,8 +10,8 @@ def add_demo_args(p) -> None:
     d = DemoConfig()
     p.add_argument("--out", default=d.out, help=f"output folder (default {d.out}); a second run reuses finished steps")
     p.add_argument("--seed", type=int, default=d.seed, help="seed for data, training and augmentation")
-    p.add_argument("--n-synthetic", type=int, default=d.n_synthetic, help=f"synthetic images (default {d.n_synthetic})")
-    p.add_argument("--n-real", type=int, default=d.n_real, help=f"proxy-real images (default {d.n_real})")
+    p.add_argument("--n-synthetic", type=at_least(10), default=d.n_synthetic, help=f"synthetic images, >= 10 (default {d.n_synthetic})")
+    p.add_argument("--n-real", type=at_least(10), default=d.n_real, help=f"proxy-real images, >= 10 (default {d.n_real})")
     p.add_argument("--amp", choices=("none", "bf16"), default=d.amp,
                    help=f"training precision (default {d.amp}: CPU bf16 autocast, ≈2-3x faster on CPUs with AMX; none = fp32)")
     p.add_argument("--quick", action="store_true", help="a smoke run of well under a minute with tiny sizes (not meaningful numbers)")

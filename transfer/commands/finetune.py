@@ -1,6 +1,8 @@
 """transfer finetune: fine-tune a pretrain checkpoint on a small real set."""
 from __future__ import annotations
 
+from racklay.cli import at_least, positive_float
+
 from . import add_model_args, add_train_args, print_run, split_out, train_kwargs
 
 
@@ -26,7 +28,7 @@ def register(sub) -> None:
                    help="use only this fraction of the training split (reproducible by seed)")
     p.add_argument("--val-fraction", type=float, default=REAL_VAL_FRACTION,
                    help=f"share of the training split held out for early stopping (default {REAL_VAL_FRACTION:g})")
-    p.add_argument("--freeze-encoder-epochs", type=int, default=0,
+    p.add_argument("--freeze-encoder-epochs", type=at_least(0), default=0,
                    help="keep the ResNet encoder frozen for the first N epochs (default 0)")
     p.add_argument("--no-augment", action="store_true", help="disable the paper's augmentation")
     add_model_args(p, from_checkpoint=True)
