@@ -60,11 +60,12 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     if not path.is_file():
         raise DataError(f"{path}: image file not found")
     data = np.fromfile(str(path), dtype=np.uint8)
+    if path.suffix.lower() == ".png" and data[:8].tobytes() == b"\x89PNG\r\n\x1a\n" and not _png_complete(data):
+        # checked before decoding, so OpenCV prints no warning of its own
+        raise DataError(f"{path}: truncated PNG (no IEND chunk)")
     img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if img is None:
         raise DataError(f"{path}: not a readable image (corrupt, truncated or not an image)")
-    if path.suffix.lower() == ".png" and not _png_complete(data):
-        raise DataError(f"{path}: truncated PNG (no IEND chunk)")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
@@ -73,15 +74,27 @@ def _png_complete(data: np.ndarray) -> bool:
     return b"IEND" in tail
 
 
+def load_npy(path: str | os.PathLike) -> np.ndarray:
+    """np.load without pickles, with one-line errors (numpy's own advise allow_pickle for any
+    file that is not .npy, which is the wrong advice here)."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        magic = f.read(6)
+    if magic != b"\x93NUMPY":
+        raise DataError(f"{path}: not a .npy file (no NumPy header)")
+    try:
+        return np.load(path, allow_pickle=False)
+    except Exception as e:  # numpy raises several types for bad files
+        first = (str(e).splitlines() or [""])[0]
+        raise DataError(f"{path}: not a readable .npy array ({type(e).__name__}: {first})") from None
+
+
 def read_layout_file(path: str | os.PathLike, R: int | None = None, D: int | None = None) -> np.ndarray:
     """Load a RackLay .npy layout stack and return class ids (R, D, D) uint8. Strict."""
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: layout file not found")
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except Exception as e:  # numpy raises several types for bad files
-        raise DataError(f"{path}: not a readable .npy array ({type(e).__name__}: {e})") from None
+    arr = load_npy(path)
     try:
         L.check_stack(arr, R=R, D=D, source=str(path))
     except L.LayoutError as e:
@@ -267,11 +280,11 @@ def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None =
                 rep.problems.append(f"{p}: missing {view} layout for image {ds.image_path(sid).name}")
                 continue
             try:
-                arr = np.load(p, allow_pickle=False)
+                arr = load_npy(p)
                 L.check_stack(arr, R=R, D=D, source=str(p))
                 shapes[arr.shape] += 1
                 shape_of[p] = arr.shape
-            except L.LayoutError as e:
+            except (L.LayoutError, DataError) as e:
                 rep.problems.append(str(e))
             except Exception as e:
                 rep.problems.append(f"{p}: not a readable .npy array ({type(e).__name__})")

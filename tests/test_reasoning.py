@@ -382,6 +382,14 @@ def test_cli_analyze_layouts_and_malformed_file(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 1 and "stray value(s) [7]" in err and str(ds.layout_path("top", ids[1])) in err
 
+    # layouts whose photo is missing are still analysed (the photo only decorates the render)
+    lone = ds.split_ids("train")[0]
+    ds.image_path(lone).unlink()
+    out3 = tmp_path / "out3"
+    main(["analyze", "--layouts", str(ds.root), "--out", str(out3), "--no-render", "--format", "none"])
+    assert f"{lone}: Rack has " in capsys.readouterr().out
+    assert (out3 / f"{lone}.json").exists()
+
 
 def test_cli_usage_errors(tmp_path, capsys):
     from racklay.cli import main

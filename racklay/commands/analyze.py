@@ -18,7 +18,7 @@ def register(sub) -> None:
                     "occupied and free volume in m³. Layouts come from a trained model run on photos "
                     "(IMAGE_OR_FOLDER with --weights) or from a RackLay-format dataset's ground truth "
                     "(--layouts ROOT). Per image it prints one line (e.g. 'Rack has 4 shelves, 12 box "
-                    "stacks, and 0.83 m³ of free space available (41%%)') and writes OUT/ID.json (shelves, "
+                    "stacks, and 0.83 m³ of free space available (41%)') and writes OUT/ID.json (shelves, "
                     "boxes with metric extents, counts, volumes), OUT/ID.glb (binary glTF: opens in "
                     "Blender or any glTF viewer) and OUT/ID.png (3D render beside the photo), plus "
                     "OUT/summary.json. A file that cannot be read gets one error line naming it; the "
@@ -86,11 +86,12 @@ def _samples_from_layouts(args):
     if not views:
         raise DataError(f"{ds.root}: no topLayouts/ or frontLayouts/ folder")
     ids = ds.resolve(args.split)
-    if not ids:
-        # a dataset may have layouts but no Images/ (layouts only): list the layout files
+    if args.split in (None, "all"):
+        # every sample with layouts, photo or not (the photo only decorates the render): a layout
+        # file without an image is analysed, never skipped
         folder = ds.root / ("topLayouts" if "top" in views else "frontLayouts")
         prefix = views[0]
-        ids = sorted(p.stem[len(prefix):] for p in folder.glob(f"{prefix}*.npy"))
+        ids = sorted(set(ids) | {p.stem[len(prefix):] for p in folder.glob(f"{prefix}*.npy")})
     cfg = _config(args)
 
     def one(sid):

@@ -23,19 +23,31 @@ def run(args) -> int:
     from racklay.data import RackLayRoot
     from racklay.viz import layout_figure
 
+    from pathlib import Path
+
     ds = RackLayRoot(args.root)
+    if not ds.root.is_dir():
+        raise CLIError(f"{ds.root}: dataset folder not found")
+    ext = Path(args.out).suffix.lower()
+    if ext not in (".png", ".jpg", ".jpeg", ".pdf", ".svg"):
+        raise CLIError(f"{args.out}: unsupported figure format {ext or '(none)'!r}; use .png, .jpg, .pdf or .svg")
     ids = ds.resolve(args.split)
     if args.id is not None:
         sid = args.id
     else:
         if not ids:
-            raise CLIError(f"{ds.root}: no images")
+            where = f"split {args.split!r} of {ds.root} is empty" if args.split not in (None, "all") \
+                else f"{ds.root}: no images in {ds.root / 'Images'}"
+            raise CLIError(where)
         if not 0 <= args.index < len(ids):
             raise CLIError(f"--index {args.index} out of range: {ds.root} has {len(ids)} samples")
         sid = ids[args.index]
     views = ds.views()
     top = ds.read_layouts("top", sid) if "top" in views else None
     front = ds.read_layouts("front", sid) if "front" in views else None
+    if top is not None and front is not None and top.shape != front.shape:
+        raise CLIError(f"{ds.layout_path('front', sid)}: shape {front.shape} differs from its top "
+                       f"layout's {top.shape} ({ds.layout_path('top', sid)})")
     layout_figure(ds.read_image(sid), top, front, out=args.out, title=f"{ds.root.name} / {sid}",
                   crop=not args.full)
     print(f"figure written to {args.out}")
