@@ -43,7 +43,8 @@ def require_split(root: str | os.PathLike, split: str, what: str) -> RackLayRoot
     ds = RackLayRoot(root)
     if not ds.root.is_dir():
         raise DataError(f"{ds.root}: {what} dataset folder not found")
-    ds.split_ids(split)  # raises DataError naming the split files that exist
+    if not ds.split_ids(split):  # raises DataError naming the split files that exist
+        raise DataError(f"{ds.split_path(split)}: {what} split {split!r} is empty")
     return ds
 
 
