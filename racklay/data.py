@@ -237,7 +237,7 @@ class CheckReport:
 
     def summary(self) -> str:
         sp = ", ".join(f"{k}={v}" for k, v in self.splits.items()) or "none"
-        shape = f"R={self.R}, D={self.D}" if self.R else "no layouts"
+        shape = f"R={self.R}, D={self.D}" if self.R else ("no valid layouts" if self.views else "no layouts")
         status = "OK" if self.ok else f"{len(self.problems)} problem(s)"
         return (f"{self.root}: {self.samples} samples, views: {', '.join(self.views) or 'none'}, "
                 f"{shape}, splits: {sp} -> {status}")
