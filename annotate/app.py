@@ -888,11 +888,55 @@ def load_predictor(model: str | None, backend: str = "torch"):
     return Predictor(model, backend=backend)
 
 
+class PortError(ValueError):
+    """The server cannot listen on the requested address and port."""
+
+
+def _port_message(host: str, port: int, reason: str, hint: str = "choose another --port") -> str:
+    return f"cannot serve on {host}:{port} ({reason}); {hint}"
+
+
+def check_port(host: str, port: int) -> None:
+    """Refuse a port that cannot be bound before the app (and a model) is loaded. Binds the way
+    gradio does (SO_REUSEADDR), then lets go at once."""
+    import socket
+
+    if not 1 <= port <= 65535:
+        raise PortError(f"--port: {port} is not a port number (1-65535)")
+    bind_host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    try:
+        infos = socket.getaddrinfo(bind_host, port, type=socket.SOCK_STREAM)
+    except OSError as e:
+        raise PortError(_port_message(host, port, f"unknown address: {e.strerror or type(e).__name__}",
+                                      "check --host")) from None
+    family, _, _, _, addr = infos[0]
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind(addr)
+    except OSError as e:
+        import errno
+
+        reason = (e.strerror or type(e).__name__).lower()
+        if e.errno == errno.EADDRNOTAVAIL:
+            raise PortError(_port_message(host, port, f"{reason}: not an address of this machine",
+                                          "check --host")) from None
+        raise PortError(_port_message(host, port, reason)) from None
+
+
 def serve(project_dir, host: str = "127.0.0.1", port: int = 7860, model: str | None = None,
           backend: str = "torch", auth=None, block: bool = True):
+    check_port(host, port)
     project = Project(project_dir)
     demo = build_app(project, load_predictor(model, backend), user=auth[0] if auth else None)
     kw = launch_kwargs(host, port, auth)
+    try:
+        demo.launch(prevent_thread_lock=True, **kw)
+    except OSError as e:
+        if "Cannot find empty port" not in str(e):
+            raise
+        raise PortError(_port_message(host, port, "the port is in use")) from None
     print(f"annotate: serving {project.root} ({len(project.images())} images) at http://{host}:{port}")
-    demo.launch(prevent_thread_lock=not block, **kw)
+    if block:
+        demo.block_thread()
     return demo

@@ -223,3 +223,36 @@ def test_rack_size_and_preset(proj):
     assert "⚠" in st["msg"] and proj.load("r.png")["rack"]["width"] > 0
     st = tool.set_rack(st, preset_name="longspan 2.4 × 2.4 × 0.8 m")
     assert proj.load("r.png")["rack"]["depth"] == 0.8
+
+
+@pytest.mark.parametrize("port", ["99999", "-1", "0", "http"])
+def test_serve_port_out_of_range_refused(proj, port, capsys):
+    from annotate.cli import main as annotate_main
+
+    with pytest.raises(SystemExit) as e:
+        annotate_main(["serve", str(proj.root), "--port", port])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "argument --port" in err and "not a port number (1-65535)" in err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("checked", [True, False])
+def test_serve_busy_port_one_line(proj, monkeypatch, capsys, checked):
+    """A busy port is refused before the app is built, and gradio's own port error (the race
+    after the check) is turned into the same one line."""
+    import socket
+
+    import annotate.app as A
+    from annotate.cli import main as annotate_main
+
+    if not checked:
+        monkeypatch.setattr(A, "check_port", lambda host, port: None)
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        rc = annotate_main(["serve", str(proj.root), "--port", str(port)])
+    out, err = capsys.readouterr()
+    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"cannot serve on 127.0.0.1:{port}" in err and "choose another --port" in err
+    assert "serving" not in out

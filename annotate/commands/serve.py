@@ -2,6 +2,19 @@
 from __future__ import annotations
 
 
+def port_number(text: str) -> int:
+    """argparse type of --port: a whole number from 1 to 65535."""
+    import argparse
+
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number (1-65535)") from None
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port} is not a port number (1-65535)")
+    return port
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "serve", help="open the annotation tool in the browser",
@@ -11,7 +24,8 @@ def register(sub) -> None:
                     "internet. Open the printed address in a browser.")
     p.add_argument("project", help="project folder (created if missing)")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, default=7860, help="port (default 7860)")
+    p.add_argument("--port", type=port_number, default=7860,
+                   help="port, 1-65535 (default 7860); a busy port is refused with a one-line error")
     p.add_argument("--model", default=None, help="checkpoint for model-assisted pre-labels (racklay.predict.Predictor)")
     p.add_argument("--backend", default="torch", choices=("torch", "onnx"), help="prediction backend for --model")
     p.add_argument("--auth", default=None, metavar="USER:PASSWORD", help="require this login")
