@@ -2,23 +2,30 @@
 
 Export computes each image's layouts with annotate.geometry (which draws through
 racklay.layout) and writes them with racklay.data.RackLayRoot, so the result is exactly what
-`racklay check-data` and the training code read. Every annotation is checked before the first
-file is written: a bad one stops the export with a message naming it.
+`racklay check-data` and the training code read. Both directions check everything first (every
+annotation and photo on export; every photo and layout file on import) and stop at the first bad
+file with a message naming it, before anything is written. Export then builds the dataset in a
+hidden folder beside --out and renames it into place; import removes what it wrote if a write
+fails. Either way a failed run leaves nothing half-written.
 """
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
+import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from racklay import layout as L
 from racklay.atomic import atomic_save_npy, encode_png
-from racklay.data import RackLayRoot, make_splits
+from racklay.data import IMAGES_DIR, VIEW_DIRS, VIEW_PREFIX, DataError, RackLayRoot, make_splits
 
 from . import geometry as G
 from . import schema as S
-from .store import ANN_DIR, IMPORT_DIR, Project, StoreError
+from .store import ANN_DIR, IMPORT_DIR, MAX_PIXELS, MAX_SIDE, Project, StoreError
 
 
 def parse_counts(text: str, what: str = "--split") -> dict[str, float]:
@@ -39,9 +46,20 @@ def parse_counts(text: str, what: str = "--split") -> dict[str, float]:
     return out
 
 
+def check_fractions(fractions: dict[str, float], what: str = "--split-fractions") -> None:
+    """Split fractions must cover every exported image: they sum to 1 (within 1e-6)."""
+    total = sum(fractions.values())
+    if abs(total - 1) > 1e-6:
+        given = ",".join(f"{k}={v:g}" for k, v in fractions.items())
+        raise ValueError(f"{what}: the fractions must sum to 1, but {given} sum to {total:.6g}")
+
+
 def split_ids(ids: list[str], counts: dict[str, float] | None = None,
               fractions: dict[str, float] | None = None, seed: int = 0) -> dict[str, list[str]]:
-    """Reproducible splits by exact counts or by fractions (racklay.data.make_splits)."""
+    """Reproducible splits by exact counts or by fractions (racklay.data.make_splits; the
+    fractions must sum to 1)."""
+    if fractions is not None:
+        check_fractions(fractions)
     if counts is not None:
         need = int(sum(counts.values()))
         if any(c != int(c) for c in counts.values()):
@@ -67,16 +85,44 @@ def annotation_layouts(project: Project, ann: dict) -> tuple[np.ndarray, np.ndar
     return top, front, scene
 
 
+def _dir_mode() -> int:
+    """The mode a plain mkdir gives a folder (0777 minus the umask); mkdtemp makes 0700 ones."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o777 & ~mask
+
+
+def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict:
+    return {"source": "annotate", "source_image": name, "annotation_version": ann["version"],
+            "status": ann["status"], "rack": {k: ann["rack"][k] for k in ("width", "height", "depth", "preset")},
+            "shelf_heights_m": [round(v, 4) for v in scene.shelf_v],
+            "clear_heights_m": [round(v, 4) for v in scene.clear],
+            "boxes": [{"id": b.id, "shelf": b.shelf, "x0": round(b.u0 - scene.width / 2, 4),
+                       "x1": round(b.u1 - scene.width / 2, 4), "z0": round(b.z0, 4),
+                       "height": round(b.v1 - b.v0, 4), "depth": round(b.depth, 4),
+                       "front_offset": round(b.front_offset, 4)} for b in scene.boxes],
+            "grid": {"D": project.settings["D"], "extent": project.settings["extent"]},
+            "warnings": scene.warnings}
+
+
 def export_project(project: Project, out: str | os.PathLike, counts=None, fractions=None, seed: int = 0,
                    only_status=("done", "approved"), progress: bool = False) -> dict:
     """Write every annotation whose status is in `only_status` as a RackLay sample. Returns a
-    summary dict. Refuses a non-empty output folder."""
+    summary dict. Refuses a non-empty output folder.
+
+    Every annotation, its layouts and its photo are checked before anything is written; the
+    dataset is then built in a hidden temporary folder beside `out` and renamed to `out` at the
+    end, so a failure (or a kill) never leaves a half-written dataset at `out`."""
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: is a file, expected a folder")
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out}: output folder is not empty; choose a new folder")
     bad = [s for s in only_status if s not in S.STATUSES]
     if bad:
         raise ValueError(f"--only-status: unknown status {bad[0]!r} (statuses: {', '.join(S.STATUSES)})")
+    if fractions is not None:
+        check_fractions(fractions)
     chosen = []
     for name in project.images():
         p = project.annotation_path(name)
@@ -86,77 +132,144 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         if ann["status"] not in only_status:
             continue
         try:
-            top, front, scene = annotation_layouts(project, ann)
+            annotation_layouts(project, ann)
         except (G.GeometryError, ValueError) as e:
             raise ValueError(f"{p}: cannot export ({e})") from None
-        chosen.append((name, ann, scene))
+        project.read_image(name)  # an unreadable photo stops the export, naming itself
+        chosen.append((name, ann))
     if not chosen:
         raise ValueError(f"{project.root}: no annotation with status {', '.join(only_status)} to export")
     sids = [f"{k:06d}" for k in range(len(chosen))]
-    splits = split_ids(sids, counts, fractions, seed)  # checked before anything is written
-    ds = RackLayRoot(out)
-    it = zip(sids, chosen)
-    if progress:
-        from tqdm import tqdm
-        it = tqdm(list(it), desc="export", unit="img")
-    for sid, (name, ann, _) in it:
-        top, front, scene = annotation_layouts(project, ann)
-        image = project.read_image(name)
-        meta = {"source": "annotate", "source_image": name, "annotation_version": ann["version"],
-                "status": ann["status"], "rack": {k: ann["rack"][k] for k in ("width", "height", "depth", "preset")},
-                "shelf_heights_m": [round(v, 4) for v in scene.shelf_v],
-                "clear_heights_m": [round(v, 4) for v in scene.clear],
-                "boxes": [{"id": b.id, "shelf": b.shelf, "x0": round(b.u0 - scene.width / 2, 4),
-                           "x1": round(b.u1 - scene.width / 2, 4), "z0": round(b.z0, 4),
-                           "height": round(b.v1 - b.v0, 4), "depth": round(b.depth, 4),
-                           "front_offset": round(b.front_offset, 4)} for b in scene.boxes],
-                "grid": {"D": project.settings["D"], "extent": project.settings["extent"]},
-                "warnings": scene.warnings}
-        ds.write_sample(sid, image_bytes=encode_png(image), top=top, front=front, meta=meta)
-    for name, ids in splits.items():
-        ds.write_split(name, ids)
+    splits = split_ids(sids, counts, fractions, seed)
+    # everything checked: build the dataset beside `out`, then rename it into place
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    try:
+        os.chmod(tmp, _dir_mode())
+        ds = RackLayRoot(tmp)
+        it = zip(sids, chosen)
+        if progress:
+            from tqdm import tqdm
+            it = tqdm(list(it), desc="export", unit="img")
+        for sid, (name, ann) in it:
+            top, front, scene = annotation_layouts(project, ann)
+            ds.write_sample(sid, image_bytes=encode_png(project.read_image(name)), top=top, front=front,
+                            meta=_sample_meta(project, name, ann, scene))
+        for split, ids in splits.items():
+            ds.write_split(split, ids)
+        os.rename(tmp, out)  # atomic; replaces `out` only if it is an empty folder
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     return {"out": str(out), "images": len(chosen), "splits": {k: len(v) for k, v in splits.items()}}
 
 
-def import_dataset(root: str | os.PathLike, project: Project, split: str | None = None) -> list[str]:
-    """Bring a RackLay dataset's images and layouts into a project for review: photos are copied
-    (as DATASETNAME_ID.png), layouts into imported/, and each image gets status 'needs review'
-    with its layouts attached read-only. Returns the image names added."""
+@dataclass
+class ImportPlan:
+    """A RackLay dataset checked for `annotate import`: every listed sample's photo decodes and
+    every layout file decodes with the same (R, D)."""
+    ds: RackLayRoot
+    ids: list[str]
+    views: tuple[str, ...]
+    R: int
+    D: int
+    prefix: str
+
+    def name(self, sid: str) -> str:
+        return f"{self.prefix}_{sid}.png"
+
+
+def check_import(root: str | os.PathLike, split: str | None = None) -> ImportPlan:
+    """Read every sample `annotate import` would bring in and refuse the dataset at the first
+    bad or missing file, naming it. Nothing is written."""
     ds = RackLayRoot(root)
+    if not ds.root.is_dir():
+        raise DataError(f"{ds.root}: dataset folder not found")
     ids = ds.resolve(split)
-    if not ids:
-        raise ValueError(f"{ds.root}: no images to import")
-    prefix = "".join(c if c.isalnum() or c in "-_" else "_" for c in ds.root.resolve().name) or "import"
     views = ds.views()
     if not views:
         raise ValueError(f"{ds.root}: no topLayouts/ or frontLayouts/ folder")
-    # R and D must match the project's (empty project: adopt the dataset's)
-    first = ds.read_layouts(views[0], ids[0])
-    R, D = first.shape[0], first.shape[-1]
-    st = project.settings
-    if (st["R"], st["D"]) != (R, D):
-        if list((project.root / ANN_DIR).glob("*.json")) if (project.root / ANN_DIR).is_dir() else []:
-            raise ValueError(f"{ds.root}: layouts are R={R}, D={D} but the project uses R={st['R']}, D={st['D']}")
-        project.save_settings(dict(st, R=R, D=D))
-    added = []
-    for sid in ids:
-        name = f"{prefix}_{sid}.png"
-        if project.image_path(name).exists():
-            raise StoreError(f"{project.root / name}: already in the project (imported before?)")
-        image = ds.read_image(sid)
-        imp = {"dataset": str(ds.root.resolve()), "id": sid, "top": None, "front": None}
+    if split in (None, "all"):
+        # a sample with layouts but no photo would otherwise be left out without a word
+        have = set(ids)
         for view in views:
-            arr = ds.read_layouts(view, sid, R=R, D=D)
-            rel = f"{IMPORT_DIR}/{name}.{view}.npy"
-            atomic_save_npy(project.project_file(rel), L.encode(arr))
-            imp[view] = rel
-        project.add_image(name, encode_png(image))
-        ann = S.new_annotation(name, image.shape[1], image.shape[0])
-        ann["status"] = "needs review"
-        ann["imported"] = imp
-        project.save(ann, user="annotate import")
-        added.append(name)
-    return added
+            pre = VIEW_PREFIX[view]
+            for f in sorted((ds.root / VIEW_DIRS[view]).glob(f"{pre}*.npy")):
+                sid = f.name[len(pre):-len(".npy")]
+                if sid not in have:
+                    raise DataError(f"{ds.root / IMAGES_DIR / (sid + '.png')}: image file not found "
+                                    f"(the sample has layouts {f})")
+    if not ids:
+        raise ValueError(f"{ds.root}: no images to import")
+    prefix = "".join(c if c.isalnum() or c in "-_" else "_" for c in ds.root.resolve().name) or "import"
+    first = ds.read_layouts(views[0], ids[0])
+    plan = ImportPlan(ds, list(ids), views, first.shape[0], first.shape[-1], prefix)
+    for sid in ids:
+        if not ds.image_path(sid).is_file():
+            missing = [str(ds.layout_path(v, sid)) for v in views if ds.layout_path(v, sid).is_file()]
+            has = f" (the sample has layouts {', '.join(missing)})" if missing else ""
+            raise DataError(f"{ds.image_path(sid)}: image file not found{has}")
+        image = ds.read_image(sid)
+        h, w = image.shape[:2]
+        if w * h > MAX_PIXELS or max(w, h) > MAX_SIDE:
+            raise DataError(f"{ds.image_path(sid)}: {w}x{h} pixels is over the project's limit "
+                            f"({MAX_PIXELS // 10**6} Mpx, {MAX_SIDE} px a side)")
+        for view in views:
+            ds.read_layouts(view, sid, R=plan.R, D=plan.D)
+    return plan
+
+
+def import_dataset(root: str | os.PathLike | ImportPlan, project: Project, split: str | None = None) -> list[str]:
+    """Bring a RackLay dataset's images and layouts into a project for review: photos are copied
+    (as DATASETNAME_ID.png), layouts into imported/, and each image gets status 'needs review'
+    with its layouts attached read-only. Returns the image names added.
+
+    `root` is a dataset folder or the ImportPlan of check_import(). Every sample and the project
+    are checked before the first write; if a write fails, what was written is removed again."""
+    plan = root if isinstance(root, ImportPlan) else check_import(root, split)
+    ds, R, D = plan.ds, plan.R, plan.D
+    st = project.settings
+    # R and D must match the project's (a project without annotations adopts the dataset's)
+    if (st["R"], st["D"]) != (R, D) and any((project.root / ANN_DIR).glob("*.json")):
+        raise ValueError(f"{ds.root}: layouts are R={R}, D={D} but the project uses R={st['R']}, D={st['D']}")
+    for sid in plan.ids:
+        name = plan.name(sid)
+        if project.image_path(name).exists() or project.annotation_path(name).exists():
+            raise StoreError(f"{project.root / name}: already in the project (imported before?)")
+    written: list[Path] = []
+    new_dirs = [d for d in (project.root / ANN_DIR / ".locks", project.root / ANN_DIR, project.root / IMPORT_DIR)
+                if not d.exists()]
+    try:
+        if (st["R"], st["D"]) != (R, D):  # an empty project adopts the dataset's R and D
+            project.save_settings(dict(st, R=R, D=D))
+        for sid in plan.ids:
+            name = plan.name(sid)
+            imp = {"dataset": str(ds.root.resolve()), "id": sid, "top": None, "front": None}
+            for view in plan.views:
+                arr = ds.read_layouts(view, sid, R=R, D=D)
+                rel = f"{IMPORT_DIR}/{name}.{view}.npy"
+                atomic_save_npy(project.project_file(rel), L.encode(arr))
+                written.append(project.project_file(rel))
+                imp[view] = rel
+            image = ds.read_image(sid)
+            project.add_image(name, encode_png(image))
+            written.append(project.image_path(name))
+            ann = S.new_annotation(name, image.shape[1], image.shape[0])
+            ann["status"] = "needs review"
+            ann["imported"] = imp
+            written.append(project.root / ANN_DIR / ".locks" / f"{name}.lock")  # (a new name: ours)
+            project.save(ann, user="annotate import")
+            written.append(project.annotation_path(name))
+    except BaseException:
+        for p in written:
+            p.unlink(missing_ok=True)
+        for d in new_dirs:
+            with contextlib.suppress(OSError):
+                d.rmdir()  # only if still empty
+        if project.settings is not st:
+            project.save_settings(st)
+        raise
+    return [plan.name(sid) for sid in plan.ids]
 
 
 def read_imported(project: Project, ann: dict) -> dict[str, np.ndarray]:

@@ -99,3 +99,117 @@ def test_import_round_trip(tmp_path, capsys):
     assert proj.load("p0.png")["boxes"]  # (source project untouched)
     assert annotate_main(["import", str(out), str(rev)]) == 2
     assert "already in the project" in capsys.readouterr().err
+
+
+def tree(path):
+    """Every file and folder under `path` (relative), to show that a refused command wrote nothing."""
+    return sorted(str(p.relative_to(path)) for p in path.rglob("*")) if path.exists() else None
+
+
+def one_line_error(capsys):
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_export_unreadable_photo_writes_nothing(tmp_path, capsys):
+    proj = make_project(tmp_path, 4)
+    good = (proj.root / "p2.png").read_bytes()
+    (proj.root / "p2.png").write_text("not a photo\n")  # the 3rd photo
+    before = tree(tmp_path)
+    out = tmp_path / "ds"
+    rc = annotate_main(["export", str(proj.root), "--out", str(out)])
+    err = one_line_error(capsys)
+    assert rc == 2 and "p2.png: not a readable PNG/JPEG image" in err
+    assert tree(tmp_path) == before  # no dataset, no temporary folder beside it
+    # an empty --out folder stays empty on failure and is filled on success
+    out.mkdir()
+    assert annotate_main(["export", str(proj.root), "--out", str(out)]) == 2
+    one_line_error(capsys)
+    assert tree(out) == []
+    (proj.root / "p2.png").write_bytes(good)
+    assert annotate_main(["export", str(proj.root), "--out", str(out)]) == 0
+    rep = check_dataset(out)
+    assert rep.ok and rep.samples == 4 and rep.splits == {"train": 3, "test": 1}, rep.problems
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "proj"]
+
+
+def test_export_split_fractions_must_sum_to_one(tmp_path, capsys):
+    proj = make_project(tmp_path, 2)
+    out = tmp_path / "ds"
+    rc = annotate_main(["export", str(proj.root), "--out", str(out), "--split-fractions", "train=0.5,test=0.2"])
+    err = one_line_error(capsys)
+    assert rc == 2 and "--split-fractions" in err and "sum to 0.7" in err
+    assert not out.exists()
+    rc = annotate_main(["export", str(proj.root), "--out", str(out), "--split-fractions", "train=0.7,val=0.1,test=0.2"])
+    assert rc == 0 and check_dataset(out).splits == {"train": 1, "val": 0, "test": 1}
+
+
+def exported(tmp_path, n=5):
+    proj = make_project(tmp_path, n)
+    out = tmp_path / "ds"
+    assert annotate_main(["export", str(proj.root), "--out", str(out), "--split", f"train={n}"]) == 0
+    return out
+
+
+@pytest.mark.parametrize("bad", ["corrupt", "shape"])
+def test_import_bad_layout_imports_nothing(tmp_path, capsys, bad):
+    out = exported(tmp_path)
+    capsys.readouterr()
+    f = out / "frontLayouts" / "front000003.npy"  # the 4th sample
+    good = f.read_bytes()
+    if bad == "corrupt":
+        f.write_bytes(good[:100])
+    else:
+        np.save(f, np.load(f)[:2])  # 2 shelves where the others have 4
+    rev = tmp_path / "review"
+    rc = annotate_main(["import", str(out), str(rev)])
+    err = one_line_error(capsys)
+    assert rc == 2 and f"{f}:" in err
+    assert not rev.exists()  # the project was not even created
+    # an existing project is left exactly as it was
+    Project(rev)
+    before = tree(rev)
+    assert annotate_main(["import", str(out), str(rev)]) == 2
+    assert f"{f}:" in one_line_error(capsys) and tree(rev) == before
+    f.write_bytes(good)  # fixed: the retry imports every sample
+    assert annotate_main(["import", str(out), str(rev)]) == 0
+    assert "imported 5 image(s)" in capsys.readouterr().out
+    assert Project(rev).images() == [f"ds_00000{k}.png" for k in range(5)]
+
+
+def test_import_refuses_layouts_without_photo(tmp_path, capsys):
+    out = exported(tmp_path)
+    capsys.readouterr()
+    (out / "Images" / "000002.png").unlink()
+    rev = tmp_path / "review"
+    rc = annotate_main(["import", str(out), str(rev)])
+    err = one_line_error(capsys)
+    assert rc == 2 and f"{out / 'Images' / '000002.png'}: image file not found" in err
+    assert "top000002.npy" in err
+    assert not rev.exists()
+    # the same through a split file that lists the sample
+    rc = annotate_main(["import", str(out), str(rev), "--split", "train"])
+    assert rc == 2 and f"{out / 'Images' / '000002.png'}: image file not found" in one_line_error(capsys)
+    assert not rev.exists()
+
+
+def test_import_write_failure_rolls_back(tmp_path, capsys, monkeypatch):
+    out = exported(tmp_path)
+    rev = tmp_path / "review"
+    proj = Project(rev)
+    before, settings = tree(rev), dict(proj.settings)
+    real_save, calls = Project.save, []
+
+    def save(self, ann, user=None):  # the disk fills up at the 3rd sample
+        calls.append(ann["image"])
+        if len(calls) == 3:
+            raise OSError(28, "No space left on device", str(self.annotation_path(ann["image"])))
+        return real_save(self, ann, user)
+
+    monkeypatch.setattr(Project, "save", save)
+    with pytest.raises(OSError):
+        from annotate.dataset import import_dataset
+        import_dataset(out, proj)
+    assert calls[2] == "ds_000002.png" and tree(rev) == before
+    assert Project(rev).settings == settings

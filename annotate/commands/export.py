@@ -11,13 +11,15 @@ def register(sub) -> None:
                     "RackLay-format dataset (Images/, topLayouts/, frontLayouts/, meta/, splits/) that "
                     "`racklay check-data` accepts and training / `transfer finetune` read. Samples are "
                     "numbered 000000... in file-name order; meta/NNNNNN.json names the source photo. "
-                    "Every annotation is checked before anything is written.")
+                    "Every annotation and photo is checked before anything is written; the dataset is "
+                    "built in a hidden folder beside --out and renamed to --out at the end, so a failed "
+                    "export leaves nothing behind.")
     p.add_argument("project", help="project folder")
     p.add_argument("--out", required=True, help="dataset folder to create (must be new or empty)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--split", default=None, help="exact split sizes, e.g. train=442,test=100")
     g.add_argument("--split-fractions", default=None,
-                   help="split fractions, e.g. train=0.8,test=0.2 (the default)")
+                   help="split fractions summing to 1, e.g. train=0.8,test=0.2 (the default)")
     p.add_argument("--seed", type=int, default=0, help="seed of the split shuffle (default 0)")
     p.add_argument("--only-status", default="done,approved",
                    help="export images with these statuses (default done,approved)")
