@@ -123,13 +123,17 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         raise ValueError(f"--only-status: unknown status {bad[0]!r} (statuses: {', '.join(S.STATUSES)})")
     if fractions is not None:
         check_fractions(fractions)
-    chosen = []
-    for name in project.images():
+    chosen, other_status, unannotated = [], {}, 0
+    photos = project.images()
+    ann_dir = project.root / ANN_DIR
+    for name in photos:
         p = project.annotation_path(name)
         if not p.exists():
+            unannotated += 1
             continue
         ann = S.load_annotation(p)  # a bad file stops the export, naming itself
         if ann["status"] not in only_status:
+            other_status[ann["status"]] = other_status.get(ann["status"], 0) + 1
             continue
         try:
             annotation_layouts(project, ann)
@@ -161,7 +165,14 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return {"out": str(out), "images": len(chosen), "splits": {k: len(v) for k, v in splits.items()}}
+    # said, never silent: what was left out and why (annotations whose photo left the project
+    # cannot be exported, but they are listed)
+    orphans = []
+    if ann_dir.is_dir():
+        have = set(photos)
+        orphans = sorted(str(q) for q in ann_dir.glob("*.json") if q.stem not in have)
+    return {"out": str(out), "images": len(chosen), "splits": {k: len(v) for k, v in splits.items()},
+            "left_out": {"other_status": other_status, "unannotated": unannotated, "no_photo": orphans}}
 
 
 @dataclass

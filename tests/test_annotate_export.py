@@ -36,7 +36,9 @@ def test_export_check_data_clean(tmp_path, capsys):
     out = tmp_path / "ds"
     rc = annotate_main(["export", str(proj.root), "--out", str(out), "--split", "train=2,test=1", "--seed", "3"])
     assert rc == 0
-    assert "exported 3 image(s)" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "exported 3 image(s)" in printed
+    assert "left out: 1 with status in progress; 1 with status needs review" in printed
     rep = check_dataset(out)
     assert rep.ok, rep.problems
     assert rep.samples == 3 and rep.splits == {"train": 2, "test": 1} and (rep.R, rep.D) == (4, 256)
@@ -51,6 +53,12 @@ def test_export_check_data_clean(tmp_path, capsys):
     # same seed, same split; a non-empty output folder is refused
     rc = annotate_main(["export", str(proj.root), "--out", str(out)])
     assert rc == 2 and "not empty" in capsys.readouterr().err
+    # an annotation whose photo left the project cannot be exported, but it is named, not silent
+    (proj.root / "p0.png").unlink()
+    assert annotate_main(["export", str(proj.root), "--out", str(tmp_path / "ds2")]) == 0
+    printed = capsys.readouterr().out
+    assert "exported 2 image(s)" in printed
+    assert "1 annotation file(s) whose photo is no longer in the project" in printed and "p0.png.json" in printed
 
 
 def test_export_refuses_incomplete_and_bad_split(tmp_path, capsys):

@@ -38,4 +38,13 @@ def run(args) -> int:
                          only_status=statuses, progress=sys.stderr.isatty())
     sp = ", ".join(f"{k}={v}" for k, v in res["splits"].items())
     print(f"exported {res['images']} image(s) to {res['out']} (splits: {sp})")
+    lo = res["left_out"]
+    parts = [f"{n} with status {st}" for st, n in sorted(lo["other_status"].items())]
+    if lo["unannotated"]:
+        parts.append(f"{lo['unannotated']} photo(s) not annotated")
+    if lo["no_photo"]:
+        parts.append(f"{len(lo['no_photo'])} annotation file(s) whose photo is no longer in the project "
+                     f"(first: {lo['no_photo'][0]})")
+    if parts:
+        print("left out: " + "; ".join(parts))
     return 0
