@@ -18,16 +18,28 @@ def add_model_args(p: argparse.ArgumentParser, from_checkpoint: bool = False) ->
                             "default is on, --no-disc is ~25%% faster)")
 
 
-def add_train_args(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("training (defaults: racklay.train.TrainConfig's)")
-    g.add_argument("--epochs", type=at_least(1), help="training epochs (default: TrainConfig's)")
-    g.add_argument("--batch-size", type=at_least(1), help="images per step (default: TrainConfig's)")
-    g.add_argument("--lr", type=float, help="learning rate")
-    g.add_argument("--patience", type=int, help="early stopping: epochs without validation improvement")
-    g.add_argument("--workers", type=at_least(0), help="DataLoader workers (0 is often fastest on 2 cores)")
-    g.add_argument("--max-minutes", type=positive_float, help="time budget for the run; stops cleanly and keeps the best")
-    g.add_argument("--seed", type=int, default=0, help="seed for init, data order and augmentation (default 0)")
-    g.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same settings)")
+def add_train_args(p: argparse.ArgumentParser, title: str = "training (defaults: racklay.train.TrainConfig's)",
+                   helps: dict | None = None, single_run: bool = True) -> None:
+    """The TrainConfig flags every transfer command shares. `helps` overrides a flag's help text
+    (compare's apply to several runs); `single_run` adds --seed and --resume (compare has its own
+    --seeds and resumes by itself)."""
+    h = {"epochs": "training epochs (default: TrainConfig's)",
+         "batch-size": "images per step (default: TrainConfig's)",
+         "lr": "learning rate",
+         "patience": "early stopping: epochs without validation improvement (0: off)",
+         "workers": "DataLoader workers (0 is often fastest on 2 cores)",
+         "max-minutes": "time budget for the run; stops cleanly and keeps the best",
+         **(helps or {})}
+    g = p.add_argument_group(title)
+    g.add_argument("--epochs", type=at_least(1), help=h["epochs"])
+    g.add_argument("--batch-size", type=at_least(1), help=h["batch-size"])
+    g.add_argument("--lr", type=positive_float, help=h["lr"])
+    g.add_argument("--patience", type=at_least(0), help=h["patience"])
+    g.add_argument("--workers", type=at_least(0), help=h["workers"])
+    g.add_argument("--max-minutes", type=positive_float, help=h["max-minutes"])
+    if single_run:
+        g.add_argument("--seed", type=int, default=0, help="seed for init, data order and augmentation (default 0)")
+        g.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same settings)")
     add_set_arg(g)
 
 

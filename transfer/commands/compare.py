@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from racklay.cli import at_least, positive_float
 
-from . import add_model_args, add_set_arg, parse_sets
+from . import add_model_args, add_train_args, parse_sets
 
 
 def _floats(s: str) -> list[float]:
@@ -52,14 +52,10 @@ def register(sub) -> None:
     p.add_argument("--no-augment", action="store_true", help="train on real data without the paper's augmentation")
     p.add_argument("--eval-batch-size", type=at_least(1), default=8, help="images per forward pass when scoring (default 8)")
     add_model_args(p)
-    g = p.add_argument_group("training of every run (defaults: racklay.train.TrainConfig's)")
-    g.add_argument("--epochs", type=at_least(1), help="epochs of real-only and fine-tune runs")
-    g.add_argument("--batch-size", type=at_least(1), help="images per step (default: TrainConfig's)")
-    g.add_argument("--lr", type=float, help="learning rate of pretrain and real-only runs")
-    g.add_argument("--patience", type=int, help="early stopping patience (epochs)")
-    g.add_argument("--workers", type=at_least(0), help="DataLoader workers")
-    g.add_argument("--max-minutes", type=positive_float, help="time budget per real-only / fine-tune run")
-    add_set_arg(g)
+    add_train_args(p, "training of every run (defaults: racklay.train.TrainConfig's)", single_run=False, helps={
+        "epochs": "epochs of real-only and fine-tune runs",
+        "lr": "learning rate of pretrain and real-only runs",
+        "max-minutes": "time budget per real-only / fine-tune run"})
     p.set_defaults(func=run)
 
 
