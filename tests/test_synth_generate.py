@@ -122,6 +122,20 @@ def test_resume_after_interruption(tmp_path, reference):
     assert files(out) == files(reference)
 
 
+def test_resume_by_a_different_generator_version_is_refused(tmp_path):
+    """The manifest records the generator's code fingerprint: the same seed renders other scenes
+    under other code, so finishing a dataset with it would mix two generators."""
+    out = tmp_path / "v1"
+    generate_dataset(tiny(), 4, out, seed=3, progress=False, limit=2)
+    man = json.loads((out / "waresynth.json").read_text())
+    assert len(man["code"]) == 16 and man["version"]
+    man["code"] = "0" * 16
+    (out / "waresynth.json").write_text(json.dumps(man))
+    with pytest.raises(ValueError, match="different generator version"):
+        generate_dataset(tiny(), 4, out, seed=3, progress=False)
+    assert len(RackLayRoot(out).ids()) == 2
+
+
 def test_real_interrupt_leaves_no_partial_files(tmp_path):
     """Kill a CLI run mid-way; every listed sample is complete and a rerun finishes the set."""
     out = tmp_path / "killed"

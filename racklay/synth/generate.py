@@ -183,9 +183,25 @@ def is_done(root: RackLayRoot, index: int, recipe: Recipe) -> bool:
         root.layout_path("front", sid).exists()
 
 
+def generator_fingerprint() -> str:
+    """A short hash of the code that decides what a seed renders (racklay/synth/*.py and the
+    layout convention). Same seed + same recipe gives the same files only under the same
+    fingerprint; the manifest records it so a dataset is never resumed by different code."""
+    import hashlib
+
+    h = hashlib.sha256()
+    here = Path(__file__).resolve().parent
+    for f in sorted(here.glob("*.py")) + [here.parent / "layout.py"]:
+        h.update(f.name.encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]
+
+
 def check_manifest(out: Path, recipe: Recipe, n: int, seed: int) -> dict:
     """Write out/waresynth.json, or check that an existing one describes the same dataset."""
-    man = {"generator": "racklay synth (WareSynth)", "recipe": recipe.to_dict(), "n": int(n), "seed": int(seed)}
+    from .. import __version__
+
+    man = {"generator": "racklay synth (WareSynth)", "version": __version__, "code": generator_fingerprint(),
+           "recipe": recipe.to_dict(), "n": int(n), "seed": int(seed)}
     p = out / MANIFEST
     if p.exists():
         try:
@@ -197,6 +213,10 @@ def check_manifest(out: Path, recipe: Recipe, n: int, seed: int) -> dict:
         if diffs:
             raise ValueError(f"{p}: {out} holds a dataset made with different settings ({', '.join(diffs[:5])}); "
                              f"use another --out or the same recipe/--n/--seed to resume")
+        if "code" in old and old["code"] != man["code"]:
+            raise ValueError(f"{p}: {out} was made by a different generator version (code {old['code']}, "
+                             f"this one {man['code']}): its scenes would not match; finish it with that "
+                             f"version or use another --out")
     else:
         stray = next((f for f in out.rglob("*") if f.is_file()), None) if out.is_dir() else None
         if stray is not None:
