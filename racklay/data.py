@@ -28,6 +28,7 @@ from . import layout as L
 from .atomic import atomic_save_npy, atomic_save_png, atomic_write_json, atomic_write_text
 
 IMAGES_DIR, TOP_DIR, FRONT_DIR, META_DIR, SPLITS_DIR = "Images", "topLayouts", "frontLayouts", "meta", "splits"
+SYNTH_MANIFEST = "waresynth.json"   # written by racklay synth; marks a generated dataset
 VIEW_DIRS = {"top": TOP_DIR, "front": FRONT_DIR}
 VIEW_PREFIX = {"top": "top", "front": "front"}
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
@@ -46,7 +47,7 @@ def check_prediction_out(out: str | os.PathLike, data: str | os.PathLike | None 
     if data is not None and out.resolve() == Path(data).resolve():
         raise DataError(f"{out}: is the dataset being scored; predictions would overwrite its ground "
                         "truth; choose another output folder")
-    for marker in (SPLITS_DIR, "waresynth.json"):
+    for marker in (SPLITS_DIR, SYNTH_MANIFEST):
         if (out / marker).exists():
             raise DataError(f"{out}: holds a dataset with ground truth ({marker} found); predictions "
                             "would overwrite its layouts; choose another output folder")
@@ -129,6 +130,11 @@ class RackLayRoot:
         return self.root / SPLITS_DIR / f"{name}.txt"
 
     # --- listing ---
+    def layout_ids(self, view: str) -> list[str]:
+        """Ids of the view's layout files (PREFIXNNNNNN.npy), sorted, whether or not a photo exists."""
+        pre, d = VIEW_PREFIX[view], self.root / VIEW_DIRS[view]
+        return sorted(p.stem[len(pre):] for p in d.glob(f"{pre}*.npy")) if d.is_dir() else []
+
     def views(self) -> tuple[str, ...]:
         """Views present in this dataset (a layout folder exists)."""
         return tuple(v for v in L.VIEWS if (self.root / VIEW_DIRS[v]).is_dir())

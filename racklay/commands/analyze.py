@@ -89,9 +89,7 @@ def _samples_from_layouts(args):
     if args.split in (None, "all"):
         # every sample with layouts, photo or not (the photo only decorates the render): a layout
         # file without an image is analysed, never skipped
-        folder = ds.root / ("topLayouts" if "top" in views else "frontLayouts")
-        prefix = views[0]
-        ids = sorted(set(ids) | {p.stem[len(prefix):] for p in folder.glob(f"{prefix}*.npy")})
+        ids = sorted(set(ids) | set(ds.layout_ids(views[0])))
     cfg = _config(args)
 
     def one(sid):

@@ -21,7 +21,7 @@ def register(sub) -> None:
 def score_roots(pred_root, gt_root, split=None):
     """Metrics dict for predicted layouts in pred_root against gt_root."""
     from racklay.cli import CLIError
-    from racklay.data import RackLayRoot, VIEW_DIRS, VIEW_PREFIX
+    from racklay.data import RackLayRoot
     from racklay.metrics import LayoutMetrics
 
     for root, what in ((pred_root, "predictions"), (gt_root, "ground-truth dataset")):
@@ -32,10 +32,7 @@ def score_roots(pred_root, gt_root, split=None):
     if not views:
         raise CLIError(f"no common view: {pred.root} has {list(pred.views()) or 'no layouts'}, "
                        f"{gt.root} has {list(gt.views()) or 'no layouts'}")
-    predicted = {}
-    for view in views:
-        pdir = pred.root / VIEW_DIRS[view]
-        predicted[view] = {p.stem[len(VIEW_PREFIX[view]):] for p in pdir.glob(f"{VIEW_PREFIX[view]}*.npy")}
+    predicted = {view: set(pred.layout_ids(view)) for view in views}
     if split:
         ids = sorted(gt.resolve(split))
         if not ids:
@@ -49,7 +46,7 @@ def score_roots(pred_root, gt_root, split=None):
     for view in views:
         missing = [i for i in ids if i not in predicted[view]]
         if missing:
-            first = pred.root / VIEW_DIRS[view] / f"{VIEW_PREFIX[view]}{missing[0]}.npy"
+            first = pred.layout_path(view, missing[0])
             more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
             raise CLIError(f"{first}: prediction missing{more}; "
                            f"{len(ids)} image(s) to score in view {view}")

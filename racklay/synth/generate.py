@@ -18,10 +18,10 @@ import numpy as np
 
 from .. import layout as L
 from ..atomic import atomic_save_npy, atomic_write_bytes, atomic_write_json, atomic_write_text
-from ..data import RackLayRoot, make_splits
+from ..data import SYNTH_MANIFEST, RackLayRoot, make_splits
 from .recipe import Recipe, recipe_from_dict
 
-MANIFEST = "waresynth.json"
+MANIFEST = SYNTH_MANIFEST
 EXTRA_DIRS = {"depth": "depth", "normals": "normals", "semantic": "semantic", "instance": "instance",
               "kitti": "kitti"}
 STAGES = ("sample", "render", "groundtruth", "write")
