@@ -106,9 +106,7 @@ class TrainConfig:
             raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
         if self.val_fraction is not None and not 0 < self.val_fraction < 1:
             raise ValueError(f"val_fraction must be in (0, 1), got {self.val_fraction}")
-        if self.epochs < 1 or self.batch_size < 1:
-            raise ValueError("epochs and batch_size must be >= 1")
-        for name, lo in (("warmup_steps", 0), ("workers", 0), ("disc_start", 0), ("seed", 0),
+        for name, lo in (("epochs", 1), ("batch_size", 1), ("warmup_steps", 0), ("workers", 0), ("disc_start", 0), ("seed", 0),
                          ("freeze_encoder_epochs", 0), ("checkpoint_every", 0), ("patience", 0),
                          ("threads", 1)):
             v = getattr(self, name)
@@ -476,6 +474,7 @@ def train(cfg: TrainConfig, transform=None) -> Path:
     t_start = time.time()
     dist = _Dist(cfg.device)
     device = dist.device
+    made_dir = False   # this call created the run folder (removed again if it fails before a checkpoint)
     try:
         if device.type == "cpu":
             torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // dist.world))
@@ -697,7 +696,7 @@ def train(cfg: TrainConfig, transform=None) -> Path:
     except BaseException:
         # a run that fails before its first checkpoint (bad data, a mismatched R, Ctrl-C) leaves
         # no folder behind: nothing in it could be resumed, and its name stays free
-        if dist.main and locals().get("made_dir") and not (run_dir / "last.safetensors").exists():
+        if dist.main and made_dir and not (run_dir / "last.safetensors").exists():
             shutil.rmtree(run_dir, ignore_errors=True)
         raise
     finally:

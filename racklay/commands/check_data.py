@@ -1,7 +1,7 @@
 """racklay check-data ROOT"""
 from __future__ import annotations
 
-from racklay.cli import at_least, positive_float
+from racklay.cli import at_least
 
 import json
 import sys

@@ -2,7 +2,7 @@
 `--toy` keeps the quick schematic demo of the data/metrics layer (seconds, no training)."""
 from __future__ import annotations
 
-from racklay.cli import at_least, positive_float
+from racklay.cli import at_least
 
 from pathlib import Path
 

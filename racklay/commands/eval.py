@@ -1,7 +1,7 @@
 """racklay eval --weights W --data ROOT --split test [--json out.json]"""
 from __future__ import annotations
 
-from racklay.cli import at_least, positive_float
+from racklay.cli import at_least
 
 
 def register(sub) -> None:

@@ -1,7 +1,7 @@
 """racklay export --weights W --onnx out.onnx"""
 from __future__ import annotations
 
-from racklay.cli import at_least, positive_float
+from racklay.cli import positive_float
 
 
 def register(sub) -> None:

@@ -1,7 +1,7 @@
 """racklay predict IMAGES_OR_FOLDER... --weights W --out DIR"""
 from __future__ import annotations
 
-from racklay.cli import at_least, positive_float
+from racklay.cli import at_least
 
 
 def register(sub) -> None:

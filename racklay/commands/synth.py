@@ -1,7 +1,7 @@
 """racklay synth --recipe complex --n 2000 --out datasets/generated/complex --seed 0"""
 from __future__ import annotations
 
-from racklay.cli import at_least, positive_float
+from racklay.cli import at_least
 
 
 def register(sub) -> None:

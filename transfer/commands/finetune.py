@@ -1,7 +1,7 @@
 """transfer finetune: fine-tune a pretrain checkpoint on a small real set."""
 from __future__ import annotations
 
-from racklay.cli import at_least, positive_float
+from racklay.cli import at_least
 
 from . import add_model_args, add_train_args, print_run, split_out, train_kwargs
 
