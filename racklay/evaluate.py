@@ -57,7 +57,8 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
         raise ValueError(f"{root.root}: no layouts for the model's views {'/'.join(pred.views)} "
                          f"(dataset has {'/'.join(root.views()) or 'none'})")
     S = pred.layout_size
-    ds = RackLayDataset(root.root, ids=ids, image_size=pred.image_size, layout_size=S, views=views, R=pred.R)
+    ds = RackLayDataset(root.root, ids=ids, image_size=pred.image_size, layout_size=S, views=views, R=pred.R,
+                        letterbox=bool(getattr(pred.cfg, "letterbox", False)))
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False, num_workers=workers)
     metrics = LayoutMetrics()
     out_root = RackLayRoot(pred_out) if pred_out is not None else None

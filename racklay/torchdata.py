@@ -11,6 +11,7 @@ PNGs every epoch costs real time.
 """
 from __future__ import annotations
 
+import math
 from typing import Callable, Sequence
 
 import numpy as np
@@ -31,15 +32,51 @@ def _hw(size) -> tuple[int, int]:
     return int(h), int(w)
 
 
-def prepare_image(image: np.ndarray, size) -> np.ndarray:
-    """Resize an RGB uint8 image to the model input size (H, W) with area/linear filtering."""
+#: aspect ratios within this log-ratio of the input's (about 10 %) are stretched, not padded
+LETTERBOX_TOLERANCE = 0.1
+#: colour of letterbox padding: the ImageNet mean, i.e. zeros after normalisation
+PAD_RGB = tuple(int(round(255 * m)) for m in IMAGENET_MEAN)
+
+
+def _resize(image: np.ndarray, h: int, w: int) -> np.ndarray:
     import cv2
 
-    h, w = _hw(size)
     if image.shape[:2] == (h, w):
         return image
     interp = cv2.INTER_AREA if image.shape[0] > h else cv2.INTER_LINEAR
     return cv2.resize(image, (w, h), interpolation=interp)
+
+
+def _pad_to(image: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Centre `image` on an (h, w) canvas of PAD_RGB."""
+    out = np.empty((h, w, 3), np.uint8)
+    out[:] = PAD_RGB
+    y, x = (h - image.shape[0]) // 2, (w - image.shape[1]) // 2
+    out[y:y + image.shape[0], x:x + image.shape[1]] = image
+    return out
+
+
+def prepare_image(image: np.ndarray, size, letterbox: bool = False) -> np.ndarray:
+    """Resize an RGB uint8 image to the model input size (H, W) with area/linear filtering.
+    With `letterbox`, a photo of another aspect keeps its aspect and is padded (PAD_RGB) to the
+    input instead of being stretched, as models trained with letterbox augmentation expect."""
+    h, w = _hw(size)
+    if not letterbox:
+        return _resize(image, h, w)
+    ih, iw = image.shape[:2]
+    if abs(math.log((iw / ih) / (w / h))) <= LETTERBOX_TOLERANCE:   # about the same aspect: resize
+        return _resize(image, h, w)
+    scale = min(h / ih, w / iw)
+    nh, nw = min(h, max(1, round(ih * scale))), min(w, max(1, round(iw * scale)))
+    return _pad_to(_resize(image, nh, nw), h, w)
+
+
+def squeeze_letterbox(image: np.ndarray, keep: float) -> np.ndarray:
+    """Training-time letterbox: squeeze an input-size image to `keep` of its width and pad it
+    back (what `prepare_image(letterbox=True)` does to a narrower photo)."""
+    h, w = image.shape[:2]
+    nw = max(1, min(w, round(w * keep)))
+    return image if nw == w else _pad_to(_resize(image, h, nw), h, w)
 
 
 def image_to_tensor(image: np.ndarray) -> torch.Tensor:
@@ -51,7 +88,8 @@ def image_to_tensor(image: np.ndarray) -> torch.Tensor:
 class RackLayDataset(Dataset):
     def __init__(self, root, split: str | None = "train", image_size=256, layout_size: int = 256,
                  views: Sequence[str] = ("top", "front"), R: int | None = None,
-                 transform: Callable | None = None, cache: bool = False, ids: Sequence[str] | None = None):
+                 transform: Callable | None = None, cache: bool = False, ids: Sequence[str] | None = None,
+                 letterbox: bool = False):
         self.root = RackLayRoot(root)
         self.ids = list(ids) if ids is not None else self.root.resolve(split)
         present = self.root.views()
@@ -65,6 +103,7 @@ class RackLayDataset(Dataset):
         self.R = R
         self.transform = transform
         self.cache = cache
+        self.letterbox = letterbox
         self._cache: dict[int, tuple] = {}
 
     def __len__(self) -> int:
@@ -75,7 +114,7 @@ class RackLayDataset(Dataset):
         if self.cache and i in self._cache:
             return self._cache[i]
         sid = self.ids[i]
-        img = prepare_image(self.root.read_image(sid), self.image_size)
+        img = prepare_image(self.root.read_image(sid), self.image_size, self.letterbox)
         lays = {v: L.resize_layouts(self.root.read_layouts(v, sid, R=self.R), self.layout_size) for v in self.views}
         if self.cache:
             self._cache[i] = (img, lays)

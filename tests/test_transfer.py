@@ -311,3 +311,38 @@ def test_compare_plan_is_seed_major_and_scores_a_shared_checkpoint_once(tmp_path
     shared = Compare(CompareConfig(real="r", out=str(tmp_path), pretrained="p.safetensors", seeds=[0, 1], fractions=[1.0]))
     assert [j for j in shared.jobs() if j[1] == "synthetic"] == [(0, "synthetic", None)]
     assert shared.job_dir(1, "finetune", 1.0) == tmp_path / "runs" / "seed1" / "finetune_f1"
+
+
+def test_strong_augmentation_keeps_layouts_and_letterboxes_only_the_image():
+    from racklay.augment import make_augment
+    from racklay.torchdata import PAD_RGB
+
+    img, lays = _asymmetric_sample()
+    img = np.ascontiguousarray(np.broadcast_to(np.linspace(30, 220, img.shape[1])[None, :, None], img.shape).astype(np.uint8))
+    aug = make_augment("strong", seed=5, letterbox=True)
+    boxed = changed = 0
+    for _ in range(60):
+        out, got = aug(img, {v: a.copy() for v, a in lays.items()})
+        assert out.shape == img.shape and out.dtype == np.uint8
+        flipped = np.array_equal(got["top"], L.hflip_layouts(lays["top"]))
+        for v in ("top", "front"):   # layouts: untouched or flipped with the image, never recoloured
+            want = L.hflip_layouts(lays[v]) if flipped else lays[v]
+            np.testing.assert_array_equal(got[v], want)
+        changed += not np.array_equal(out, img[:, ::-1] if flipped else img)
+        boxed += bool((out[:, 0] == PAD_RGB).all() and (out[:, -1] == PAD_RGB).all())
+    assert changed >= 40 and 5 <= boxed <= 35      # letterbox p = 0.3
+    assert make_augment("none") is None
+    with pytest.raises(ValueError, match="augment must be one of"):
+        make_augment("heavy")
+
+
+def test_letterbox_pads_other_aspects_and_resizes_the_same_aspect():
+    from racklay.torchdata import PAD_RGB, prepare_image
+
+    square = np.full((100, 100, 3), 200, np.uint8)
+    out = prepare_image(square, (64, 112), letterbox=True)
+    assert out.shape == (64, 112, 3)
+    assert (out[:, :24] == PAD_RGB).all() and (out[:, -24:] == PAD_RGB).all() and (out[:, 24:88] == 200).all()
+    wide = np.full((280, 470, 3), 90, np.uint8)     # WareSynth's 470x280 is within 10 % of 112/64: stretched
+    assert (prepare_image(wide, (64, 112), letterbox=True) == 90).all()
+    assert (prepare_image(square, (64, 112)) == 200).all()   # without letterbox: stretched

@@ -74,6 +74,7 @@ class Recipe:
     camera_distance: list = _f([0.9, 4.0], "frange", 0.2, 30.0, "horizontal distance from the rack front, metres")
     camera_height: list = _f([0.2, 4.5], "frange", 0.0, 30.0, "camera height above the floor, metres")
     camera_x: float = _f(0.2, "float", 0.0, 1.0, "camera x offset ~ U(-a, a) x rack length")
+    framing: list = _f([1.0, 1.3], "frange", 0.3, 3.0, "camera distance / the distance at which the chosen shelves just fill the image height (< 1: close-ups where the rack overflows the frame)")
     yaw_jitter_deg: float = _f(3.0, "float", 0.0, 30.0, "camera yaw jitter ~ U(-a, a)")
     pitch_jitter_deg: float = _f(3.0, "float", 0.0, 30.0, "camera pitch jitter ~ U(-a, a)")
     roll_jitter_deg: float = _f(1.0, "float", 0.0, 15.0, "camera roll jitter ~ U(-a, a)")
@@ -90,6 +91,7 @@ class Recipe:
     texture_family: str = _f("warehouse", "choice:warehouse|proxy", doc="procedural texture family")
     texture_dir: str = _f("", "path", doc="folder of your own images used as extra carton textures")
     tint_jitter: float = _f(0.08, "float", 0.0, 0.5, "per-object colour jitter")
+    palette_random: float = _f(0.0, "float", 0.0, 1.0, "probability that the uprights, beams, boards and wall of a scene get random colours instead of the warehouse palette")
     antialias: int = _f(1, "int", 0, 16, "0 off, 1 edge AA from the exact instance map (cheap), >= 2 MSAA samples (slow on CPU)")
     # --- camera effects (proxy-real domain; off in the synthetic recipes) -------------------
     exposure: list = _f([1.0, 1.0], "frange", 0.1, 4.0, "exposure gain")

@@ -167,6 +167,14 @@ def _tint(rng, amount, base=(1.0, 1.0, 1.0)):
     return tuple(min(max(b * (1 + j[3] + v), 0.05), 2.0) for b, v in zip(base, j[:3]))
 
 
+def _random_colour(rng, v_min: float = 0.12) -> tuple:
+    """A paint colour of any hue: dark to light, grey to saturated (domain randomisation)."""
+    import colorsys
+
+    h, s, v = float(rng.uniform(0, 1)), float(rng.uniform(0, 1)) ** 1.5, float(rng.uniform(v_min, 1.0))
+    return tuple(max(c, 0.05) for c in colorsys.hsv_to_rgb(h, s, v))
+
+
 class SceneRNG:
     """Scalar random draws for scene sampling (Python's Mersenne Twister: ~20x cheaper per
     scalar than numpy's Generator, and its sequence for an integer seed is stable across
@@ -316,6 +324,7 @@ def _stack(rng, r, items, cat, base: L.Box, slot, yband, max_top, stack_max):
 class _Builder:
     def __init__(self, rng, r: Recipe):
         self.rng, self.r, self.objects = rng, r, []
+        self.board_tint = None   # a scene colour for every board (palette_random), else per-board jitter
 
     def add(self, center, size, material, semantic, yaw=0.0, tint=None, shape="box", **kw) -> int:
         tint = tint if tint is not None else _tint(self.rng, self.r.tint_jitter)
@@ -341,7 +350,8 @@ class _Builder:
                              (uw, uw, top_z), "steel", SEM["rack"], tint=steel_tint)
         for zi, (z_top, _h, _mt) in enumerate(boards):
             t = r.board_thickness
-            self.add((x0, y0, z_top - t / 2), (length, depth, t), "board", SEM["shelf"])
+            self.add((x0, y0, z_top - t / 2), (length, depth, t), "board", SEM["shelf"],
+                     tint=None if self.board_tint is None else _tint(self.rng, 0.05, self.board_tint))
             for yy in (-1, 1):
                 self.add((x0, y0 + yy * (depth / 2 - 0.025), z_top - t - beam_h / 2), (length, 0.05, beam_h),
                          "beam", SEM["rack"], tint=beam_tint)
@@ -378,6 +388,12 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     shelves = [ShelfInfo(board_top=b[0], clear_height=b[1], max_item_top=b[2]) for b in boards]
     steel_tint = _tint(rng, 0.15, (0.25, 0.35, 0.65) if rng.uniform() < 0.6 else (0.55, 0.56, 0.58))
     beam_tint = _tint(rng, 0.1, (0.95, 0.45, 0.08) if rng.uniform() < 0.7 else (0.2, 0.3, 0.7))
+    board_tint = wall_base = None
+    # drawn only when the knob is on, so recipes without it keep their scenes draw for draw
+    if r.palette_random > 0 and rng.uniform() < r.palette_random:
+        steel_tint, board_tint, wall_base = _random_colour(rng), _random_colour(rng), _random_colour(rng, 0.4)
+        beam_tint = steel_tint if rng.uniform() < 0.5 else _random_colour(rng)   # one-colour shelving
+        B.board_tint = board_tint
 
     background = rng.choice(list(r.background), p=list(r.background.values()))
     corridor = _u(rng, r.corridor_width)
@@ -424,6 +440,8 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     B.add((0, far_wall / 2, -0.05), (80, 80 + far_wall, 0.1), "concrete", SEM["floor"], tint=fl_tint)
     B.add((0, 0, ceiling + 0.1), (80, 120, 0.2), "ceiling", SEM["wall"])
     wall_tint = _tint(rng, 0.2, (0.85, 0.85, 0.82) if rng.uniform() < 0.5 else (0.75, 0.8, 0.85))
+    if wall_base is not None:
+        wall_tint = wall_base
     B.add((0, far_wall + 0.1, ceiling / 2), (80, 0.2, ceiling), "wall", SEM["wall"], tint=wall_tint)
 
     # lights along the corridors of the occupancy map, plus ambient
@@ -561,7 +579,7 @@ def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries):
         lo = shelves[s].board_top
         hi = shelves[s + k - 1].board_top + shelves[s + k - 1].clear_height
         band = hi - lo
-        dist = f * band / H * float(rng.uniform(1.0, 1.3))
+        dist = f * band / H * float(rng.uniform(*r.framing))
         dmax = r.camera_distance[1] if corridor is None else min(r.camera_distance[1], corridor - 0.3)
         dist = float(np.clip(dist, r.camera_distance[0], max(dmax, r.camera_distance[0])))
         cz = float(np.clip((lo + hi) / 2 + rng.uniform(-0.1, 0.1) * band, *r.camera_height))

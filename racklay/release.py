@@ -1,0 +1,72 @@
+"""The shipped model: one weights file inside the package, checked by its sha256 before use.
+
+Commands that run a model (`racklay predict / analyze / eval`, `annotate serve`, `transfer
+finetune`) use it when no `--weights` is given. What it was trained on, how, and how well it does:
+docs/model-card.md. `make_release` writes such a file from a training checkpoint (fp16 storage,
+model weights only, the training facts in its metadata).
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+#: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
+RELEASE_NAME = "racklay-lite0-release-v1.safetensors"
+RELEASE_SHA256 = ""
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+
+_verified: set[str] = set()
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def release_weights() -> Path:
+    """Path of the shipped weights, after checking the file is there and intact (sha256)."""
+    path = WEIGHTS_DIR / RELEASE_NAME
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: the shipped model is missing from this installation; "
+                                "reinstall racklay or pass --weights FILE")
+    key = str(path)
+    if key not in _verified:
+        got = sha256_file(path)
+        if RELEASE_SHA256 and got != RELEASE_SHA256:
+            raise ValueError(f"{path}: sha256 {got[:12]}... does not match the release's {RELEASE_SHA256[:12]}... "
+                             "(corrupt or replaced file); reinstall racklay or pass --weights FILE")
+        _verified.add(key)
+    return path
+
+
+def resolve_weights(weights: str | os.PathLike | None, log=None) -> Path:
+    """`--weights` as given, or the shipped model when it is None (said once through `log`)."""
+    if weights:
+        return Path(weights)
+    path = release_weights()
+    if log is not None:
+        log(f"using the shipped model {path.name} (docs/model-card.md); --weights FILE for another")
+    return path
+
+
+def make_release(checkpoint: str | os.PathLike, out: str | os.PathLike, extra: dict | None = None) -> Path:
+    """Write a release file from a training checkpoint: model weights in fp16 (BatchNorm counters
+    stay integers), the model config, and the checkpoint's training facts plus `extra` as metadata.
+    Loading casts back to fp32 (`racklay.checkpoint.load_model`)."""
+    import torch
+
+    from .checkpoint import load_checkpoint, save_checkpoint
+    from .model import RackLayNet
+
+    ck = load_checkpoint(checkpoint)
+    model = RackLayNet(ck.cfg)
+    model.load_state_dict(ck.section("model"), strict=True)
+    model = model.to(torch.float16)
+    meta = {k: ck.meta[k] for k in ("epoch", "val_score", "val", "train_config", "variant") if k in ck.meta}
+    meta.update(extra or {})
+    meta["storage"] = "fp16"
+    return save_checkpoint(out, model, ck.cfg, extra=meta)
