@@ -25,7 +25,7 @@ from racklay.data import DataError, RackLayRoot, make_splits
 
 from . import geometry as G
 from . import schema as S
-from .store import ANN_DIR, IMPORT_DIR, MAX_PIXELS, MAX_SIDE, Project, StoreError
+from .store import ANN_DIR, IMPORT_DIR, Project, StoreError, photo_info
 
 
 def parse_counts(text: str, what: str = "--split") -> dict[str, float]:
@@ -135,6 +135,7 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         if ann["status"] not in only_status:
             other_status[ann["status"]] = other_status.get(ann["status"], 0) + 1
             continue
+        project.image_size(name)  # the photo's header first: a bad photo or a bomb names itself
         try:
             annotation_layouts(project, ann)
         except (G.GeometryError, ValueError) as e:
@@ -213,11 +214,8 @@ def check_import(root: str | os.PathLike, split: str | None = None) -> ImportPla
             missing = [str(ds.layout_path(v, sid)) for v in views if ds.layout_path(v, sid).is_file()]
             has = f" (the sample has layouts {', '.join(missing)})" if missing else ""
             raise DataError(f"{ds.image_path(sid)}: image file not found{has}")
-        image = ds.read_image(sid)
-        h, w = image.shape[:2]
-        if w * h > MAX_PIXELS or max(w, h) > MAX_SIDE:
-            raise DataError(f"{ds.image_path(sid)}: {w}x{h} pixels is over the project's limit "
-                            f"({MAX_PIXELS // 10**6} Mpx, {MAX_SIDE} px a side)")
+        photo_info(ds.image_path(sid), str(ds.image_path(sid)))  # from the header: bombs cost nothing
+        ds.read_image(sid)
         for view in views:
             ds.read_layouts(view, sid, R=plan.R, D=plan.D)
     return plan

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import io
 import os
 import time
 from pathlib import Path
@@ -32,9 +31,9 @@ IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 SETTINGS_FILE = "project.json"
 ANN_DIR = "annotations"
 IMPORT_DIR = "imported"
-#: upload limits: bytes on the wire, decoded pixels (width x height), and each side
+#: upload limit in bytes, and the longest side of a project photo; the pixel limit (width x
+#: height) is racklay.data's, shared by every command (RACKLAY_MAX_MEGAPIXELS, default 40 Mpx)
 MAX_UPLOAD_BYTES = 40 * 1024 * 1024
-MAX_PIXELS = 40_000_000
 MAX_SIDE = 12_000
 DONE_STATUSES = ("done", "approved")
 
@@ -92,16 +91,18 @@ class Project:
 
     # --- images ---
     def image_size(self, name: str) -> tuple[int, int]:
-        from PIL import Image
-
-        with Image.open(self.image_path(name)) as im:
-            return im.size
+        """(width, height) from the photo's header, nothing decoded."""
+        p = self.image_path(name)
+        info = photo_info(p, str(p))
+        return info.width, info.height
 
     def read_image(self, name: str) -> np.ndarray:
+        """The photo as RGB pixels; refused from its header (one line naming the file) when it is
+        not a PNG/JPEG within the limits, before anything is decoded."""
         from racklay.data import read_image
 
         p = self.image_path(name)
-        check_image_bytes(p.read_bytes(), str(p))
+        photo_info(p, str(p))
         return read_image(p)
 
     def add_image(self, filename: str, data: bytes, overwrite: bool = False) -> str:
@@ -222,33 +223,34 @@ class Project:
         return names[0]
 
 
+def photo_info(source, name: str):
+    """Header checks of a project photo (a path or the file's bytes): racklay.data.image_info (a
+    readable image within the pixel limit), then PNG/JPEG only and MAX_SIDE a side."""
+    from racklay.data import DataError, image_info
+
+    try:
+        info = image_info(source, name)
+    except DataError as e:
+        raise StoreError(str(e)) from None
+    if info.format not in ("PNG", "JPEG"):
+        raise StoreError(f"{name}: {info.format} images are not accepted (PNG or JPEG only)")
+    if max(info.width, info.height) > MAX_SIDE:
+        raise StoreError(f"{name}: {info.width}x{info.height} pixels is over the limit of {MAX_SIDE} px a side")
+    return info
+
+
 def check_image_bytes(data: bytes, source: str) -> str:
     """Refuse anything but a complete PNG/JPEG within the size and pixel limits; decompression
     bombs are refused from the header, before any pixel is decoded. Returns 'PNG' or 'JPEG'."""
-    from PIL import Image
+    from racklay.data import DataError, decode_image
 
     if len(data) > MAX_UPLOAD_BYTES:
         raise StoreError(f"{source}: {len(data) / 2**20:.1f} MB is over the {MAX_UPLOAD_BYTES // 2**20} MB limit")
     if not data:
         raise StoreError(f"{source}: empty file")
+    info = photo_info(data, source)
     try:
-        with Image.open(io.BytesIO(data)) as im:
-            fmt, (w, h) = im.format, im.size
-            if fmt not in ("PNG", "JPEG"):
-                raise StoreError(f"{source}: {fmt} images are not accepted (PNG or JPEG only)")
-            if w * h > MAX_PIXELS or max(w, h) > MAX_SIDE:
-                raise StoreError(f"{source}: {w}x{h} pixels is over the limit ({MAX_PIXELS // 10**6} Mpx, "
-                                 f"{MAX_SIDE} px a side): refused as a possible decompression bomb")
-            im.verify()
-    except StoreError:
-        raise
-    except Image.DecompressionBombError:
-        raise StoreError(f"{source}: refused as a decompression bomb (declared size over "
-                         f"{MAX_PIXELS // 10**6} Mpx)") from None
-    except Exception as e:  # PIL raises many types for junk
-        raise StoreError(f"{source}: not a readable PNG/JPEG image ({type(e).__name__})") from None
-    import cv2
-
-    if cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) is None:
-        raise StoreError(f"{source}: image data could not be decoded")
-    return fmt
+        decode_image(data, source, info)
+    except DataError as e:
+        raise StoreError(str(e)) from None
+    return info.format
