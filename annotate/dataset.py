@@ -207,8 +207,12 @@ def check_import(root: str | os.PathLike, split: str | None = None) -> ImportPla
     if not ids:
         raise ValueError(f"{ds.root}: no images to import")
     prefix = "".join(c if c.isalnum() or c in "-_" else "_" for c in ds.root.resolve().name) or "import"
-    first = ds.read_layouts(views[0], ids[0])
-    plan = ImportPlan(ds, list(ids), views, first.shape[0], first.shape[-1], prefix)
+    # the (R, D) most layout files have, so the file that differs is the one named
+    ref = ds.layout_shape(ids, views)
+    if ref is None:
+        ds.read_layouts(views[0], ids[0])     # names the first file and what is wrong with it
+        raise DataError(f"{ds.root}: no readable layout files")
+    plan = ImportPlan(ds, list(ids), views, ref[0], ref[1], prefix)
     for sid in ids:
         if not ds.image_path(sid).is_file():
             missing = [str(ds.layout_path(v, sid)) for v in views if ds.layout_path(v, sid).is_file()]

@@ -242,6 +242,30 @@ def read_layout_file(path: str | os.PathLike, R: int | None = None, D: int | Non
     return L.decode(arr, str(path))
 
 
+def npy_shape(path: str | os.PathLike) -> tuple[int, ...] | None:
+    """The shape in a .npy file's header (the data are not read); None if it is not a readable
+    .npy file (reading it properly then gives the one-line error)."""
+    fmt = np.lib.format
+    try:
+        with open(path, "rb") as f:
+            version = fmt.read_magic(f)
+            read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+            return tuple(read(f)[0])
+    except Exception:  # noqa: BLE001 - any unreadable file: the caller reads it and reports it
+        return None
+
+
+def common_layout_shape(paths: Iterable[str | os.PathLike]) -> tuple[int, int] | None:
+    """(R, D) of the layout stacks most of `paths` hold, from their headers; None if none is a
+    readable (R, D, D) stack. A file that differs from it is the odd one out, so errors can name
+    it rather than whichever file happened to be read first."""
+    shapes = Counter(s for s in map(npy_shape, paths) if s is not None and len(s) == 3 and s[1] == s[2])
+    if not shapes:
+        return None
+    R, D, _ = shapes.most_common(1)[0][0]
+    return R, D
+
+
 @dataclass
 class RackLayRoot:
     """A RackLay-format dataset folder."""
@@ -307,6 +331,16 @@ class RackLayRoot:
 
     def read_layouts(self, view: str, sid: str, R: int | None = None, D: int | None = None) -> np.ndarray:
         return read_layout_file(self.layout_path(view, sid), R=R, D=D)
+
+    def layout_shape(self, ids: Iterable[str] | None = None,
+                     views: Sequence[str] | None = None) -> tuple[int, int] | None:
+        """(R, D) most of the layout files of `ids` (default: all) in `views` (default: all) have;
+        see common_layout_shape."""
+        views = self.views() if views is None else views
+        paths = [p for v in views
+                 for p in (self.layout_path(v, sid) for sid in (self.layout_ids(v) if ids is None else ids))
+                 if p.is_file()]
+        return common_layout_shape(paths)
 
     def read_meta(self, sid: str) -> dict | None:
         p = self.meta_path(sid)

@@ -160,11 +160,15 @@ def exported(tmp_path, n=5):
     return out
 
 
-@pytest.mark.parametrize("bad", ["corrupt", "shape"])
+@pytest.mark.parametrize("bad", ["corrupt", "shape", "first top"])
 def test_import_bad_layout_imports_nothing(tmp_path, capsys, bad):
+    """The bad file is the one named: also when it is the first sample's top layout (whose good
+    front layout was blamed before, being read against the bad file's shape)."""
     out = exported(tmp_path)
     capsys.readouterr()
     f = out / "frontLayouts" / "front000003.npy"  # the 4th sample
+    if bad == "first top":
+        f = out / "topLayouts" / "top000000.npy"
     good = f.read_bytes()
     if bad == "corrupt":
         f.write_bytes(good[:100])
