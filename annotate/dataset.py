@@ -106,13 +106,18 @@ def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict
 
 
 def export_project(project: Project, out: str | os.PathLike, counts=None, fractions=None, seed: int = 0,
-                   only_status=("done", "approved"), progress: bool = False) -> dict:
+                   only_status=("done", "approved"), progress: bool = False, skip_invalid: bool = False) -> dict:
     """Write every annotation whose status is in `only_status` as a RackLay sample. Returns a
     summary dict. Refuses a non-empty output folder.
 
-    Every annotation, its layouts and its photo are checked before anything is written; the
-    dataset is then built in a hidden temporary folder beside `out` and renamed to `out` at the
-    end, so a failure (or a kill) never leaves a half-written dataset at `out`."""
+    Every annotation, its layouts and its photo are checked before anything is written: the photo
+    must be readable, and the annotation must fit it (schema.photo_problems: same name and size,
+    every point inside it, no box without area) and give layouts (annotate.geometry). The first
+    that does not stops the export with one line naming it, or, with `skip_invalid`, is left out
+    and listed in the summary's "skipped". The geometry's warnings for the exported photos (which
+    also go into meta/*.json) are in its "warnings". The dataset is then built in a hidden
+    temporary folder beside `out` and renamed to `out` at the end, so a failure (or a kill) never
+    leaves a half-written dataset at `out`."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out}: is a file, expected a folder")
@@ -124,6 +129,8 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
     if fractions is not None:
         check_fractions(fractions)
     chosen, other_status, unannotated = [], {}, 0
+    skipped: list[tuple[str, str]] = []
+    warnings: list[str] = []
     photos = project.images()
     ann_dir = project.root / ANN_DIR
     for name in photos:
@@ -135,15 +142,27 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         if ann["status"] not in only_status:
             other_status[ann["status"]] = other_status.get(ann["status"], 0) + 1
             continue
-        project.image_size(name)  # the photo's header first: a bad photo or a bomb names itself
         try:
-            annotation_layouts(project, ann)
-        except (G.GeometryError, ValueError) as e:
-            raise ValueError(f"{p}: cannot export ({e})") from None
-        project.read_image(name)  # an unreadable photo stops the export, naming itself
+            w, h = project.image_size(name)  # the photo's header first: a bad photo or a bomb names itself
+            problems = S.photo_problems(ann, w, h, name)
+            if problems:
+                more = f"; and {len(problems) - 1} more" if len(problems) > 1 else ""
+                raise ValueError(f"{p}: cannot export ({problems[0]}{more})")
+            try:
+                scene = annotation_layouts(project, ann)[2]
+            except (G.GeometryError, ValueError) as e:
+                raise ValueError(f"{p}: cannot export ({e})") from None
+            project.read_image(name)  # an unreadable photo stops the export, naming itself
+        except ValueError as e:       # StoreError, DataError, SchemaError: one line naming the file
+            if not skip_invalid:
+                raise
+            skipped.append((str(p), str(e)))
+            continue
+        warnings += [f"{name}: {msg}" for msg in scene.warnings]
         chosen.append((name, ann))
     if not chosen:
-        raise ValueError(f"{project.root}: no annotation with status {', '.join(only_status)} to export")
+        why = f" ({len(skipped)} invalid, first: {skipped[0][1]})" if skipped else ""
+        raise ValueError(f"{project.root}: no annotation with status {', '.join(only_status)} to export{why}")
     sids = [f"{k:06d}" for k in range(len(chosen))]
     splits = split_ids(sids, counts, fractions, seed)
     # everything checked: build the dataset beside `out`, then rename it into place
@@ -173,7 +192,8 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         have = set(photos)
         orphans = sorted(str(q) for q in ann_dir.glob("*.json") if q.stem not in have)
     return {"out": str(out), "images": len(chosen), "splits": {k: len(v) for k, v in splits.items()},
-            "left_out": {"other_status": other_status, "unannotated": unannotated, "no_photo": orphans}}
+            "left_out": {"other_status": other_status, "unannotated": unannotated, "no_photo": orphans},
+            "skipped": skipped, "warnings": warnings}
 
 
 @dataclass

@@ -169,8 +169,24 @@ class Project:
             new["updated_by"] = user
             new["updated_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
             S.validate_annotation(new, str(p))
+            self._check_fits_photo(name, new, on_disk)
             atomic_write_json(p, new)
         return new
+
+    def _check_fits_photo(self, name: str, new: dict, old: dict | None) -> None:
+        """Refuse an edit that makes the annotation stop fitting its photo (schema.photo_problems:
+        points outside the photo, boxes without area, wrong image_size). Problems the file on
+        disk already had do not block saving, so a bad file can be fixed one item at a time.
+        Nothing to check against while the photo is missing."""
+        p = self.image_path(name)
+        if not p.is_file():
+            return
+        w, h = self.image_size(name)
+        before = set(S.photo_problems(old, w, h, name)) if old else set()
+        fresh = [m for m in S.photo_problems(new, w, h, name) if m not in before]
+        if fresh:
+            more = f" (and {len(fresh) - 1} more)" if len(fresh) > 1 else ""
+            raise S.SchemaError(f"{self.annotation_path(name)}: {fresh[0]}{more}")
 
     def save_settings(self, settings: dict) -> None:
         S.validate_settings(settings, str(self.root / SETTINGS_FILE))
