@@ -293,7 +293,7 @@ def import_dataset(root: str | os.PathLike | ImportPlan, project: Project, split
             with contextlib.suppress(OSError):
                 d.rmdir()  # only if still empty
         if project.settings is not st:
-            project.save_settings(st)
+            project.restore_settings(st)
         raise
     return [plan.name(sid) for sid in plan.ids]
 

@@ -273,7 +273,9 @@ def default_settings() -> dict:
 
 def validate_settings(d: Any, source: str = "project settings") -> dict:
     _obj(d, source, "", {"schema_version", "R", "D", "extent", "presets"},
-         {"default_depth", "default_preset", "box_snap"})
+         {"default_depth", "default_preset", "box_snap", "version"})
+    if "version" in d:
+        _int(d["version"], source, "version", lo=0)
     if d["schema_version"] != SETTINGS_VERSION:
         _fail(source, "schema_version", f"this tool reads version {SETTINGS_VERSION}, the file has {d['schema_version']!r}")
     _int(d["R"], source, "R", lo=1, hi=32)

@@ -2,7 +2,8 @@
 
     PROJECT_DIR/
       *.jpg | *.jpeg | *.png        the photos (top level; plain file names only)
-      project.json                  settings: R, D, grid extent, rack presets (annotate.schema)
+      project.json                  settings: R, D, grid extent, rack presets (annotate.schema);
+                                    saved like annotations (locked, version-checked)
       annotations/NAME.json         one annotation per photo (written on every action)
       annotations/.locks/NAME.lock  advisory locks held only while a save compares versions
       imported/NAME.top.npy ...     read-only layouts brought in by `annotate import`
@@ -188,10 +189,46 @@ class Project:
             more = f" (and {len(fresh) - 1} more)" if len(fresh) > 1 else ""
             raise S.SchemaError(f"{self.annotation_path(name)}: {fresh[0]}{more}")
 
-    def save_settings(self, settings: dict) -> None:
-        S.validate_settings(settings, str(self.root / SETTINGS_FILE))
-        atomic_write_json(self.root / SETTINGS_FILE, settings)
-        self.settings = settings
+    @contextlib.contextmanager
+    def _settings_lock(self):
+        """An advisory lock on the project folder itself (no lock file is left behind)."""
+        fd = os.open(self.root, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            yield
+        finally:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
+
+    def save_settings(self, settings: dict, user: str | None = None) -> dict:
+        """Save project.json like an annotation: under a lock, and only if the file on disk is
+        still at the version `settings` started from (settings['version'], 0 for a file from
+        before settings had versions); raises ConflictError otherwise, SchemaError if invalid.
+        Returns (and keeps as self.settings) the saved settings, version + 1."""
+        sp = self.root / SETTINGS_FILE
+        S.validate_settings(settings, str(sp))
+        with self._settings_lock():
+            on_disk = S.load_settings(sp) if sp.exists() else None
+            have = on_disk.get("version", 0) if on_disk else 0
+            mine = settings.get("version", 0)
+            if on_disk is not None and have != mine:
+                raise ConflictError(
+                    f"{sp}: not saved - the project settings changed meanwhile (version {have} on disk, "
+                    f"your edit started from version {mine}); reload them and redo the change")
+            new = dict(settings, version=have + 1)
+            S.validate_settings(new, str(sp))
+            atomic_write_json(sp, new)
+        self.settings = new
+        return new
+
+    def restore_settings(self, old: dict) -> None:
+        """Undo this object's last save_settings (a failed import): put `old` back exactly, if
+        project.json is still the version that save wrote (else someone saved since: theirs stays)."""
+        sp = self.root / SETTINGS_FILE
+        with self._settings_lock():
+            if S.load_settings(sp).get("version", 0) == self.settings.get("version", 0):
+                atomic_write_json(sp, old)
+                self.settings = old
 
     # --- progress ---
     def statuses(self) -> dict[str, str]:
