@@ -45,6 +45,20 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, fsync: bool = True)
     return path
 
 
+def remove_stale_temps(folder: str | os.PathLike, name: str) -> list[Path]:
+    """Remove the temporary files atomic_write_bytes left beside `folder/name` when its process
+    was killed mid-write (`.NAME.XXXXXXXX.tmp`). Call it only when no other process can be
+    writing that file (e.g. a run folder at the start of its run). Returns what was removed."""
+    gone = []
+    for p in Path(folder).glob(f".{name}.*.tmp"):
+        try:
+            p.unlink()
+            gone.append(p)
+        except FileNotFoundError:
+            pass
+    return gone
+
+
 def atomic_write_text(path: str | os.PathLike, text: str, fsync: bool = True) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"), fsync=fsync)
 

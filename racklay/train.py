@@ -482,6 +482,10 @@ def train(cfg: TrainConfig, transform=None) -> Path:
         last_path, best_path = run_dir / "last.safetensors", run_dir / "best.safetensors"
         mcfg = cfg.model_config()
 
+        if dist.main and run_dir.is_dir():   # half-written checkpoints of a killed run
+            from .atomic import remove_stale_temps
+            for name in (last_path.name, best_path.name):
+                remove_stale_temps(run_dir, name)
         resume_ck = None
         if cfg.resume:
             if not last_path.is_file():

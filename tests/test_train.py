@@ -222,3 +222,19 @@ def test_time_budget_stops_mid_epoch_and_a_larger_budget_finishes_it(tmp_path, t
     ck = load_checkpoint(run / "last.safetensors")
     assert ck.meta["finished"] and ck.meta["global_step"] == 4 and ck.meta["stop_reason"] == "1 epochs done"
     assert [r["step"] for r in _rows(run)] == ["1", "4"]
+
+
+def test_stale_checkpoint_temp_files_removed_at_next_start(tmp_path, toy):
+    """A kill during a checkpoint write leaves `.last.safetensors.XXXX.tmp` (14 MB for the full
+    model) beside the run; the next start of that run removes it, and nothing else."""
+    base = dict(data=str(toy), out=str(tmp_path), name="tmp", epochs=1, disc=False, patience=None,
+                checkpoint_every=0, **TINY)
+    run = train(TrainConfig(max_minutes=1e-4, **base))       # over after the first step
+    stale = [run / ".last.safetensors.k3j_x9q2.tmp", run / ".best.safetensors.0a1b2c3d.tmp"]
+    for p in stale:
+        p.write_bytes(b"\0" * 1000)
+    keep = run / ".notes.tmp"
+    keep.write_text("mine")
+    train(TrainConfig(max_minutes=1e-4, resume=True, **base))
+    assert not any(p.exists() for p in stale) and keep.exists()
+    assert load_checkpoint(run / "last.safetensors").meta["global_step"] == 1
