@@ -141,9 +141,10 @@ class Tool:
         return path
 
     # --- state ---------------------------------------------------------------------------
-    def open(self, name: str | None) -> dict:
+    def open(self, name: str | None, user: str | None = None) -> dict:
+        """A session state for image `name`; `user` is the logged-in user (saves record it)."""
         st = {"name": name, "ann": None, "undo": [], "redo": [], "pending": None, "sel": None,
-              "mode": "corners", "zoom": 1.0, "center": None, "msg": "", "error": None}
+              "mode": "corners", "zoom": 1.0, "center": None, "msg": "", "error": None, "user": user}
         if name is None:
             st["msg"] = "no images in the project yet: upload some"
             return st
@@ -171,9 +172,9 @@ class Tool:
     def step(self, st: dict, delta: int) -> dict:
         names = self.project.images()
         if not names:
-            return self.open(None)
+            return self.open(None, st.get("user"))
         i = names.index(st["name"]) if st.get("name") in names else -1
-        return self.open(names[(i + delta) % len(names)])
+        return self.open(names[(i + delta) % len(names)], st.get("user"))
 
     # --- applying an edit: save at once, with undo ----------------------------------------
     def act(self, st: dict, fn) -> dict:
@@ -200,7 +201,7 @@ class Tool:
 
     def _save(self, st: dict, ann: dict) -> bool:
         try:
-            st["ann"] = self.project.save(ann, user=self.user)
+            st["ann"] = self.project.save(ann, user=st.get("user") or self.user)
             return True
         except ConflictError as e:
             st["msg"] = f"⚠ {e}"
@@ -794,8 +795,9 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
         def ensure(st):
             return st if st is not None else tool.open(project.resume_image())
 
-        def on_load():
-            return render(tool.open(project.resume_image()))
+        def on_load(request: gr.Request):
+            # the logged-in user (--auth-file) is kept in the session state and recorded on saves
+            return render(tool.open(project.resume_image(), getattr(request, "username", None)))
 
         def on_select(st, evt: gr.SelectData):
             st = ensure(st)
@@ -843,13 +845,13 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
                     with contextlib.suppress(OSError):   # gradio's copy of the upload: done with it
                         os.unlink(path)
             if added and st.get("name") is None:
-                st = tool.open(added[0])
+                st = tool.open(added[0], st.get("user"))
             st["msg"] = (f"added {', '.join(added)}" if added else "") + (("; ⚠ " + "; ⚠ ".join(errs)) if errs else "")
             return render(st)
 
         demo.load(on_load, None, outputs)
         photo.select(on_select, [state], outputs)
-        image_dd.input(wrap(lambda st, name: tool.open(name)), [state, image_dd], outputs)
+        image_dd.input(wrap(lambda st, name: tool.open(name, st.get("user"))), [state, image_dd], outputs)
         btn_prev.click(wrap(lambda st: tool.step(st, -1)), [state], outputs)
         btn_next.click(wrap(lambda st: tool.step(st, +1)), [state], outputs)
         status_dd.input(wrap(lambda st, s: tool.set_status(st, s)), [state, status_dd], outputs)
@@ -973,13 +975,15 @@ def _drop_temp_dir(path: str, env_before: str | None) -> None:
 
 def serve(project_dir, host: str = "127.0.0.1", port: int = 7860, model: str | None = None,
           backend: str = "torch", auth=None, block: bool = True):
+    """Serve the tool. `auth`: None (no login) or an annotate.auth.Authenticator (several users,
+    throttled failed logins; each save records the logged-in user)."""
     check_port(host, port)
     project = Project(project_dir)
     env_before = os.environ.get("GRADIO_TEMP_DIR")
     tmp = run_temp_dir()
     try:
-        demo = build_app(project, load_predictor(model, backend), user=auth[0] if auth else None, tmp_dir=tmp)
-        kw = launch_kwargs(host, port, auth)
+        demo = build_app(project, load_predictor(model, backend), tmp_dir=tmp)
+        kw = launch_kwargs(host, port, auth.check if auth is not None else None)
         try:
             demo.launch(prevent_thread_lock=True, **kw)
         except OSError as e:

@@ -272,13 +272,28 @@ def test_rendered_photos_are_not_kept(proj):
 @pytest.mark.slow
 def test_serve_temp_folder_removed_after_sigterm(proj, tmp_path):
     """Everything a server run puts in the temp folder (gradio's cache, uploads, rendered photos)
-    lives in one folder that is gone after SIGTERM."""
+    lives in one folder that is gone after SIGTERM. The server runs with --auth-file: gradio's
+    login takes the file's users and refuses a wrong password."""
     import signal
     import socket
     import subprocess
     import sys
-    import time
+    import urllib.error
+    import urllib.parse
     import urllib.request
+
+    from annotate.auth import set_password
+
+    logins = tmp_path / "logins"
+    set_password(logins, "ana", "correct horse")
+
+    def login(user, pw):
+        data = urllib.parse.urlencode({"username": user, "password": pw}).encode()
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/login", data=data, timeout=60) as r:
+                return r.status
+        except urllib.error.HTTPError as e:
+            return e.code
 
     tmp = tmp_path / "tmp"
     tmp.mkdir()
@@ -287,7 +302,8 @@ def test_serve_temp_folder_removed_after_sigterm(proj, tmp_path):
         port = s.getsockname()[1]
     env = {**os.environ, "TMPDIR": str(tmp), "GRADIO_ANALYTICS_ENABLED": "False"}
     env.pop("GRADIO_TEMP_DIR", None)
-    p = subprocess.Popen([sys.executable, "-m", "annotate.cli", "serve", str(proj.root), "--port", str(port)],
+    p = subprocess.Popen([sys.executable, "-m", "annotate.cli", "serve", str(proj.root), "--port", str(port),
+                          "--auth-file", str(logins)],
                          env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         line = p.stdout.readline()          # "annotate: serving ..." once the server listens
@@ -296,6 +312,7 @@ def test_serve_temp_folder_removed_after_sigterm(proj, tmp_path):
         assert len(run_dirs) == 1 and run_dirs[0].startswith("annotate-run-"), run_dirs
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=60) as r:
             assert r.status == 200
+        assert login("ana", "wrong horse") == 400 and login("ana", "correct horse") == 200
         p.send_signal(signal.SIGTERM)
         p.wait(timeout=60)
     finally:
