@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from racklay.data import DataError, RackLayRoot, image_info, read_image
+from racklay.data import DataError, image_info, read_image
 from racklay.toy import build_toy_dataset
 
 BOMB_SIDE = 30000
