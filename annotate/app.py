@@ -10,6 +10,7 @@ Offline by design: analytics off, a built-in theme with system fonts, no CDN ass
 """
 
 
+import contextlib
 import copy
 import os
 import threading
@@ -95,13 +96,18 @@ class Tool:
     """Server-side logic, independent of gradio: each method takes and returns the session state
     (a plain dict) so it can be tested without a browser."""
 
-    def __init__(self, project: Project, predictor=None, user: str | None = None):
+    #: rendered photos kept on disk: gradio copies each into its cache as the handler returns, so
+    #: only the newest few are still needed (the copies go with delete_cache and at exit)
+    KEEP_SHOTS = 4
+
+    def __init__(self, project: Project, predictor=None, user: str | None = None, tmp_dir: str | None = None):
         self.project = project
         self.predictor = predictor
         self.user = user
         self._images: OrderedDict[str, np.ndarray] = OrderedDict()
         self._preds: OrderedDict[str, dict] = OrderedDict()
         self._lock = threading.RLock()
+        self._tmp_root = tmp_dir   # the server run's temp folder (None: the system's)
         self._tmp = None
         self._shots: list[str] = []
         self._n_shots = 0
@@ -121,13 +127,13 @@ class Tool:
                                 cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
         with self._lock:
             if self._tmp is None:
-                self._tmp = tempfile.mkdtemp(prefix="annotate-view-")
+                self._tmp = tempfile.mkdtemp(prefix="annotate-view-", dir=self._tmp_root)
             self._n_shots += 1
             path = os.path.join(self._tmp, f"view-{self._n_shots}.jpg")
             with open(path, "wb") as f:
                 f.write(buf.tobytes())
             self._shots.append(path)
-            while len(self._shots) > 64:  # gradio has copied older ones into its cache by now
+            while len(self._shots) > self.KEEP_SHOTS:  # gradio has copied older ones into its cache by now
                 try:
                     os.unlink(self._shots.pop(0))
                 except OSError:
@@ -135,9 +141,10 @@ class Tool:
         return path
 
     # --- state ---------------------------------------------------------------------------
-    def open(self, name: str | None) -> dict:
+    def open(self, name: str | None, user: str | None = None) -> dict:
+        """A session state for image `name`; `user` is the logged-in user (saves record it)."""
         st = {"name": name, "ann": None, "undo": [], "redo": [], "pending": None, "sel": None,
-              "mode": "corners", "zoom": 1.0, "center": None, "msg": "", "error": None}
+              "mode": "corners", "zoom": 1.0, "center": None, "msg": "", "error": None, "user": user}
         if name is None:
             st["msg"] = "no images in the project yet: upload some"
             return st
@@ -165,9 +172,9 @@ class Tool:
     def step(self, st: dict, delta: int) -> dict:
         names = self.project.images()
         if not names:
-            return self.open(None)
+            return self.open(None, st.get("user"))
         i = names.index(st["name"]) if st.get("name") in names else -1
-        return self.open(names[(i + delta) % len(names)])
+        return self.open(names[(i + delta) % len(names)], st.get("user"))
 
     # --- applying an edit: save at once, with undo ----------------------------------------
     def act(self, st: dict, fn) -> dict:
@@ -194,7 +201,7 @@ class Tool:
 
     def _save(self, st: dict, ann: dict) -> bool:
         try:
-            st["ann"] = self.project.save(ann, user=self.user)
+            st["ann"] = self.project.save(ann, user=st.get("user") or self.user)
             return True
         except ConflictError as e:
             st["msg"] = f"⚠ {e}"
@@ -701,13 +708,18 @@ def _seg_dist(seg, pt) -> float:
 
 
 # --- the gradio UI ------------------------------------------------------------------------------
-def build_app(project: Project, predictor=None, user: str | None = None):
+#: gradio's delete_cache: every minute, remove the files this app put in gradio's cache (rendered
+#: photos, uploads, accepted or refused) once they are 5 minutes old
+DELETE_CACHE = (60, 300)
+
+
+def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir: str | None = None):
     import gradio as gr
 
-    tool = Tool(project, predictor, user)
+    tool = Tool(project, predictor, user, tmp_dir=tmp_dir)
     presets = [p["name"] for p in project.settings["presets"]]
 
-    with gr.Blocks(title="RackLay annotate") as demo:
+    with gr.Blocks(title="RackLay annotate", delete_cache=DELETE_CACHE) as demo:
         state = gr.State(None)
         header = gr.Markdown(elem_id="header")
         with gr.Row():
@@ -783,8 +795,9 @@ def build_app(project: Project, predictor=None, user: str | None = None):
         def ensure(st):
             return st if st is not None else tool.open(project.resume_image())
 
-        def on_load():
-            return render(tool.open(project.resume_image()))
+        def on_load(request: gr.Request):
+            # the logged-in user (--auth-file) is kept in the session state and recorded on saves
+            return render(tool.open(project.resume_image(), getattr(request, "username", None)))
 
         def on_select(st, evt: gr.SelectData):
             st = ensure(st)
@@ -828,14 +841,17 @@ def build_app(project: Project, predictor=None, user: str | None = None):
                     added.append(project.add_image(os.path.basename(path), data))
                 except (StoreError, OSError) as e:
                     errs.append(str(e))
+                finally:
+                    with contextlib.suppress(OSError):   # gradio's copy of the upload: done with it
+                        os.unlink(path)
             if added and st.get("name") is None:
-                st = tool.open(added[0])
+                st = tool.open(added[0], st.get("user"))
             st["msg"] = (f"added {', '.join(added)}" if added else "") + (("; ⚠ " + "; ⚠ ".join(errs)) if errs else "")
             return render(st)
 
         demo.load(on_load, None, outputs)
         photo.select(on_select, [state], outputs)
-        image_dd.input(wrap(lambda st, name: tool.open(name)), [state, image_dd], outputs)
+        image_dd.input(wrap(lambda st, name: tool.open(name, st.get("user"))), [state, image_dd], outputs)
         btn_prev.click(wrap(lambda st: tool.step(st, -1)), [state], outputs)
         btn_next.click(wrap(lambda st: tool.step(st, +1)), [state], outputs)
         status_dd.input(wrap(lambda st, s: tool.set_status(st, s)), [state, status_dd], outputs)
@@ -924,18 +940,61 @@ def check_port(host: str, port: int) -> None:
         raise PortError(_port_message(host, port, reason)) from None
 
 
+def run_temp_dir() -> str:
+    """A temp folder for this server run, holding gradio's cache (rendered photos, uploads) and the
+    viewer's images; removed when the process exits (serve() makes SIGTERM a normal exit)."""
+    import atexit
+    import shutil
+    import tempfile
+
+    path = tempfile.mkdtemp(prefix="annotate-run-")
+    os.environ["GRADIO_TEMP_DIR"] = os.path.join(path, "gradio")   # read by gradio's blocks and routes
+    atexit.register(shutil.rmtree, path, True)
+    return path
+
+
+def exit_on_sigterm() -> None:
+    """SIGTERM (`kill`, systemd, docker stop) becomes a normal exit, so atexit clean-up runs."""
+    import signal
+    import sys
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+
+
+def _drop_temp_dir(path: str, env_before: str | None) -> None:
+    """Undo run_temp_dir() when serve() fails to start."""
+    import shutil
+
+    shutil.rmtree(path, ignore_errors=True)
+    if env_before is None:
+        os.environ.pop("GRADIO_TEMP_DIR", None)
+    else:
+        os.environ["GRADIO_TEMP_DIR"] = env_before
+
+
 def serve(project_dir, host: str = "127.0.0.1", port: int = 7860, model: str | None = None,
           backend: str = "torch", auth=None, block: bool = True):
+    """Serve the tool. `auth`: None (no login) or an annotate.auth.Authenticator (several users,
+    throttled failed logins; each save records the logged-in user)."""
     check_port(host, port)
     project = Project(project_dir)
-    demo = build_app(project, load_predictor(model, backend), user=auth[0] if auth else None)
-    kw = launch_kwargs(host, port, auth)
+    env_before = os.environ.get("GRADIO_TEMP_DIR")
+    tmp = run_temp_dir()
     try:
-        demo.launch(prevent_thread_lock=True, **kw)
-    except OSError as e:
-        if "Cannot find empty port" not in str(e):
-            raise
-        raise PortError(_port_message(host, port, "the port is in use")) from None
+        demo = build_app(project, load_predictor(model, backend), tmp_dir=tmp)
+        kw = launch_kwargs(host, port, auth.check if auth is not None else None)
+        try:
+            demo.launch(prevent_thread_lock=True, **kw)
+        except OSError as e:
+            if "Cannot find empty port" not in str(e):
+                raise
+            raise PortError(_port_message(host, port, "the port is in use")) from None
+    except BaseException:
+        _drop_temp_dir(tmp, env_before)
+        raise
+    if block:
+        exit_on_sigterm()
     print(f"annotate: serving {project.root} ({len(project.images())} images) at http://{host}:{port}")
     if block:
         demo.block_thread()

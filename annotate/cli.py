@@ -10,6 +10,7 @@ COMMANDS: list[str] = [
     "annotate.commands.serve",
     "annotate.commands.export",
     "annotate.commands.import_dataset",
+    "annotate.commands.passwd",
 ]
 DESCRIPTION = ("Annotate real rack photos into per-shelf top- and front-view layouts in the browser "
                "(gradio), and export them as a RackLay-format dataset.")

@@ -25,7 +25,7 @@ from racklay.data import DataError, RackLayRoot, make_splits
 
 from . import geometry as G
 from . import schema as S
-from .store import ANN_DIR, IMPORT_DIR, MAX_PIXELS, MAX_SIDE, Project, StoreError
+from .store import ANN_DIR, IMPORT_DIR, Project, StoreError, photo_info
 
 
 def parse_counts(text: str, what: str = "--split") -> dict[str, float]:
@@ -106,13 +106,18 @@ def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict
 
 
 def export_project(project: Project, out: str | os.PathLike, counts=None, fractions=None, seed: int = 0,
-                   only_status=("done", "approved"), progress: bool = False) -> dict:
+                   only_status=("done", "approved"), progress: bool = False, skip_invalid: bool = False) -> dict:
     """Write every annotation whose status is in `only_status` as a RackLay sample. Returns a
     summary dict. Refuses a non-empty output folder.
 
-    Every annotation, its layouts and its photo are checked before anything is written; the
-    dataset is then built in a hidden temporary folder beside `out` and renamed to `out` at the
-    end, so a failure (or a kill) never leaves a half-written dataset at `out`."""
+    Every annotation, its layouts and its photo are checked before anything is written: the photo
+    must be readable, and the annotation must fit it (schema.photo_problems: same name and size,
+    every point inside it, no box without area) and give layouts (annotate.geometry). The first
+    that does not stops the export with one line naming it, or, with `skip_invalid`, is left out
+    and listed in the summary's "skipped". The geometry's warnings for the exported photos (which
+    also go into meta/*.json) are in its "warnings". The dataset is then built in a hidden
+    temporary folder beside `out` and renamed to `out` at the end, so a failure (or a kill) never
+    leaves a half-written dataset at `out`."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out}: is a file, expected a folder")
@@ -124,6 +129,8 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
     if fractions is not None:
         check_fractions(fractions)
     chosen, other_status, unannotated = [], {}, 0
+    skipped: list[tuple[str, str]] = []
+    warnings: list[str] = []
     photos = project.images()
     ann_dir = project.root / ANN_DIR
     for name in photos:
@@ -136,13 +143,26 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
             other_status[ann["status"]] = other_status.get(ann["status"], 0) + 1
             continue
         try:
-            annotation_layouts(project, ann)
-        except (G.GeometryError, ValueError) as e:
-            raise ValueError(f"{p}: cannot export ({e})") from None
-        project.read_image(name)  # an unreadable photo stops the export, naming itself
+            w, h = project.image_size(name)  # the photo's header first: a bad photo or a bomb names itself
+            problems = S.photo_problems(ann, w, h, name)
+            if problems:
+                more = f"; and {len(problems) - 1} more" if len(problems) > 1 else ""
+                raise ValueError(f"{p}: cannot export ({problems[0]}{more})")
+            try:
+                scene = annotation_layouts(project, ann)[2]
+            except (G.GeometryError, ValueError) as e:
+                raise ValueError(f"{p}: cannot export ({e})") from None
+            project.read_image(name)  # an unreadable photo stops the export, naming itself
+        except ValueError as e:       # StoreError, DataError, SchemaError: one line naming the file
+            if not skip_invalid:
+                raise
+            skipped.append((str(p), str(e)))
+            continue
+        warnings += [f"{name}: {msg}" for msg in scene.warnings]
         chosen.append((name, ann))
     if not chosen:
-        raise ValueError(f"{project.root}: no annotation with status {', '.join(only_status)} to export")
+        why = f" ({len(skipped)} invalid, first: {skipped[0][1]})" if skipped else ""
+        raise ValueError(f"{project.root}: no annotation with status {', '.join(only_status)} to export{why}")
     sids = [f"{k:06d}" for k in range(len(chosen))]
     splits = split_ids(sids, counts, fractions, seed)
     # everything checked: build the dataset beside `out`, then rename it into place
@@ -172,7 +192,8 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         have = set(photos)
         orphans = sorted(str(q) for q in ann_dir.glob("*.json") if q.stem not in have)
     return {"out": str(out), "images": len(chosen), "splits": {k: len(v) for k, v in splits.items()},
-            "left_out": {"other_status": other_status, "unannotated": unannotated, "no_photo": orphans}}
+            "left_out": {"other_status": other_status, "unannotated": unannotated, "no_photo": orphans},
+            "skipped": skipped, "warnings": warnings}
 
 
 @dataclass
@@ -206,18 +227,19 @@ def check_import(root: str | os.PathLike, split: str | None = None) -> ImportPla
     if not ids:
         raise ValueError(f"{ds.root}: no images to import")
     prefix = "".join(c if c.isalnum() or c in "-_" else "_" for c in ds.root.resolve().name) or "import"
-    first = ds.read_layouts(views[0], ids[0])
-    plan = ImportPlan(ds, list(ids), views, first.shape[0], first.shape[-1], prefix)
+    # the (R, D) most layout files have, so the file that differs is the one named
+    ref = ds.layout_shape(ids, views)
+    if ref is None:
+        ds.read_layouts(views[0], ids[0])     # names the first file and what is wrong with it
+        raise DataError(f"{ds.root}: no readable layout files")
+    plan = ImportPlan(ds, list(ids), views, ref[0], ref[1], prefix)
     for sid in ids:
         if not ds.image_path(sid).is_file():
             missing = [str(ds.layout_path(v, sid)) for v in views if ds.layout_path(v, sid).is_file()]
             has = f" (the sample has layouts {', '.join(missing)})" if missing else ""
             raise DataError(f"{ds.image_path(sid)}: image file not found{has}")
-        image = ds.read_image(sid)
-        h, w = image.shape[:2]
-        if w * h > MAX_PIXELS or max(w, h) > MAX_SIDE:
-            raise DataError(f"{ds.image_path(sid)}: {w}x{h} pixels is over the project's limit "
-                            f"({MAX_PIXELS // 10**6} Mpx, {MAX_SIDE} px a side)")
+        photo_info(ds.image_path(sid), str(ds.image_path(sid)))  # from the header: bombs cost nothing
+        ds.read_image(sid)
         for view in views:
             ds.read_layouts(view, sid, R=plan.R, D=plan.D)
     return plan
@@ -271,7 +293,7 @@ def import_dataset(root: str | os.PathLike | ImportPlan, project: Project, split
             with contextlib.suppress(OSError):
                 d.rmdir()  # only if still empty
         if project.settings is not st:
-            project.save_settings(st)
+            project.restore_settings(st)
         raise
     return [plan.name(sid) for sid in plan.ids]
 

@@ -198,6 +198,51 @@ def validate_annotation(d: Any, source: str = "annotation") -> dict:
     return d
 
 
+#: how far outside its photo a clicked point may lie, as a fraction of the photo's longer side:
+#: clicks land on the photo, so a point further out comes from an edited or broken file
+PHOTO_MARGIN = 0.05
+#: the smallest box side, in photo pixels (a narrower box has no area to draw)
+MIN_BOX_PX = 1.0
+
+
+def photo_problems(ann: dict, width: int, height: int, name: str | None = None) -> list[str]:
+    """Every way a (schema-valid) annotation does not fit its photo of width x height pixels
+    (named `name`): a different image name or image_size, rack corners, shelf points or box
+    corners outside the photo (beyond PHOTO_MARGIN), coinciding rack corners, boxes without area.
+    One line each, naming the item by its id (stable when other items are added or deleted);
+    empty when the annotation fits. The one check behind `annotate export` and the server's
+    refusal to save an edit that breaks it (annotate.store.Project.save)."""
+    out: list[str] = []
+    if name is not None and ann["image"] != name:
+        out.append(f"field 'image' says {ann['image']!r}, but the photo is {name!r}")
+    sw, sh = ann["image_size"]
+    if (sw, sh) != (width, height):
+        out.append(f"field 'image_size' says {sw}x{sh}, but the photo is {width}x{height} pixels")
+    m = PHOTO_MARGIN * max(width, height)
+
+    def outside(what: str, p) -> None:
+        x, y = p
+        if not (-m <= x <= width + m and -m <= y <= height + m):
+            out.append(f"{what} at ({x:.6g}, {y:.6g}) is outside the {width}x{height} photo")
+
+    corners = ann["rack"]["corners"]
+    for i, p in enumerate(corners):
+        outside(f"rack corner {i + 1}", p)
+    for i in range(len(corners)):
+        for j in range(i + 1, len(corners)):
+            if math.dist(corners[i], corners[j]) < 1.0:
+                out.append(f"rack corners {i + 1} and {j + 1} coincide")
+    for s in ann["shelves"]:
+        outside(f"shelf {s['id']}", s["point"])
+    for b in ann["boxes"]:
+        outside(f"box {b['id']} corner p0", b["p0"])
+        outside(f"box {b['id']} corner p1", b["p1"])
+        dx, dy = abs(b["p1"][0] - b["p0"][0]), abs(b["p1"][1] - b["p0"][1])
+        if dx < MIN_BOX_PX or dy < MIN_BOX_PX:
+            out.append(f"box {b['id']} has no area ({dx:.3g} x {dy:.3g} px)")
+    return out
+
+
 def _read_json(path: Path):
     try:
         return json.loads(path.read_text(encoding="utf-8"))
@@ -228,7 +273,9 @@ def default_settings() -> dict:
 
 def validate_settings(d: Any, source: str = "project settings") -> dict:
     _obj(d, source, "", {"schema_version", "R", "D", "extent", "presets"},
-         {"default_depth", "default_preset", "box_snap"})
+         {"default_depth", "default_preset", "box_snap", "version"})
+    if "version" in d:
+        _int(d["version"], source, "version", lo=0)
     if d["schema_version"] != SETTINGS_VERSION:
         _fail(source, "schema_version", f"this tool reads version {SETTINGS_VERSION}, the file has {d['schema_version']!r}")
     _int(d["R"], source, "R", lo=1, hi=32)

@@ -2,7 +2,8 @@
 
     PROJECT_DIR/
       *.jpg | *.jpeg | *.png        the photos (top level; plain file names only)
-      project.json                  settings: R, D, grid extent, rack presets (annotate.schema)
+      project.json                  settings: R, D, grid extent, rack presets (annotate.schema);
+                                    saved like annotations (locked, version-checked)
       annotations/NAME.json         one annotation per photo (written on every action)
       annotations/.locks/NAME.lock  advisory locks held only while a save compares versions
       imported/NAME.top.npy ...     read-only layouts brought in by `annotate import`
@@ -17,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import io
 import os
 import time
 from pathlib import Path
@@ -32,9 +32,9 @@ IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 SETTINGS_FILE = "project.json"
 ANN_DIR = "annotations"
 IMPORT_DIR = "imported"
-#: upload limits: bytes on the wire, decoded pixels (width x height), and each side
+#: upload limit in bytes, and the longest side of a project photo; the pixel limit (width x
+#: height) is racklay.data's, shared by every command (RACKLAY_MAX_MEGAPIXELS, default 40 Mpx)
 MAX_UPLOAD_BYTES = 40 * 1024 * 1024
-MAX_PIXELS = 40_000_000
 MAX_SIDE = 12_000
 DONE_STATUSES = ("done", "approved")
 
@@ -92,16 +92,18 @@ class Project:
 
     # --- images ---
     def image_size(self, name: str) -> tuple[int, int]:
-        from PIL import Image
-
-        with Image.open(self.image_path(name)) as im:
-            return im.size
+        """(width, height) from the photo's header, nothing decoded."""
+        p = self.image_path(name)
+        info = photo_info(p, str(p))
+        return info.width, info.height
 
     def read_image(self, name: str) -> np.ndarray:
+        """The photo as RGB pixels; refused from its header (one line naming the file) when it is
+        not a PNG/JPEG within the limits, before anything is decoded."""
         from racklay.data import read_image
 
         p = self.image_path(name)
-        check_image_bytes(p.read_bytes(), str(p))
+        photo_info(p, str(p))
         return read_image(p)
 
     def add_image(self, filename: str, data: bytes, overwrite: bool = False) -> str:
@@ -168,13 +170,65 @@ class Project:
             new["updated_by"] = user
             new["updated_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
             S.validate_annotation(new, str(p))
+            self._check_fits_photo(name, new, on_disk)
             atomic_write_json(p, new)
         return new
 
-    def save_settings(self, settings: dict) -> None:
-        S.validate_settings(settings, str(self.root / SETTINGS_FILE))
-        atomic_write_json(self.root / SETTINGS_FILE, settings)
-        self.settings = settings
+    def _check_fits_photo(self, name: str, new: dict, old: dict | None) -> None:
+        """Refuse an edit that makes the annotation stop fitting its photo (schema.photo_problems:
+        points outside the photo, boxes without area, wrong image_size). Problems the file on
+        disk already had do not block saving, so a bad file can be fixed one item at a time.
+        Nothing to check against while the photo is missing."""
+        p = self.image_path(name)
+        if not p.is_file():
+            return
+        w, h = self.image_size(name)
+        before = set(S.photo_problems(old, w, h, name)) if old else set()
+        fresh = [m for m in S.photo_problems(new, w, h, name) if m not in before]
+        if fresh:
+            more = f" (and {len(fresh) - 1} more)" if len(fresh) > 1 else ""
+            raise S.SchemaError(f"{self.annotation_path(name)}: {fresh[0]}{more}")
+
+    @contextlib.contextmanager
+    def _settings_lock(self):
+        """An advisory lock on the project folder itself (no lock file is left behind)."""
+        fd = os.open(self.root, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            yield
+        finally:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
+
+    def save_settings(self, settings: dict, user: str | None = None) -> dict:
+        """Save project.json like an annotation: under a lock, and only if the file on disk is
+        still at the version `settings` started from (settings['version'], 0 for a file from
+        before settings had versions); raises ConflictError otherwise, SchemaError if invalid.
+        Returns (and keeps as self.settings) the saved settings, version + 1."""
+        sp = self.root / SETTINGS_FILE
+        S.validate_settings(settings, str(sp))
+        with self._settings_lock():
+            on_disk = S.load_settings(sp) if sp.exists() else None
+            have = on_disk.get("version", 0) if on_disk else 0
+            mine = settings.get("version", 0)
+            if on_disk is not None and have != mine:
+                raise ConflictError(
+                    f"{sp}: not saved - the project settings changed meanwhile (version {have} on disk, "
+                    f"your edit started from version {mine}); reload them and redo the change")
+            new = dict(settings, version=have + 1)
+            S.validate_settings(new, str(sp))
+            atomic_write_json(sp, new)
+        self.settings = new
+        return new
+
+    def restore_settings(self, old: dict) -> None:
+        """Undo this object's last save_settings (a failed import): put `old` back exactly, if
+        project.json is still the version that save wrote (else someone saved since: theirs stays)."""
+        sp = self.root / SETTINGS_FILE
+        with self._settings_lock():
+            if S.load_settings(sp).get("version", 0) == self.settings.get("version", 0):
+                atomic_write_json(sp, old)
+                self.settings = old
 
     # --- progress ---
     def statuses(self) -> dict[str, str]:
@@ -222,33 +276,34 @@ class Project:
         return names[0]
 
 
+def photo_info(source, name: str):
+    """Header checks of a project photo (a path or the file's bytes): racklay.data.image_info (a
+    readable image within the pixel limit), then PNG/JPEG only and MAX_SIDE a side."""
+    from racklay.data import DataError, image_info
+
+    try:
+        info = image_info(source, name)
+    except DataError as e:
+        raise StoreError(str(e)) from None
+    if info.format not in ("PNG", "JPEG"):
+        raise StoreError(f"{name}: {info.format} images are not accepted (PNG or JPEG only)")
+    if max(info.width, info.height) > MAX_SIDE:
+        raise StoreError(f"{name}: {info.width}x{info.height} pixels is over the limit of {MAX_SIDE} px a side")
+    return info
+
+
 def check_image_bytes(data: bytes, source: str) -> str:
     """Refuse anything but a complete PNG/JPEG within the size and pixel limits; decompression
     bombs are refused from the header, before any pixel is decoded. Returns 'PNG' or 'JPEG'."""
-    from PIL import Image
+    from racklay.data import DataError, decode_image
 
     if len(data) > MAX_UPLOAD_BYTES:
         raise StoreError(f"{source}: {len(data) / 2**20:.1f} MB is over the {MAX_UPLOAD_BYTES // 2**20} MB limit")
     if not data:
         raise StoreError(f"{source}: empty file")
+    info = photo_info(data, source)
     try:
-        with Image.open(io.BytesIO(data)) as im:
-            fmt, (w, h) = im.format, im.size
-            if fmt not in ("PNG", "JPEG"):
-                raise StoreError(f"{source}: {fmt} images are not accepted (PNG or JPEG only)")
-            if w * h > MAX_PIXELS or max(w, h) > MAX_SIDE:
-                raise StoreError(f"{source}: {w}x{h} pixels is over the limit ({MAX_PIXELS // 10**6} Mpx, "
-                                 f"{MAX_SIDE} px a side): refused as a possible decompression bomb")
-            im.verify()
-    except StoreError:
-        raise
-    except Image.DecompressionBombError:
-        raise StoreError(f"{source}: refused as a decompression bomb (declared size over "
-                         f"{MAX_PIXELS // 10**6} Mpx)") from None
-    except Exception as e:  # PIL raises many types for junk
-        raise StoreError(f"{source}: not a readable PNG/JPEG image ({type(e).__name__})") from None
-    import cv2
-
-    if cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) is None:
-        raise StoreError(f"{source}: image data could not be decoded")
-    return fmt
+        decode_image(data, source, info)
+    except DataError as e:
+        raise StoreError(str(e)) from None
+    return info.format

@@ -21,16 +21,17 @@ def _file_mode() -> int:
 
 _FILE_MODE = _file_mode()
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes, fsync: bool = True) -> Path:
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, fsync: bool = True, mode: int | None = None) -> Path:
     """Write `data` to a temporary file beside `path`, then rename it over `path`. With
     fsync=False the data is not forced to disk before the rename: readers and interrupted
-    processes still never see half a file, but a power loss may (bulk generators use it)."""
+    processes still never see half a file, but a power loss may (bulk generators use it).
+    `mode`: the file's permissions (default: what a plain open() gives, 0666 minus the umask)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            os.fchmod(f.fileno(), _FILE_MODE)
+            os.fchmod(f.fileno(), _FILE_MODE if mode is None else mode)
             f.write(data)
             f.flush()
             if fsync:
@@ -45,8 +46,22 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, fsync: bool = True)
     return path
 
 
-def atomic_write_text(path: str | os.PathLike, text: str, fsync: bool = True) -> Path:
-    return atomic_write_bytes(path, text.encode("utf-8"), fsync=fsync)
+def remove_stale_temps(folder: str | os.PathLike, name: str) -> list[Path]:
+    """Remove the temporary files atomic_write_bytes left beside `folder/name` when its process
+    was killed mid-write (`.NAME.XXXXXXXX.tmp`). Call it only when no other process can be
+    writing that file (e.g. a run folder at the start of its run). Returns what was removed."""
+    gone = []
+    for p in Path(folder).glob(f".{name}.*.tmp"):
+        try:
+            p.unlink()
+            gone.append(p)
+        except FileNotFoundError:
+            pass
+    return gone
+
+
+def atomic_write_text(path: str | os.PathLike, text: str, fsync: bool = True, mode: int | None = None) -> Path:
+    return atomic_write_bytes(path, text.encode("utf-8"), fsync=fsync, mode=mode)
 
 
 def atomic_write_json(path: str | os.PathLike, obj, indent: int | None = 2, fsync: bool = True) -> Path:

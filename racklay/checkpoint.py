@@ -4,13 +4,18 @@ Layout of one file:
 - tensors `model.<name>` (RackLayNet state dict), `disc.<name>` (discriminators, "-disc" runs),
   `optim.<opt>.<index>.<key>` (optimiser state tensors, for --resume);
 - metadata key `racklay` = JSON {"format", "version", "config" (ModelConfig), "meta" (free-form:
-  epoch, step, metrics, train config ...), "optim" ({opt: {"param_groups", "scalars"}})}.
+  epoch, step, metrics, train config ...), "optim" ({opt: {"param_groups", "scalars"}})};
+- metadata key `racklay_sha256` = SHA-256 over the `racklay` JSON and every tensor (name, dtype,
+  shape, bytes; by name), checked on every load: a file whose bytes changed after it was written
+  (a flipped bit, an edit) is refused with one line. Files written before the hash existed have
+  no such key and load without the check.
 
     save_checkpoint(path, model, cfg, optimizer=None, extra=None, disc=None)
     model, cfg, meta = load_model(path)
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import dataclass
@@ -23,6 +28,22 @@ from .model import Discriminators, ModelConfig, RackLayNet
 
 FORMAT = "racklay-checkpoint"
 VERSION = 1
+HASH_KEY = "racklay_sha256"
+
+
+def content_hash(header: str, tensors: dict) -> str:
+    """SHA-256 (hex) of a checkpoint's header JSON and its tensors (name, dtype, shape and raw
+    bytes of each, in name order): independent of how safetensors lays the file out."""
+    h = hashlib.sha256()
+    h.update(header.encode("utf-8"))
+    for k in sorted(tensors):
+        t = tensors[k].detach()
+        if t.device.type != "cpu":
+            t = t.cpu()
+        t = t.contiguous().reshape(-1)
+        h.update(f"\0{k}\0{str(t.dtype).removeprefix('torch.')}\0{tuple(tensors[k].shape)}\0".encode())
+        h.update(t.view(torch.uint8).numpy())
+    return h.hexdigest()
 
 
 def _optimizers(optimizer) -> dict:
@@ -61,7 +82,8 @@ def save_checkpoint(path: str | os.PathLike, model: torch.nn.Module, cfg: ModelC
         optim_meta[name] = {"param_groups": sd["param_groups"], "scalars": scalars}
     header = {"format": FORMAT, "version": VERSION, "config": cfg.to_dict(), "meta": extra or {},
               "optim": optim_meta}
-    data = save(tensors, metadata={"racklay": json.dumps(header)})
+    text = json.dumps(header)
+    data = save(tensors, metadata={"racklay": text, HASH_KEY: content_hash(text, tensors)})
     return atomic_write_bytes(path, data)
 
 
@@ -125,12 +147,18 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: checkpoint not found")
     try:
-        with safe_open(str(path), framework="pt", device=str(map_location)) as f:
-            header = (f.metadata() or {}).get("racklay")
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            md = f.metadata() or {}
+            header = md.get("racklay")
             tensors = {k: f.get_tensor(k) for k in f.keys()}
     except Exception as e:  # noqa: BLE001 - safetensors raises several types on bad input
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise ValueError(f"{path}: not a readable safetensors checkpoint ({msg})") from None
+    if header is not None and HASH_KEY in md and content_hash(header, tensors) != md[HASH_KEY]:
+        raise ValueError(f"{path}: checkpoint content does not match its recorded SHA-256 (the file was "
+                         "corrupted or modified after it was written); use another copy")
+    if str(map_location) != "cpu":
+        tensors = {k: v.to(map_location) for k, v in tensors.items()}
     if header is None:
         raise ValueError(f"{path}: safetensors file without RackLay metadata (not a racklay checkpoint)")
     try:
@@ -154,4 +182,4 @@ def load_model(path: str | os.PathLike, map_location: str | torch.device = "cpu"
     return model, ck.cfg, ck.meta
 
 
-__all__ = ["save_checkpoint", "load_checkpoint", "load_model", "Checkpoint"]
+__all__ = ["save_checkpoint", "load_checkpoint", "load_model", "Checkpoint", "content_hash"]

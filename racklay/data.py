@@ -53,21 +53,160 @@ def check_prediction_out(out: str | os.PathLike, data: str | os.PathLike | None 
                             "would overwrite its layouts; choose another output folder")
 
 
-def read_image(path: str | os.PathLike) -> np.ndarray:
-    """Read an image file as RGB uint8 (H, W, 3). Raises DataError naming the file."""
+#: images above this many pixels (width x height) are refused from their header, before any
+#: pixel is decoded: a 30000 x 30000 PNG is under 1 MB on disk but 2.7 GB decoded
+DEFAULT_MAX_MEGAPIXELS = 40
+MAX_MEGAPIXELS_ENV = "RACKLAY_MAX_MEGAPIXELS"
+
+
+def max_image_pixels() -> int:
+    """The pixel limit of read_image: RACKLAY_MAX_MEGAPIXELS (a number of megapixels) or 40 Mpx."""
+    text = os.environ.get(MAX_MEGAPIXELS_ENV, "").strip()
+    if not text:
+        return DEFAULT_MAX_MEGAPIXELS * 10**6
+    try:
+        mp = float(text)
+        if not (0 < mp < float("inf")):
+            raise ValueError
+    except ValueError:
+        raise DataError(f"{MAX_MEGAPIXELS_ENV}={text!r}: expected a number of megapixels > 0") from None
+    return int(mp * 10**6)
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """What an image file's header says: format ('PNG', 'JPEG', or PIL's name) and size."""
+
+    format: str
+    width: int
+    height: int
+
+
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _read_header(f, source: str) -> ImageInfo:
+    """Format and size from the header alone (PNG IHDR, JPEG frame header; other formats through
+    PIL, which also reads only the header)."""
+    import struct
+
+    head = f.read(32)
+    if head[:8] == b"\x89PNG\r\n\x1a\n":
+        if len(head) < 24 or head[12:16] != b"IHDR":
+            raise DataError(f"{source}: not a readable image (PNG without an IHDR header)")
+        w, h = struct.unpack(">II", head[16:24])
+        return ImageInfo("PNG", w, h)
+    if head[:2] == b"\xff\xd8":
+        f.seek(2)
+        while True:
+            b = f.read(1)
+            while b and b != b"\xff":          # bytes between segments (tolerated, as decoders do)
+                b = f.read(1)
+            while b == b"\xff":                # fill bytes
+                b = f.read(1)
+            if not b:
+                break
+            m = b[0]
+            if m == 0x01 or 0xD0 <= m <= 0xD8:  # markers without a segment
+                continue
+            if m in (0xD9, 0xDA):               # end of image / start of scan before any frame header
+                break
+            seg = f.read(2)
+            if len(seg) < 2:
+                break
+            n = struct.unpack(">H", seg)[0]
+            if m in _JPEG_SOF:
+                body = f.read(5)
+                if len(body) < 5:
+                    break
+                h, w = struct.unpack(">HH", body[1:5])
+                if not (w and h):
+                    break
+                return ImageInfo("JPEG", w, h)
+            f.seek(n - 2, 1)
+        raise DataError(f"{source}: not a readable image (JPEG without a frame header; truncated?)")
+    import warnings
+
+    from PIL import Image
+
+    f.seek(0)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(f) as im:
+                return ImageInfo(str(im.format), *im.size)
+    except Image.DecompressionBombError:
+        raise DataError(f"{source}: refused before decoding: its header declares over "
+                        f"{2 * Image.MAX_IMAGE_PIXELS / 1e6:.0f} Mpx (a possible decompression bomb)") from None
+    except Exception as e:  # noqa: BLE001 - PIL raises many types for junk
+        raise DataError(f"{source}: not a readable image (corrupt, truncated or not an image)") from None
+
+
+def check_image_pixels(info: ImageInfo, source: str, limit: int | None = None) -> None:
+    """Refuse an image whose header declares more than `limit` pixels (default max_image_pixels())."""
+    limit = max_image_pixels() if limit is None else limit
+    w, h = info.width, info.height
+    if w < 1 or h < 1:
+        raise DataError(f"{source}: not a readable image (its header says {w}x{h} pixels)")
+    if w * h > limit:
+        raise DataError(f"{source}: {w}x{h} pixels ({w * h / 1e6:.0f} Mpx) is over the {limit / 1e6:g} Mpx "
+                        f"limit; refused before decoding (a possible decompression bomb; set "
+                        f"{MAX_MEGAPIXELS_ENV} to allow larger images)")
+
+
+def image_info(source: str | os.PathLike | bytes, name: str | None = None) -> ImageInfo:
+    """Format and size of an image file (a path, or the file's bytes) from its header, nothing
+    decoded; DataError naming the file if it is not an image or is over the pixel limit."""
+    import io
+
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        name = name or "image"
+        if not len(source):
+            raise DataError(f"{name}: empty file")
+        info = _read_header(io.BytesIO(source), name)
+    else:
+        path = Path(source)
+        name = name or str(path)
+        if not path.is_file():
+            raise DataError(f"{name}: image file not found")
+        with open(path, "rb") as f:
+            if not f.read(1):
+                raise DataError(f"{name}: not a readable image (empty file)")
+            f.seek(0)
+            info = _read_header(f, name)
+    check_image_pixels(info, name)
+    return info
+
+
+def decode_image(data: bytes | np.ndarray, source: str, info: ImageInfo | None = None) -> np.ndarray:
+    """Decode an image's bytes as RGB uint8 (H, W, 3) after the header checks of image_info()
+    (`info`, when the caller has them already): the pixel limit comes first, so a decompression
+    bomb is refused before a pixel is decoded. The one place the toolkit turns image bytes into
+    pixels. Raises DataError naming `source`."""
     import cv2
 
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: image file not found")
-    data = np.fromfile(str(path), dtype=np.uint8)
-    if path.suffix.lower() == ".png" and data[:8].tobytes() == b"\x89PNG\r\n\x1a\n" and not _png_complete(data):
+    buf = data if isinstance(data, np.ndarray) else np.frombuffer(data, np.uint8)
+    if info is None:
+        info = image_info(buf.tobytes(), source)
+    if info.format == "PNG" and not _png_complete(buf):
         # checked before decoding, so OpenCV prints no warning of its own
-        raise DataError(f"{path}: truncated PNG (no IEND chunk)")
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+        raise DataError(f"{source}: truncated PNG (no IEND chunk)")
+    img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     if img is None:
-        raise DataError(f"{path}: not a readable image (corrupt, truncated or not an image)")
+        raise DataError(f"{source}: not a readable image (corrupt, truncated or not an image)")
+    if img.shape[:2] != (info.height, info.width):
+        raise DataError(f"{source}: decoded to {img.shape[1]}x{img.shape[0]} pixels but its header says "
+                        f"{info.width}x{info.height}")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Read an image file as RGB uint8 (H, W, 3): the one function every command and the annotator
+    read images with. The header is checked first (image_info: format, pixel limit), so a
+    decompression bomb costs a few bytes of reading. Raises DataError naming the file."""
+    path = Path(path)
+    info = image_info(path)
+    return decode_image(np.fromfile(str(path), dtype=np.uint8), str(path), info)
 
 
 def _png_complete(data: np.ndarray) -> bool:
@@ -101,6 +240,30 @@ def read_layout_file(path: str | os.PathLike, R: int | None = None, D: int | Non
     except L.LayoutError as e:
         raise DataError(str(e)) from None
     return L.decode(arr, str(path))
+
+
+def npy_shape(path: str | os.PathLike) -> tuple[int, ...] | None:
+    """The shape in a .npy file's header (the data are not read); None if it is not a readable
+    .npy file (reading it properly then gives the one-line error)."""
+    fmt = np.lib.format
+    try:
+        with open(path, "rb") as f:
+            version = fmt.read_magic(f)
+            read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+            return tuple(read(f)[0])
+    except Exception:  # noqa: BLE001 - any unreadable file: the caller reads it and reports it
+        return None
+
+
+def common_layout_shape(paths: Iterable[str | os.PathLike]) -> tuple[int, int] | None:
+    """(R, D) of the layout stacks most of `paths` hold, from their headers; None if none is a
+    readable (R, D, D) stack. A file that differs from it is the odd one out, so errors can name
+    it rather than whichever file happened to be read first."""
+    shapes = Counter(s for s in map(npy_shape, paths) if s is not None and len(s) == 3 and s[1] == s[2])
+    if not shapes:
+        return None
+    R, D, _ = shapes.most_common(1)[0][0]
+    return R, D
 
 
 @dataclass
@@ -168,6 +331,16 @@ class RackLayRoot:
 
     def read_layouts(self, view: str, sid: str, R: int | None = None, D: int | None = None) -> np.ndarray:
         return read_layout_file(self.layout_path(view, sid), R=R, D=D)
+
+    def layout_shape(self, ids: Iterable[str] | None = None,
+                     views: Sequence[str] | None = None) -> tuple[int, int] | None:
+        """(R, D) most of the layout files of `ids` (default: all) in `views` (default: all) have;
+        see common_layout_shape."""
+        views = self.views() if views is None else views
+        paths = [p for v in views
+                 for p in (self.layout_path(v, sid) for sid in (self.layout_ids(v) if ids is None else ids))
+                 if p.is_file()]
+        return common_layout_shape(paths)
 
     def read_meta(self, sid: str) -> dict | None:
         p = self.meta_path(sid)

@@ -56,6 +56,12 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
     if not views:
         raise ValueError(f"{root.root}: no layouts for the model's views {'/'.join(pred.views)} "
                          f"(dataset has {'/'.join(root.views()) or 'none'})")
+    ref = root.layout_shape(ids, views)
+    if ref is not None and ref[0] != pred.R:
+        # the model does not fit the data: name the model, not the first dataset file read
+        model = pred.weights or "the model"
+        raise ValueError(f"{model}: the model predicts R={pred.R} shelves but the layouts in {root.root} "
+                         f"have R={ref[0]}; use a model trained for R={ref[0]}")
     S = pred.layout_size
     ds = RackLayDataset(root.root, ids=ids, image_size=pred.image_size, layout_size=S, views=views, R=pred.R,
                         letterbox=bool(getattr(pred.cfg, "letterbox", False)))

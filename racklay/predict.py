@@ -300,14 +300,23 @@ def write_prediction(out_root, sid: str, image: np.ndarray, pred: dict, views: S
     g = pred["grid"]
     meta = {"source": str(source), "input_size": [int(image.shape[1]), int(image.shape[0])],
             "grid": {"D": g.size, "extent_m": g.extent}, "prediction": True, **(extra_meta or {})}
-    root.write_sample(sid, image=image, top=pred.get("top"), front=pred.get("front"), meta=meta)
-    if png:
-        for v in views:
-            for k, ch in enumerate(pred[v]):
-                atomic_save_png(root.root / "png" / f"{sid}_{v}_shelf{k + 1}.png", colorize(ch))
-    if figure:
-        layout_figure(image, pred.get("top"), pred.get("front"), out=root.root / "figures" / f"{sid}.png",
-                      title=f"{Path(source).name or sid}: predicted layouts", grid=g, crop=crop)
+    try:
+        root.write_sample(sid, image=image, top=pred.get("top"), front=pred.get("front"), meta=meta)
+        if png:
+            for v in views:
+                for k, ch in enumerate(pred[v]):
+                    atomic_save_png(root.root / "png" / f"{sid}_{v}_shelf{k + 1}.png", colorize(ch))
+        if figure:
+            layout_figure(image, pred.get("top"), pred.get("front"), out=root.root / "figures" / f"{sid}.png",
+                          title=f"{Path(source).name or sid}: predicted layouts", grid=g, crop=crop)
+    except BaseException:
+        # a sample is written whole or not at all: no layouts without their figure, no stale mix
+        # of this prediction's files with an earlier one's
+        for f in [root.image_path(sid), root.meta_path(sid), root.root / "figures" / f"{sid}.png",
+                  *(root.layout_path(v, sid) for v in L.VIEWS),
+                  *(root.root / "png").glob(f"{sid}_*_shelf*.png")]:
+            f.unlink(missing_ok=True)
+        raise
 
 
 def resize_prediction(pred: dict, size: int) -> dict:
@@ -346,6 +355,7 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
             else:
                 print(msg, file=sys.stderr)
     extra = {"weights": str(predictor.weights) if predictor.weights else None, "backend": predictor.backend}
+    made_out = not Path(out).exists()
     for path, sid in zip(files, ids):
         try:
             image = read_image(path)
@@ -355,8 +365,10 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
             write_prediction(out, sid, image, pred, predictor.views, source=str(path), figure=figure,
                              png=png, crop=crop, extra_meta=extra)
             rep.done.append(sid)
-        except (ValueError, OSError) as e:  # DataError is a ValueError and names the file
+        except (ValueError, OSError, MemoryError) as e:  # DataError is a ValueError and names the file
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            if isinstance(e, MemoryError):
+                msg = f"out of memory ({msg})"
             if str(path) not in msg:
                 msg = f"{path}: {msg}"
             rep.failed.append((str(path), msg))
@@ -365,4 +377,9 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
             bar.update(1)
     if bar is not None:
         bar.close()
+    if made_out and not rep.done:   # every input failed: leave no (empty) output folder behind
+        import shutil
+
+        if not any(p.is_file() for p in Path(out).rglob("*")):
+            shutil.rmtree(out, ignore_errors=True)
     return rep

@@ -498,6 +498,10 @@ def train(cfg: TrainConfig, transform=None) -> Path:
         last_path, best_path = run_dir / "last.safetensors", run_dir / "best.safetensors"
         mcfg = cfg.model_config()
 
+        if dist.main and run_dir.is_dir():   # half-written checkpoints of a killed run
+            from .atomic import remove_stale_temps
+            for name in (last_path.name, best_path.name):
+                remove_stale_temps(run_dir, name)
         resume_ck = None
         if cfg.resume:
             if not last_path.is_file():
@@ -540,7 +544,8 @@ def train(cfg: TrainConfig, transform=None) -> Path:
         optimizers = {"gen": gen_opt, **({"disc": disc_opt} if disc_opt else {})}
 
         state = {"epoch": 0, "step": 0, "global_step": 0, "history": [], "best_score": -1.0,
-                 "best_epoch": -1, "bad_epochs": 0, "elapsed_s": 0.0, "finished": False, "stop_reason": ""}
+                 "best_epoch": -1, "bad_epochs": 0, "elapsed_s": 0.0, "finished": False, "stop_reason": "",
+                 "epoch_sums": None}   # the interrupted epoch's running loss sums (restored on resume)
         if resume_ck is not None:
             from .checkpoint import _load_strict
             _load_strict(model, {k: v.to(device) for k, v in resume_ck.section("model").items()}, last_path, "model")

@@ -23,7 +23,7 @@ def make_project(tmp_path, n=5, statuses=None):
     proj.save_settings(dict(proj.settings, D=256, extent=4.0))
     for k in range(n):
         name = f"p{k}.png"
-        (root / name).write_bytes(encode_png(np.full((480, 640, 3), 40 * k, np.uint8)))
+        (root / name).write_bytes(encode_png(np.full((480, 640, 3), 30 * k % 250, np.uint8)))
         ann = clicks(cam)
         ann["image"] = name
         ann["status"] = (statuses or ["done"] * n)[k]
@@ -128,7 +128,7 @@ def test_export_unreadable_photo_writes_nothing(tmp_path, capsys):
     out = tmp_path / "ds"
     rc = annotate_main(["export", str(proj.root), "--out", str(out)])
     err = one_line_error(capsys)
-    assert rc == 2 and "p2.png: not a readable PNG/JPEG image" in err
+    assert rc == 2 and "p2.png: not a readable image" in err
     assert tree(tmp_path) == before  # no dataset, no temporary folder beside it
     # an empty --out folder stays empty on failure and is filled on success
     out.mkdir()
@@ -160,11 +160,15 @@ def exported(tmp_path, n=5):
     return out
 
 
-@pytest.mark.parametrize("bad", ["corrupt", "shape"])
+@pytest.mark.parametrize("bad", ["corrupt", "shape", "first top"])
 def test_import_bad_layout_imports_nothing(tmp_path, capsys, bad):
+    """The bad file is the one named: also when it is the first sample's top layout (whose good
+    front layout was blamed before, being read against the bad file's shape)."""
     out = exported(tmp_path)
     capsys.readouterr()
     f = out / "frontLayouts" / "front000003.npy"  # the 4th sample
+    if bad == "first top":
+        f = out / "topLayouts" / "top000000.npy"
     good = f.read_bytes()
     if bad == "corrupt":
         f.write_bytes(good[:100])
@@ -221,3 +225,81 @@ def test_import_write_failure_rolls_back(tmp_path, capsys, monkeypatch):
         import_dataset(out, proj)
     assert calls[2] == "ds_000002.png" and tree(rev) == before
     assert Project(rev).settings == settings
+
+
+def _edit(proj, name, fn):
+    """Change an annotation file behind the tool's back (a hand edit, a bad script)."""
+    p = proj.annotation_path(name)
+    ann = json.loads(p.read_text())
+    fn(ann)
+    p.write_text(json.dumps(ann))
+    return p
+
+
+def test_export_refuses_annotations_that_do_not_fit_their_photo(tmp_path, capsys):
+    """Absurd annotations exported silently before (phantom shelf channels, shifted channels,
+    dropped boxes): now the first stops the export with one line naming it, --skip-invalid lists
+    each one left out, and every geometry warning written to meta/ is printed."""
+    proj = make_project(tmp_path, 8)
+    bad = {
+        "p0.png": (lambda a: a["rack"]["corners"].__setitem__(0, [1e12, -1e12]),
+                   "rack corner 1 at (1e+12, -1e+12) is outside the 640x480 photo"),
+        "p1.png": (lambda a: a["shelves"][0].__setitem__("point", [300.0, 480.0 * 50]),
+                   "shelf 0 at (300, 24000) is outside the 640x480 photo"),
+        "p2.png": (lambda a: a["shelves"][1].__setitem__("point", [300.0, 6.5e299]),
+                   "shelf 1 at (300, 6.5e+299) is outside the 640x480 photo"),
+        "p3.png": (lambda a: a["boxes"][0].__setitem__("p1", list(a["boxes"][0]["p0"])),
+                   "box 0 has no area (0 x 0 px)"),
+        "p4.png": (lambda a: a["boxes"][1].update(p0=[700.0, 500.0], p1=[800.0, 600.0]),
+                   "box 1 corner p0 at (700, 500) is outside the 640x480 photo; and 1 more"),
+        "p5.png": (lambda a: a.__setitem__("image_size", [1280, 960]),
+                   "field 'image_size' says 1280x960, but the photo is 640x480 pixels"),
+        "p6.png": (lambda a: a.__setitem__("image", "p7.png"),
+                   "field 'image' says 'p7.png', but the photo is 'p6.png'"),
+    }
+    paths = {name: _edit(proj, name, fn) for name, (fn, _) in bad.items()}
+    # p7 is fine but a box sticks out of the rack's depth: a warning, written to meta/ and printed
+    _edit(proj, "p7.png", lambda a: a["boxes"][0].update(front_offset=0.5, depth=0.5))
+    out = tmp_path / "ds"
+    rc = annotate_main(["export", str(proj.root), "--out", str(out)])
+    err = one_line_error(capsys)
+    assert rc == 2 and f"{paths['p0.png']}: cannot export ({bad['p0.png'][1]})" in err, err
+    assert not out.exists()
+    rc = annotate_main(["export", str(proj.root), "--out", str(out), "--skip-invalid"])
+    cap = capsys.readouterr()
+    assert rc == 0 and "exported 1 image(s)" in cap.out and "skipped 7 invalid annotation(s)" in cap.out
+    lines = cap.err.splitlines()
+    for name, (_, why) in bad.items():
+        assert f"annotate export: skipped: {paths[name]}: cannot export ({why})" in lines, (name, lines)
+    warned = [l for l in lines if "warning" in l]
+    meta = RackLayRoot(out).read_meta("000000")
+    assert meta["source_image"] == "p7.png" and meta["warnings"]
+    assert warned == [f"annotate export: warning: p7.png: {w}" for w in meta["warnings"]]
+    assert check_dataset(out).ok
+
+
+def test_server_refuses_edits_that_leave_the_photo_but_saves_fixes(tmp_path):
+    """The same check guards saving: an edit that puts a point outside the photo or makes a box
+    without area is refused with one line; a file that is already bad can be fixed item by item."""
+    from annotate import schema as S
+
+    proj = make_project(tmp_path, 1)
+    ann = proj.load("p0.png")
+    ann["boxes"][0]["p1"] = [5000.0, 10.0]
+    with pytest.raises(S.SchemaError, match=r"p0\.png\.json: box 0 corner p1 at \(5000, 10\) is outside the "
+                                            r"640x480 photo"):
+        proj.save(ann)
+    ann = proj.load("p0.png")
+    ann["boxes"][1]["p0"] = list(ann["boxes"][1]["p1"])
+    with pytest.raises(S.SchemaError, match="box 1 has no area"):
+        proj.save(ann)
+    # a file broken by hand in two places: removing one problem saves, adding one does not
+    _edit(proj, "p0.png", lambda a: (a["boxes"][0].__setitem__("p0", [-900.0, 0.0]),
+                                     a["boxes"][1].__setitem__("p0", [-900.0, 0.0])))
+    ann = proj.load("p0.png")
+    ann["boxes"] = [b for b in ann["boxes"] if b["id"] != 0]
+    assert proj.save(ann)["version"] == ann["version"] + 1
+    ann = proj.load("p0.png")
+    ann["shelves"][0]["point"] = [10.0, 9000.0]
+    with pytest.raises(S.SchemaError, match="shelf 0 at"):
+        proj.save(ann)

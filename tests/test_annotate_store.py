@@ -155,3 +155,31 @@ def test_restore_after_kill(proj):
     assert len(ann["shelves"]) == 50 and len({s["point"][1] for s in ann["shelves"]}) == 1
     ann["status"] = "in progress"
     assert proj.save(ann)["version"] == ann["version"] + 1
+
+
+def test_settings_save_with_lock_and_version_check(proj):
+    """project.json is saved like an annotation: a session whose settings are stale (another one
+    saved meanwhile) is refused and overwrites nothing; a save waits for the lock."""
+    import fcntl
+    import threading
+
+    a, b = Project(proj.root), Project(proj.root)
+    saved = a.save_settings(dict(a.settings, extent=6.0))
+    assert saved["version"] == 1 and S.load_settings(proj.root / "project.json")["extent"] == 6.0
+    with pytest.raises(ConflictError, match=r"project\.json: not saved - the project settings changed "
+                                            r"meanwhile \(version 1 on disk, your edit started from version 0\)"):
+        b.save_settings(dict(b.settings, R=2))
+    on_disk = S.load_settings(proj.root / "project.json")
+    assert (on_disk["R"], on_disk["extent"], on_disk["version"]) == (4, 6.0, 1)
+    # a reloaded session saves; and a save waits while another process holds the lock
+    c = Project(proj.root)
+    fd = os.open(proj.root, os.O_RDONLY)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    t = threading.Thread(target=c.save_settings, args=(dict(c.settings, R=2),))
+    t.start()
+    t.join(0.5)
+    assert t.is_alive() and S.load_settings(proj.root / "project.json")["R"] == 4
+    fcntl.flock(fd, fcntl.LOCK_UN)
+    os.close(fd)
+    t.join(30)
+    assert S.load_settings(proj.root / "project.json")["R"] == 2 and c.settings["version"] == 2

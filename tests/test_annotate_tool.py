@@ -2,6 +2,7 @@
 editing, undo/redo, zoom, conflicts between two labellers, invalid files, and model-assisted
 proposals with a stand-in predictor that follows racklay.predict.Predictor's contract."""
 import json
+import os
 
 import numpy as np
 import pytest
@@ -256,3 +257,67 @@ def test_serve_busy_port_one_line(proj, monkeypatch, capsys, checked):
     assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err, err
     assert f"cannot serve on 127.0.0.1:{port}" in err and "choose another --port" in err
     assert "serving" not in out
+
+
+def test_rendered_photos_are_not_kept(proj):
+    """Each click renders the photo to a file for the viewer; gradio copies it as the handler
+    returns, so only the newest few stay (before: 64, ~155 KB each, per server run)."""
+    tool = Tool(proj)
+    st = tool.open("r.png")
+    paths = [tool.photo_file(st) for _ in range(20)]
+    left = sorted(os.listdir(os.path.dirname(paths[-1])))
+    assert len(left) <= Tool.KEEP_SHOTS and os.path.basename(paths[-1]) in left
+
+
+@pytest.mark.slow
+def test_serve_temp_folder_removed_after_sigterm(proj, tmp_path):
+    """Everything a server run puts in the temp folder (gradio's cache, uploads, rendered photos)
+    lives in one folder that is gone after SIGTERM. The server runs with --auth-file: gradio's
+    login takes the file's users and refuses a wrong password."""
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import urllib.error
+    import urllib.parse
+    import urllib.request
+
+    from annotate.auth import set_password
+
+    logins = tmp_path / "logins"
+    set_password(logins, "ana", "correct horse")
+
+    def login(user, pw):
+        data = urllib.parse.urlencode({"username": user, "password": pw}).encode()
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/login", data=data, timeout=60) as r:
+                return r.status
+        except urllib.error.HTTPError as e:
+            return e.code
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "TMPDIR": str(tmp), "GRADIO_ANALYTICS_ENABLED": "False"}
+    env.pop("GRADIO_TEMP_DIR", None)
+    p = subprocess.Popen([sys.executable, "-m", "annotate.cli", "serve", str(proj.root), "--port", str(port),
+                          "--auth-file", str(logins)],
+                         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = p.stdout.readline()          # "annotate: serving ..." once the server listens
+        assert "serving" in line, line + p.stdout.read() if p.poll() is not None else line
+        run_dirs = [d.name for d in tmp.iterdir()]
+        assert len(run_dirs) == 1 and run_dirs[0].startswith("annotate-run-"), run_dirs
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=60) as r:
+            assert r.status == 200
+        assert login("ana", "wrong horse") == 400 and login("ana", "correct horse") == 200
+        p.send_signal(signal.SIGTERM)
+        p.wait(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 128 + signal.SIGTERM
+    assert list(tmp.iterdir()) == []

@@ -258,3 +258,36 @@ def test_outputs_never_overwrite_ground_truth_and_bad_inputs_write_nothing(toy, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bad.png" in err[0]
     assert not onnx.exists()
+
+
+def test_shape_errors_name_the_file_that_is_wrong(toy, ckpt, tmp_path, capsys):
+    """The odd file out is named, not whichever file happened to be read alongside it: a
+    3-channel ground-truth file in `score` (not the good prediction beside it), a 3-channel top
+    layout in `show` (not its good front layout), and an R=3 model on R=4 data in `eval` (the
+    model, not a dataset file)."""
+    import shutil
+
+    from racklay.atomic import atomic_save_npy
+    from racklay.checkpoint import save_checkpoint
+    from racklay.model import ModelConfig, RackLayNet
+
+    gt = tmp_path / "gt"
+    shutil.copytree(toy, gt)
+    pred = tmp_path / "pred"
+    for d in ("topLayouts", "frontLayouts"):
+        shutil.copytree(toy / d, pred / d)
+    sid = RackLayRoot(gt).ids()[2]
+    bad = RackLayRoot(gt).layout_path("top", sid)
+    atomic_save_npy(bad, np.load(bad)[:3])
+    assert racklay_main(["score", "--pred", str(pred), "--gt", str(gt)]) == 2
+    err = capsys.readouterr().err
+    assert f"{bad}: 3 shelf channels, expected R=4" in err and str(pred) not in err, err
+    assert racklay_main(["show", str(gt), "--id", sid, "--out", str(tmp_path / "f.png")]) == 2
+    err = capsys.readouterr().err
+    assert f"{bad}: 3 shelf channels, expected R=4" in err and "frontLayouts" not in err, err
+
+    cfg = ModelConfig(R=3, image_size=IMG, layout_size=S)
+    r3 = save_checkpoint(tmp_path / "r3.safetensors", RackLayNet(cfg), cfg)
+    assert racklay_main(["eval", "--weights", str(r3), "--data", str(toy), "--split", "all"]) == 2
+    err = capsys.readouterr().err
+    assert f"{r3}: the model predicts R=3 shelves but the layouts in {toy} have R=4" in err, err

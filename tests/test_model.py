@@ -140,6 +140,47 @@ def test_load_model_rejects_bad_files(tmp_path):
         load_model(p)
 
 
+def test_checkpoint_bytes_changed_after_writing_are_refused(tmp_path):
+    """A checkpoint carries a SHA-256 of its header and tensors: one flipped bit in a weight (which
+    silently changed predictions before) or an edited header value is refused with one line; a
+    file written before the hash existed still loads."""
+    import json
+    import struct
+
+    from safetensors.torch import save
+
+    from racklay.checkpoint import HASH_KEY, content_hash
+
+    cfg = ModelConfig(R=2, image_size=IMG, layout_size=LAY)
+    torch.manual_seed(0)
+    good = save_checkpoint(tmp_path / "good.safetensors", RackLayNet(cfg), cfg, extra={"epoch": 3})
+    raw = good.read_bytes()
+    n = struct.unpack("<Q", raw[:8])[0]
+    flipped = bytearray(raw)
+    flipped[8 + n + (len(raw) - 8 - n) // 2] ^= 0x10          # one bit in the middle of the weights
+    bad = tmp_path / "flipped.safetensors"
+    bad.write_bytes(bytes(flipped))
+    with pytest.raises(ValueError, match=r"flipped\.safetensors: checkpoint content does not match its "
+                                         r"recorded SHA-256"):
+        load_model(bad)
+    edited = tmp_path / "edited.safetensors"
+    edited.write_bytes(raw.replace(b'\\"epoch\\": 3', b'\\"epoch\\": 4'))
+    assert edited.read_bytes() != raw
+    with pytest.raises(ValueError, match="edited.safetensors: checkpoint content does not match"):
+        load_checkpoint(edited)
+    # a checkpoint from before the hash: same tensors and header, no hash key -> loads unchecked
+    ck = load_checkpoint(good)
+    header = json.dumps({"format": "racklay-checkpoint", "version": 1, "config": cfg.to_dict(),
+                         "meta": {"epoch": 3}, "optim": {}})
+    old = tmp_path / "old.safetensors"
+    old.write_bytes(save(ck.tensors, metadata={"racklay": header}))
+    assert load_model(old)[2] == {"epoch": 3}
+    assert HASH_KEY not in (load_checkpoint(old).meta or {})
+    # the hash covers every dtype a model may hold (bf16 has no numpy twin)
+    assert content_hash("h", {"a": torch.ones(3, dtype=torch.bfloat16)}) != content_hash(
+        "h", {"a": torch.ones(3, dtype=torch.float16)})
+
+
 def _fake_torchvision_state(seed=0):
     torch.manual_seed(seed)
     sd = {k: torch.randn_like(v.float()).to(v.dtype) if v.dtype.is_floating_point else v

@@ -11,7 +11,10 @@ def register(sub) -> None:
                     "RackLay-format dataset (Images/, topLayouts/, frontLayouts/, meta/, splits/) that "
                     "`racklay check-data` accepts and training / `transfer finetune` read. Samples are "
                     "numbered 000000... in file-name order; meta/NNNNNN.json names the source photo. "
-                    "Every annotation and photo is checked before anything is written; the dataset is "
+                    "Every annotation and photo is checked before anything is written (an annotation "
+                    "must fit its photo: same name and size, every point inside it, no box without "
+                    "area); the first bad one stops the export unless --skip-invalid is given. The "
+                    "geometry's warnings (also in meta/NNNNNN.json) are printed. The dataset is "
                     "built in a hidden folder beside --out and renamed to --out at the end, so a failed "
                     "export leaves nothing behind.")
     p.add_argument("project", help="project folder")
@@ -23,6 +26,9 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the split shuffle (default 0)")
     p.add_argument("--only-status", default="done,approved",
                    help="export images with these statuses (default done,approved)")
+    p.add_argument("--skip-invalid", action="store_true",
+                   help="leave out (and list) annotations that do not fit their photo or give no layouts, "
+                        "instead of stopping at the first")
     p.set_defaults(func=run)
 
 
@@ -35,9 +41,15 @@ def run(args) -> int:
     statuses = tuple(s.strip() for s in args.only_status.split(",") if s.strip())
     project = Project(args.project, create=False)
     res = export_project(project, args.out, counts=counts, fractions=fractions, seed=args.seed,
-                         only_status=statuses, progress=sys.stderr.isatty())
+                         only_status=statuses, progress=sys.stderr.isatty(), skip_invalid=args.skip_invalid)
+    for path, why in res["skipped"]:
+        print(f"annotate export: skipped: {why}", file=sys.stderr)
+    for w in res["warnings"]:
+        print(f"annotate export: warning: {w}", file=sys.stderr)
     sp = ", ".join(f"{k}={v}" for k, v in res["splits"].items())
     print(f"exported {res['images']} image(s) to {res['out']} (splits: {sp})")
+    if res["skipped"]:
+        print(f"skipped {len(res['skipped'])} invalid annotation(s) (listed above)")
     lo = res["left_out"]
     parts = [f"{n} with status {st}" for st, n in sorted(lo["other_status"].items())]
     if lo["unannotated"]:

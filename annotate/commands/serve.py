@@ -1,11 +1,11 @@
 """annotate serve PROJECT_DIR"""
 from __future__ import annotations
 
+import argparse
+
 
 def port_number(text: str) -> int:
     """argparse type of --port: a whole number from 1 to 65535."""
-    import argparse
-
     try:
         port = int(text)
     except ValueError:
@@ -28,7 +28,11 @@ def register(sub) -> None:
                    help="port, 1-65535 (default 7860); a busy port is refused with a one-line error")
     p.add_argument("--model", default=None, help="checkpoint for model-assisted pre-labels (racklay.predict.Predictor)")
     p.add_argument("--backend", default="torch", choices=("torch", "onnx"), help="prediction backend for --model")
-    p.add_argument("--auth", default=None, metavar="USER:PASSWORD", help="require this login")
+    p.add_argument("--auth-file", default=None, metavar="FILE",
+                   help="require a login; FILE lists the users with salted password hashes "
+                        "(create it with `annotate passwd FILE USER`)")
+    # removed: it put the password on the command line (ps, shell history); kept only to say so
+    p.add_argument("--auth", default=None, help=argparse.SUPPRESS)
     p.set_defaults(func=run)
 
 
@@ -36,12 +40,12 @@ def run(args) -> int:
     from racklay.cli import CLIError
 
     from annotate.app import serve
+    from annotate.auth import Authenticator
 
-    auth = None
-    if args.auth:
-        user, sep, pw = args.auth.partition(":")
-        if not sep or not user or not pw:
-            raise CLIError("--auth: expected USER:PASSWORD")
-        auth = (user, pw)
+    if args.auth is not None:
+        raise CLIError("--auth USER:PASSWORD is no longer accepted: it puts the password on the command line "
+                       "(visible in ps and the shell history). Create a login file with `annotate passwd FILE "
+                       "USER` (asks for the password) and pass --auth-file FILE")
+    auth = Authenticator(args.auth_file) if args.auth_file else None
     serve(args.project, host=args.host, port=args.port, model=args.model, backend=args.backend, auth=auth)
     return 0

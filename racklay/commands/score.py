@@ -50,13 +50,17 @@ def score_roots(pred_root, gt_root, split=None):
             more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
             raise CLIError(f"{first}: prediction missing{more}; "
                            f"{len(ids)} image(s) to score in view {view}")
+    # the shape most ground-truth files have: a file that differs is the one named, whether it is a
+    # ground-truth file or a prediction
+    ref = gt.layout_shape(ids, views)
+    R, D = ref if ref else (None, None)
     m = LayoutMetrics()
     for view in views:
         for sid in ids:
             gpath = gt.layout_path(view, sid)
             if not gpath.exists():
                 raise CLIError(f"{gpath}: ground truth missing for predicted {view} layout {sid}")
-            g = gt.read_layouts(view, sid)
+            g = gt.read_layouts(view, sid, R=R, D=D)
             p = pred.read_layouts(view, sid, R=g.shape[0], D=g.shape[1])
             m.update(view, p, g)
     n = len(ids)

@@ -43,8 +43,10 @@ def run(args) -> int:
             raise CLIError(f"--index {args.index} out of range: {ds.root} has {len(ids)} samples")
         sid = ids[args.index]
     views = ds.views()
-    top = ds.read_layouts("top", sid) if "top" in views else None
-    front = ds.read_layouts("front", sid) if "front" in views else None
+    # the shape most of the dataset's layouts have: a file that differs is the one named
+    R, D = ds.layout_shape([sid, *ids[:24]]) or (None, None)
+    top = ds.read_layouts("top", sid, R=R, D=D) if "top" in views else None
+    front = ds.read_layouts("front", sid, R=R, D=D) if "front" in views else None
     if top is not None and front is not None and top.shape != front.shape:
         raise CLIError(f"{ds.layout_path('front', sid)}: shape {front.shape} differs from its top "
                        f"layout's {top.shape} ({ds.layout_path('top', sid)})")
