@@ -39,6 +39,8 @@ from .layout import DEFAULT_EXTENT_M, DEFAULT_R, NUM_CLASSES, VIEWS
 
 DECODERS = ("light", "paper")
 ENCODERS = ("resnet18", "efficientnet-lite0")
+#: the encoder of configs written before the encoder was a choice (checkpoints, ONNX files)
+LEGACY_ENCODER = "resnet18"
 #: initial logits (background, shelf, box) of every shelf channel: log of the class frequencies
 #: of WareSynth complex layouts (~97 / 2 / 0.4 % of pixels) times the default CE weights [1, 5, 5].
 #: Without it the light decoder's 1x1 head needs ~100 Adam steps to learn "mostly background";
@@ -56,7 +58,7 @@ class ModelConfig:
     decoder: str = "light"              # "light" | "paper"
     disc: bool = False                  # trained with patch discriminators ("-disc")
     extent: float = DEFAULT_EXTENT_M    # metres covered by the layout grid (for consumers)
-    encoder: str = "resnet18"           # "resnet18" (the paper's) | "efficientnet-lite0"
+    encoder: str = "efficientnet-lite0"  # "efficientnet-lite0" (ImageNet weights ship) | "resnet18" (the paper's)
     letterbox: bool = False             # photos of another aspect are padded, not stretched, to the input
 
     def __post_init__(self):
@@ -104,6 +106,8 @@ class ModelConfig:
         unknown = set(d) - names
         if unknown:
             raise ValueError(f"unknown model config keys: {sorted(unknown)}")
+        d = dict(d)
+        d.setdefault("encoder", LEGACY_ENCODER)
         return cls(**d)
 
 

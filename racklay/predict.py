@@ -71,10 +71,11 @@ def config_from_dict(d: dict):
     (a file written by a newer version) and restoring tuples."""
     import dataclasses
 
-    from .model import ModelConfig
+    from .model import LEGACY_ENCODER, ModelConfig
 
     names = {f.name for f in dataclasses.fields(ModelConfig)}
     kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names}
+    kw.setdefault("encoder", LEGACY_ENCODER)
     return ModelConfig(**kw)
 
 

@@ -70,3 +70,20 @@ def make_release(checkpoint: str | os.PathLike, out: str | os.PathLike, extra: d
     meta.update(extra or {})
     meta["storage"] = "fp16"
     return save_checkpoint(out, model, ck.cfg, extra=meta)
+
+
+def add_weights_arg(p, what: str = "model checkpoint (.safetensors) or exported .onnx", flag: str = "--weights") -> None:
+    """The `--weights` option of every command that runs a model: default the shipped model."""
+    p.add_argument(flag, default=None, metavar="FILE",
+                   help=f"{what} (default: the shipped model {RELEASE_NAME}, see docs/model-card.md)")
+
+
+def weights_for_cli(weights: str | os.PathLike | None) -> str:
+    """`--weights` as a path string: the shipped model when not given (said on stderr), else
+    the file, which must exist (one-line error naming it)."""
+    import sys
+
+    path = resolve_weights(weights, log=lambda m: print(m, file=sys.stderr))
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: weights file not found")
+    return str(path)

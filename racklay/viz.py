@@ -97,3 +97,55 @@ def save_figure(fig, out: str | os.PathLike, dpi: int = 110) -> Path:
     fig.savefig(buf, format=out.suffix.lstrip(".") or "png", dpi=dpi)
     plt.close(fig)
     return atomic_write_bytes(out, buf.getvalue())
+
+
+def contact_sheet(rows: Sequence[tuple], out: str | os.PathLike, row_h: int = 168,
+                  title: str = "") -> Path:
+    """One PNG with a row per photo: the photo, then for every shelf (lowest first) its top view
+    above its front view, cropped to a window shared by the row's layouts (`content_window`).
+    `rows`: (name, image RGB uint8, top (R, D, D) | None, front (R, D, D) | None)."""
+    import cv2
+
+    from .atomic import atomic_save_png
+
+    if not rows:
+        raise ValueError("contact sheet: no rows")
+    tile = row_h // 2
+    photo_w = int(row_h * 1.6)
+    R = max((s.shape[0] for _, _, t, f in rows for s in (t, f) if s is not None), default=1)
+    pad, label_h = 6, 16
+    width = pad + photo_w + pad + R * (tile + pad)
+    head = 28 if title else 0
+    sheet = np.full((head + label_h + len(rows) * (row_h + label_h + pad) + pad, width, 3), 255, np.uint8)
+
+    def text(img, s, x, y, scale=0.42):
+        cv2.putText(img, s, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (20, 20, 20), 1, cv2.LINE_AA)
+
+    if title:
+        text(sheet, title, pad, 20, 0.55)
+    y0 = head
+    for i in range(R):
+        text(sheet, f"shelf {i + 1}: top / front", pad + photo_w + pad + i * (tile + pad), y0 + 12, 0.32)
+    y0 += label_h
+    for name, image, top, front in rows:
+        text(sheet, str(name), pad, y0 + 12)
+        y = y0 + label_h
+        h, w = image.shape[:2]
+        s = min(row_h / h, photo_w / w)
+        ph, pw = max(1, round(h * s)), max(1, round(w * s))
+        sheet[y:y + ph, pad:pad + pw] = cv2.resize(image, (pw, ph), interpolation=cv2.INTER_AREA)
+        stacks = [a for a in (top, front) if a is not None]
+        lo, hi = content_window(stacks) if stacks else (0, 1)
+        for r in range(R):
+            x = pad + photo_w + pad + r * (tile + pad)
+            for k, stack in enumerate((top, front)):
+                yy = y + k * tile
+                if stack is None or r >= stack.shape[0]:
+                    sheet[yy:yy + tile - 2, x:x + tile] = 235
+                    continue
+                rgb = colorize(stack[r, lo:hi, lo:hi])
+                sheet[yy:yy + tile - 2, x:x + tile] = cv2.resize(rgb, (tile, tile - 2), interpolation=cv2.INTER_NEAREST)
+        y0 += row_h + label_h + pad
+    out = Path(out)
+    atomic_save_png(out, sheet)
+    return out

@@ -25,7 +25,7 @@ from . import report, workflow
 
 #: settings that change results: resuming an OUT with different values is refused
 RESULT_KEYS = ("synthetic", "real", "pretrained", "real_train_split", "real_test_split", "image_size",
-               "layout_size", "R", "decoder", "disc", "pretrain_epochs", "epochs", "batch_size", "lr",
+               "layout_size", "R", "decoder", "encoder", "letterbox", "disc", "pretrain_epochs", "epochs", "batch_size", "lr",
                "finetune_lr", "freeze_encoder_epochs", "imagenet_weights", "val_fraction", "patience",
                "augment", "max_minutes", "pretrain_max_minutes", "train_overrides")
 
@@ -44,6 +44,8 @@ class CompareConfig:
     layout_size: int | None = None
     R: int | None = None
     decoder: str | None = None
+    encoder: str | None = None
+    letterbox: bool | None = None
     disc: bool | None = None
     pretrain_epochs: int | None = None
     epochs: int | None = None              # real-only and fine-tune epochs
@@ -119,6 +121,7 @@ def _load_done(path: Path) -> dict | None:
 
 def _common(cfg: CompareConfig) -> dict:
     kw = dict(image_size=cfg.image_size, layout_size=cfg.layout_size, R=cfg.R, decoder=cfg.decoder, disc=cfg.disc,
+              encoder=cfg.encoder, letterbox=cfg.letterbox,
               batch_size=cfg.batch_size, patience=cfg.patience, workers=cfg.workers)
     kw.update(cfg.train_overrides)
     return kw
@@ -190,7 +193,8 @@ class Compare:
                 run = workflow.train_on_real(cfg.real, d.parent, name=d.name, init=None, lr=cfg.lr,
                                              imagenet_weights=cfg.imagenet_weights, **common, **kw)
             else:
-                ft_kw = {k: v for k, v in kw.items() if k not in ("image_size", "layout_size", "R", "decoder")}
+                ft_kw = {k: v for k, v in kw.items()
+                         if k not in ("image_size", "layout_size", "R", "decoder", "encoder", "letterbox")}
                 lr = cfg.finetune_lr if cfg.finetune_lr is not None else (
                     None if cfg.lr is None else cfg.lr * workflow.FINETUNE_LR_RATIO)
                 run = workflow.finetune(pre, cfg.real, d.parent, name=d.name, lr=lr,
@@ -223,7 +227,7 @@ class Compare:
         if self.cfg.pretrained:
             # one architecture for all three regimes: the checkpoint's
             m = workflow.checkpoint_config(self.cfg.pretrained)
-            for k in ("image_size", "layout_size", "R", "decoder", "disc"):
+            for k in ("image_size", "layout_size", "R", "decoder", "encoder", "letterbox", "disc"):
                 if getattr(self.cfg, k) is None:
                     setattr(self.cfg, k, getattr(m, k))
         self.out.mkdir(parents=True, exist_ok=True)

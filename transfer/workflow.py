@@ -134,6 +134,8 @@ def train_on_real(real, out, name: str, seed: int = 0, init=None, augment: bool 
         kw.setdefault("R", mcfg.R)
         kw.setdefault("views", tuple(mcfg.views))
         kw.setdefault("decoder", mcfg.decoder)
+        kw.setdefault("encoder", mcfg.encoder)
+        kw.setdefault("letterbox", mcfg.letterbox)
         kw.setdefault("disc", mcfg.disc)
         if lr is None:
             lr = default_lr() * FINETUNE_LR_RATIO

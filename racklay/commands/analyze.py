@@ -11,6 +11,8 @@ FORMATS = ("glb", "ply", "both", "none")
 
 
 def register(sub) -> None:
+    from racklay.release import add_weights_arg
+
     p = sub.add_parser(
         "analyze", help="count box stacks and measure free space; export a 3D reconstruction",
         description="Rack reasoning (paper §5.6). Fuse every shelf's top- and front-view layout into 3D "
@@ -26,7 +28,7 @@ def register(sub) -> None:
     p.add_argument("inputs", nargs="*", metavar="IMAGE_OR_FOLDER",
                    help="photos, folders of photos, or RackLay datasets (their Images/, of --split "
                         "when given) to run the model on (with --weights)")
-    p.add_argument("--weights", help="model checkpoint (.safetensors) or exported .onnx file")
+    add_weights_arg(p)
     p.add_argument("--backend", choices=("torch", "onnx"), default=None,
                    help="inference backend (default: onnx for .onnx files, else torch)")
     p.add_argument("--layouts", metavar="ROOT", help="analyse the ground-truth layouts of this RackLay dataset")
@@ -149,10 +151,9 @@ def run(args) -> int:
     if not args.layouts:
         if not args.inputs:
             raise CLIError("nothing to analyse: give IMAGE_OR_FOLDER with --weights, or --layouts ROOT")
-        if not args.weights:
-            raise CLIError("--weights is required to analyse photos (or use --layouts ROOT for ground truth)")
-        if not Path(args.weights).is_file():
-            raise CLIError(f"{args.weights}: weights file not found")
+        from racklay.release import weights_for_cli
+
+        args.weights = weights_for_cli(args.weights)
     out = Path(args.out)
     samples = _samples_from_layouts(args) if args.layouts else _samples_from_photos(args)
     summary, failed = [], 0

@@ -11,7 +11,7 @@ def register(sub) -> None:
     from transfer.commands.demo import DESCRIPTION, add_demo_args
 
     p = sub.add_parser(
-        "demo", help="the main job end to end: synthetic -> real transfer (~9 min on 2 CPU cores; --toy: seconds)",
+        "demo", help="the main job end to end: shipped model on real photos, sim -> real fine-tune (<10 min; --toy: seconds)",
         description=DESCRIPTION + " With --toy instead: build a small schematic dataset with the layout "
                     "module, validate it with check-data, score a degraded copy of its layouts against "
                     "the truth, and write a paper-style figure (seconds, no training).")

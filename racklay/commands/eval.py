@@ -6,6 +6,7 @@ from racklay.cli import at_least
 
 def register(sub) -> None:
     from racklay.predict import add_precision_args
+    from racklay.release import add_weights_arg
 
     p = sub.add_parser(
         "eval", help="evaluate a trained model on a dataset split",
@@ -16,7 +17,7 @@ def register(sub) -> None:
                     "dataset-level IoU / precision / recall / AP (confusion matrix and score histograms "
                     "over every pixel; judge progress by these). Layouts are compared at the model's "
                     "layout size unless --native is given.")
-    p.add_argument("--weights", required=True, help="model checkpoint (.safetensors) or exported .onnx")
+    add_weights_arg(p)
     p.add_argument("--data", required=True, help="RackLay-format dataset folder")
     p.add_argument("--split", default="test", help="split to evaluate (splits/NAME.txt), or 'all' (default: test)")
     p.add_argument("--batch-size", type=at_least(1), default=8, help="images per forward pass (default 8)")
@@ -43,8 +44,9 @@ def run(args) -> int:
     from racklay.metrics import format_tables
     from racklay.predict import Predictor
 
-    if not Path(args.weights).is_file():
-        raise CLIError(f"{args.weights}: weights file not found")
+    from racklay.release import weights_for_cli
+
+    args.weights = weights_for_cli(args.weights)
     if args.save_predictions:
         from racklay.data import check_prediction_out
         check_prediction_out(args.save_predictions, data=args.data)

@@ -6,6 +6,7 @@ from racklay.cli import at_least
 
 def register(sub) -> None:
     from racklay.predict import add_precision_args
+    from racklay.release import add_weights_arg
 
     p = sub.add_parser(
         "predict", help="predict per-shelf layouts for photos",
@@ -18,7 +19,7 @@ def register(sub) -> None:
                     "that is not a readable image gets a one-line error and the rest still run; the exit "
                     "code is 1 if any input failed.")
     p.add_argument("inputs", nargs="+", metavar="IMAGES_OR_FOLDER", help="image files and/or folders")
-    p.add_argument("--weights", required=True, help="model checkpoint (.safetensors) or exported .onnx")
+    add_weights_arg(p)
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--backend", choices=("torch", "onnx"), default="torch",
                    help="torch (default) or onnxruntime (a checkpoint is exported in memory)")
@@ -39,9 +40,10 @@ def run(args) -> int:
     from racklay.cli import CLIError
     from racklay.predict import Predictor, list_inputs, predict_folder
 
-    if not Path(args.weights).is_file():
-        raise CLIError(f"{args.weights}: weights file not found")
     from racklay.data import check_prediction_out
+    from racklay.release import weights_for_cli
+
+    args.weights = weights_for_cli(args.weights)
 
     out = Path(args.out).resolve()
     files = list_inputs(args.inputs)

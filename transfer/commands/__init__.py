@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 from racklay.cli import at_least, positive_float
+from racklay.commands.train import image_size_arg
 
 import argparse
 
 
 def add_model_args(p: argparse.ArgumentParser, from_checkpoint: bool = False) -> None:
     g = p.add_argument_group("model" + (" (default: the checkpoint's)" if from_checkpoint else ""))
-    g.add_argument("--image-size", type=int, help="square network input size in pixels (multiple of 32)")
+    g.add_argument("--image-size", type=image_size_arg, help="network input: S (square) or HxW, multiples of 32")
     g.add_argument("--layout-size", type=int, help="layout grid size D the model predicts")
     g.add_argument("--R", type=int, help="shelves per image (layout channels); must match the data")
     if not from_checkpoint:

@@ -10,7 +10,7 @@ def register(sub) -> None:
     from ..workflow import FINETUNE_LR_RATIO, REAL_VAL_FRACTION
 
     p = sub.add_parser(
-        "finetune", help="fine-tune a pretrained checkpoint on real data (step 2)",
+        "finetune", help="fine-tune the shipped model (or a pretrain checkpoint) on real data (step 2)",
         description="Fine-tune a checkpoint (from `transfer pretrain`) on a real RackLay-format dataset "
                     "(the authors' real-world set, or `annotate export` output) with the paper's "
                     "augmentation: colour jitter (brightness/contrast/saturation in [0.8, 1.2], hue "
@@ -20,7 +20,9 @@ def register(sub) -> None:
                     "epochs, early stopping on a validation set carved from the training split. The "
                     "architecture (R, layout size, input size, decoder, discriminators) comes from the checkpoint; a "
                     "checkpoint whose R or layout size does not fit is refused with a clear error.")
-    p.add_argument("--init", required=True, metavar="CHECKPOINT", help="pretrain checkpoint (.safetensors)")
+    p.add_argument("--init", default=None, metavar="CHECKPOINT",
+                   help="checkpoint to start from (default: the shipped model, docs/model-card.md; or a "
+                        "`transfer pretrain` checkpoint)")
     p.add_argument("--real", required=True, metavar="ROOT", help="real RackLay-format dataset root with split files")
     p.add_argument("--out", default="runs/finetune", help="run folder (default runs/finetune)")
     p.add_argument("--train-split", default="train", help="split to fine-tune on (default train)")
@@ -41,8 +43,10 @@ def run(args) -> int:
 
     if args.fraction is not None and not 0 < args.fraction <= 1:
         raise ValueError(f"--fraction must be in (0, 1], got {args.fraction}")
+    from racklay.release import weights_for_cli
+
     out, name = split_out(args.out)
-    run_dir = finetune(args.init, args.real, out, name=name, seed=args.seed, lr=args.lr,
+    run_dir = finetune(weights_for_cli(args.init), args.real, out, name=name, seed=args.seed, lr=args.lr,
                        train_split=args.train_split, train_fraction=args.fraction,
                        val_fraction=args.val_fraction, freeze_encoder_epochs=args.freeze_encoder_epochs,
                        augment=not args.no_augment, image_size=args.image_size, layout_size=args.layout_size,

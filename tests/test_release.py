@@ -1,0 +1,71 @@
+"""The shipped model: it is in the package, intact (sha256), used when no weights are given, and
+the quick demo runs end to end from it."""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from racklay import release
+from racklay.checkpoint import load_model
+
+REPO = Path(__file__).resolve().parents[1]
+PHOTO = REPO / "datasets" / "real-photos" / "19_mock_white_shelf_3lvl.jpg"
+
+
+def test_shipped_weights_are_intact_small_and_load():
+    path = release.release_weights()
+    assert path.stat().st_size <= 25 * 2**20
+    assert release.sha256_file(path) == release.RELEASE_SHA256
+    model, cfg, meta = load_model(path)
+    assert cfg.encoder == "efficientnet-lite0" and set(cfg.views) == {"top", "front"}
+    assert meta.get("storage") == "fp16" and "train_config" in meta
+
+
+def test_corrupt_shipped_weights_are_refused(tmp_path, monkeypatch):
+    bad = tmp_path / release.RELEASE_NAME
+    shutil.copyfile(release.release_weights(), bad)
+    with open(bad, "r+b") as f:
+        f.seek(-100, 2)
+        f.write(b"\x00" * 8)
+    monkeypatch.setattr(release, "WEIGHTS_DIR", tmp_path)
+    monkeypatch.setattr(release, "_verified", set())
+    with pytest.raises(ValueError, match="sha256.*does not match"):
+        release.release_weights()
+
+
+def test_predict_without_weights_uses_the_shipped_model_and_finds_boxes(tmp_path):
+    out = tmp_path / "pred"
+    r = subprocess.run([sys.executable, "-m", "racklay", "predict", str(PHOTO), "--out", str(out), "--no-png"],
+                       capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    assert "shipped model" in r.stderr
+    from racklay.data import RackLayRoot
+    root = RackLayRoot(out)
+    top = root.read_layouts("top", PHOTO.stem)
+    front = root.read_layouts("front", PHOTO.stem)
+    # a 3-level shelf with 9 small boxes: shelves and boxes in both views
+    for lay in (top, front):
+        assert (lay == 1).any() and (lay == 2).any()
+    assert (out / "figures" / f"{PHOTO.stem}.png").is_file()
+
+
+@pytest.mark.slow
+def test_quick_demo_runs_end_to_end_from_the_shipped_model(tmp_path):
+    from transfer.demo import QUICK, DemoConfig, run_demo
+
+    res = run_demo(DemoConfig(out=str(tmp_path / "demo"), **QUICK), log=lambda m: None)
+    photos = sorted(p for p in (REPO / "datasets" / "real-photos").iterdir() if p.suffix == ".jpg")
+    figs = res["figures"]
+    assert len(figs) == len(photos) + 1 and figs[-1].name == "contact_sheet.png"
+    assert all(f.is_file() for f in figs)
+    assert res["shipped"] == release.release_weights()
+    assert res["gain"] is not None and all(np.isfinite(res["gain"]))
+    assert Path(res["weights"]).is_file()
+    table = res["compare"]["paths"]["table_md"].read_text()
+    for row in ("synthetic only", "real only", "fine-tune"):
+        assert row in table.lower()
