@@ -995,7 +995,8 @@ def serve(project_dir, host: str = "127.0.0.1", port: int = 7860, model: str | N
         raise
     if block:
         exit_on_sigterm()
-    print(f"annotate: serving {project.root} ({len(project.images())} images) at http://{host}:{port}")
+    print(f"annotate: serving {project.root} ({len(project.images())} images) at http://{host}:{port}"
+          + (f", pre-labels from {os.path.basename(str(model))}" if model else ""))
     if block:
         demo.block_thread()
     return demo

@@ -23,7 +23,7 @@ for dec in light paper; do
   name=accuracy-default; epochs=$LIGHT_EPOCHS
   [ "$dec" = paper ] && name=accuracy-paper && epochs=$PAPER_EPOCHS
   nice -n 10 $PY train --data "$DATA" --out runs --name "$name" --decoder "$dec" --image-size "$SIZE" \
-    --layout-size "$SIZE" --amp bf16 --batch-size 8 --epochs "$epochs" --disc-start 5 --threads 1 \
+    --layout-size "$SIZE" --encoder resnet18 --amp auto --batch-size 8 --epochs "$epochs" --disc-start 5 --threads 1 \
     --max-minutes "$MIN" --patience 0 --checkpoint-every 50 > "runs/$name.log" 2>&1 &
 done
 wait

@@ -34,7 +34,7 @@ def build_runners(decoder: str, size: int, bf16: bool, onnx: bool, threads: int 
 
     torch.manual_seed(0)
     encoder_only = decoder == "encoder"
-    cfg = ModelConfig(image_size=size, layout_size=size, views=("top", "front"),
+    cfg = ModelConfig(image_size=size, layout_size=size, views=("top", "front"), encoder="resnet18",
                       decoder="light" if encoder_only else decoder)
     model = RackLayNet(cfg).eval()
     x = torch.randn(1, 3, size, size)

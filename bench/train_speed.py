@@ -36,7 +36,8 @@ def make_step(decoder: str, size: int, batch: int, disc: bool, bf16: bool, lr: f
                                lsgan_generator_loss, one_hot_layouts)
 
     torch.manual_seed(0)
-    cfg = ModelConfig(image_size=size, layout_size=size, views=("top", "front"), decoder=decoder, disc=disc)
+    cfg = ModelConfig(image_size=size, layout_size=size, views=("top", "front"), decoder=decoder, disc=disc,
+                      encoder="resnet18")
     model = RackLayNet(cfg).train()
     discs = Discriminators(cfg).train() if disc else None
     if bf16:

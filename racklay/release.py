@@ -13,7 +13,7 @@ from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
 RELEASE_NAME = "racklay-lite0-release-v1.safetensors"
-RELEASE_SHA256 = ""
+RELEASE_SHA256 = "7dc54fae1ab0b07b41cb81eba1c6611f7ac7ea97ce5fe58098624fcc38c04e81"
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 
 _verified: set[str] = set()
@@ -78,12 +78,12 @@ def add_weights_arg(p, what: str = "model checkpoint (.safetensors) or exported 
                    help=f"{what} (default: the shipped model {RELEASE_NAME}, see docs/model-card.md)")
 
 
-def weights_for_cli(weights: str | os.PathLike | None) -> str:
-    """`--weights` as a path string: the shipped model when not given (said on stderr), else
-    the file, which must exist (one-line error naming it)."""
+def weights_for_cli(weights: str | os.PathLike | None, quiet: bool = False) -> str:
+    """`--weights` as a path string: the shipped model when not given (said on stderr unless
+    `quiet`), else the file, which must exist (one-line error naming it)."""
     import sys
 
-    path = resolve_weights(weights, log=lambda m: print(m, file=sys.stderr))
+    path = resolve_weights(weights, log=None if quiet else (lambda m: print(m, file=sys.stderr)))
     if not path.is_file():
         raise FileNotFoundError(f"{path}: weights file not found")
     return str(path)

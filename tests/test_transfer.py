@@ -288,8 +288,10 @@ def test_missing_split_names_the_splits_found(tiny_data, tmp_path, capsys):
                "--test-split", "val", "--out", str(tmp_path / "c")])
     err = capsys.readouterr().err
     assert rc == 2 and "val.txt: split file not found" in err and "test, train" in err
-    rc = main(["finetune", "--init", "nowhere.safetensors", "--real", str(tmp_path), "--out", str(tmp_path / "f")])
+    rc = main(["finetune", "--real", str(tmp_path), "--out", str(tmp_path / "f")])   # from the shipped model
     assert rc == 2 and "split file not found (splits found in" in capsys.readouterr().err
+    rc = main(["finetune", "--init", "nowhere.safetensors", "--real", str(tmp_path), "--out", str(tmp_path / "f")])
+    assert rc == 2 and "nowhere.safetensors: weights file not found" in capsys.readouterr().err
 
 
 def test_corrupt_checkpoint_is_a_clear_error(tiny_data, tmp_path, capsys):

@@ -26,7 +26,9 @@ def register(sub) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=port_number, default=7860,
                    help="port, 1-65535 (default 7860); a busy port is refused with a one-line error")
-    p.add_argument("--model", default=None, help="checkpoint for model-assisted pre-labels (racklay.predict.Predictor)")
+    p.add_argument("--model", default=None, metavar="FILE",
+                   help="checkpoint for model-assisted pre-labels (default: the shipped model, docs/model-card.md)")
+    p.add_argument("--no-model", action="store_true", help="no model-assisted pre-labels")
     p.add_argument("--backend", default="torch", choices=("torch", "onnx"), help="prediction backend for --model")
     p.add_argument("--auth-file", default=None, metavar="FILE",
                    help="require a login; FILE lists the users with salted password hashes "
@@ -47,5 +49,10 @@ def run(args) -> int:
                        "(visible in ps and the shell history). Create a login file with `annotate passwd FILE "
                        "USER` (asks for the password) and pass --auth-file FILE")
     auth = Authenticator(args.auth_file) if args.auth_file else None
-    serve(args.project, host=args.host, port=args.port, model=args.model, backend=args.backend, auth=auth)
+    model = None
+    if not args.no_model:
+        from racklay.release import weights_for_cli
+
+        model = weights_for_cli(args.model, quiet=True)   # serve names its model once it listens
+    serve(args.project, host=args.host, port=args.port, model=model, backend=args.backend, auth=auth)
     return 0

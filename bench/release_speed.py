@@ -1,0 +1,71 @@
+"""Batch-1 inference latency of the shipped model against the reference architecture (ResNet-18 +
+the authors' `paper` decoder) at the shipped input and layout size and the same precision
+(the model issue's target: the reference >= 4x slower).
+
+    nice -n 5 .venv/bin/python bench/release_speed.py [--weights FILE] [--precision auto|fp32|bf16]
+
+Both models run both views; the reference is randomly initialised (weights do not change the
+cost). Calls are interleaved in rounds so that load from other processes hits both alike; the
+table gives median (min) wall ms and median process CPU ms. Prints numbers only.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _common import add_common_args, ensure_malloc_env, interleaved, markdown_table, start, summarise  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
+    ap.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                    help="both models at this precision (default auto: bf16 only on CPUs with native bf16)")
+    add_common_args(ap, rounds=3, calls=5, warmup=2)
+    args = ap.parse_args(argv)
+    start(args)
+    import torch
+
+    from racklay.checkpoint import load_model
+    from racklay.model import ModelConfig, RackLayNet
+    from racklay.predict import resolve_precision
+    from racklay.release import resolve_weights
+
+    prec = resolve_precision(args.precision)
+    shipped, cfg, _ = load_model(resolve_weights(args.weights))
+    ref_cfg = ModelConfig(image_size=cfg.image_size, layout_size=cfg.layout_size, views=cfg.views, R=cfg.R,
+                          encoder="resnet18", decoder="paper")
+    torch.manual_seed(0)
+    reference = RackLayNet(ref_cfg).eval()
+    h, w = cfg.input_hw
+    x = torch.randn(1, 3, h, w)
+    bf16 = prec == "bf16"
+    models = {"shipped (EfficientNet-Lite0 + light)": shipped.eval(), "reference (ResNet-18 + paper)": reference}
+    if bf16:
+        x = x.contiguous(memory_format=torch.channels_last)
+        models = {k: m.to(memory_format=torch.channels_last) for k, m in models.items()}
+
+    def runner(m):
+        def f():
+            with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                m(x)
+        return f
+
+    times = interleaved({k: runner(m) for k, m in models.items()}, args)
+    st = {k: summarise(v, 1000.0) for k, v in times.items()}
+    names = list(models)
+    rows = [[k, f"{st[k]['wall_median']:.1f} ({st[k]['wall_min']:.1f})", f"{st[k]['cpu_median']:.1f}"] for k in names]
+    a, b = st[names[1]], st[names[0]]
+    rows.append(["**reference / shipped**", f"**{a['wall_median'] / b['wall_median']:.2f}x** (min "
+                 f"{a['wall_min'] / b['wall_min']:.2f}x)", f"{a['cpu_median'] / b['cpu_median']:.2f}x"])
+    print(f"\nbatch 1, both views, input {w}x{h} -> layouts {cfg.layout_size}, {prec}, "
+          f"{args.rounds}x{args.calls} interleaved calls per model (target: reference >= 4x slower):")
+    print(markdown_table(["model", "wall ms median (min)", "CPU ms median"], rows))
+    return 0
+
+
+if __name__ == "__main__":
+    ensure_malloc_env()
+    sys.exit(main())
