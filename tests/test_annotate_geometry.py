@@ -67,7 +67,8 @@ def clicks(cam):
     for k, (s, x0, x1, z0, z1, o, d) in enumerate(BOXES):
         zb = BOARDS[s]
         p = cam.project([[x0, o, zb + z0], [x1, o, zb + z1]])  # bottom-left and top-right of its front face
-        ann["boxes"].append({"id": k, "p0": p[0].tolist(), "p1": p[1].tolist(), "depth": d, "front_offset": o})
+        ann["boxes"].append({"id": k, "p0": p[0].tolist(), "p1": p[1].tolist(), "depth": d, "front_offset": o,
+                             **({"on_board": False} if z0 > 0 else {})})
     S.validate_annotation(ann)
     return ann
 
