@@ -304,3 +304,121 @@ def test_serve_temp_folder_removed_after_sigterm(proj, tmp_path):
             p.wait()
     assert p.returncode == 128 + signal.SIGTERM
     assert list(tmp.iterdir()) == []
+
+
+def test_done_refused_while_warnings_or_unconfirmed_preset(proj):
+    """`done` is refused (one line saying what to fix) while the rack size is the default preset
+    nobody confirmed, or the geometry warns; the work itself is saved all along."""
+    tool = Tool(proj)
+    st = label_by_clicks(tool, tool.open("r.png"), clicks(CAM))   # the first corner applied the default preset
+    st = tool.set_status(st, "done")
+    assert st["msg"].startswith("⚠ not marked done: the rack size 2 × 2 × 0.6 m is the default preset, not confirmed")
+    assert "\n" not in st["msg"]
+    saved = proj.load("r.png")
+    assert saved["status"] == "in progress" and len(saved["boxes"]) == len(BOXES)   # work in progress kept
+    st = tool.confirm_size(st)
+    st = tool.add_box(st, *CAM.project([[0.3, 0, 0.02], [0.6, 0, 0.08]]).tolist())   # below every shelf: a warning
+    st = tool.set_status(st, "done")
+    assert "not marked done: box" in st["msg"] and "below every marked shelf" in st["msg"]
+    assert proj.load("r.png")["status"] == "in progress"
+    st = tool.delete(st)                           # the new box is selected: delete it
+    st = tool.set_status(st, "done")
+    assert proj.load("r.png")["status"] == "done", st["msg"]
+
+
+def test_reload_reopens_last_photo_with_undo_history(proj):
+    """A new server process (or a reloaded page) opens the photo the labeller had open last,
+    even when it is done, and its undo history still works."""
+    (proj.root / "s.png").write_bytes(encode_png(np.full((480, 640, 3), 90, np.uint8)))
+    tool = Tool(proj)
+    st = tool.open("s.png")
+    st = tool.click(st, 10, 10)
+    st = tool.click(st, 600, 12)
+    again = Tool(Project(proj.root))
+    st2 = again.open(again.project.resume_image())
+    assert st2["name"] == "s.png" and len(st2["undo"]) == 2
+    st2 = again.undo(st2)
+    assert proj.load("s.png")["rack"]["corners"] == [[10, 10]]
+    st2 = again.undo(st2, redo=True)
+    assert len(proj.load("s.png")["rack"]["corners"]) == 2
+    # the file was saved by other means meanwhile: the history no longer fits, it is not offered
+    ann = proj.load("s.png")
+    ann["rack"]["corners"].append([300, 400])
+    proj.save(ann)
+    assert Tool(Project(proj.root)).open("s.png")["undo"] == []
+
+
+def test_photo_list_filter_and_next_unfinished(proj):
+    for n in ("s.png", "t.png"):
+        (proj.root / n).write_bytes(encode_png(np.full((480, 640, 3), 90, np.uint8)))
+    (proj.root / "u.png").write_bytes(b"\x89PNG\r\n\x1a\n not really")   # unreadable: listed, skipped
+    ann = proj.load("s.png")
+    ann["status"] = "done"
+    proj.save(ann)
+    tool = Tool(proj)
+    assert proj.statuses() == {"r.png": "todo", "s.png": "done", "t.png": "todo", "u.png": "unreadable"}
+    st = tool.open("r.png")
+    st = tool.apply(st, [{"seq": 1, "kind": "filter", "value": "unfinished"}])
+    assert tool.listed(st) == ["r.png", "t.png"]
+    st = tool.apply(st, [{"seq": 2, "kind": "act", "name": "next_unfinished"}])
+    assert st["name"] == "t.png"
+    st = tool.step(st, +1, unfinished=True)
+    assert st["name"] == "r.png"               # s.png is done, u.png unreadable
+    st = tool.apply(st, [{"seq": 3, "kind": "filter", "value": "all"}, {"seq": 4, "kind": "act", "name": "prev"}])
+    assert st["name"] == "t.png" and st["ack"] == 4   # u.png skipped
+    bad = tool.open("u.png")
+    assert bad["ann"] is None and "u.png" in bad["msg"] and "\n" not in bad["msg"]
+
+
+def test_actions_applied_once_in_order_and_bad_ones_refused(proj):
+    """The page's batches: each action applied once, in order (a batch sent again is not applied
+    twice); a point outside the photo is refused by the server with one line and not saved."""
+    tool = Tool(proj)
+    st = tool.open("r.png")
+    batch = [{"seq": 1, "kind": "click", "x": 10, "y": 10, "image": "r.png"},
+             {"seq": 2, "kind": "click", "x": 600, "y": 12, "image": "r.png"}]
+    st = tool.apply(st, batch)
+    st = tool.apply(st, batch)                  # the answer was lost; the page asks again
+    assert proj.load("r.png")["rack"]["corners"] == [[10, 10], [600, 12]]
+    v = proj.load("r.png")["version"]
+    st = tool.apply(st, [{"seq": 3, "kind": "click", "x": 1e9, "y": 5, "image": "r.png"}])
+    assert st["msg"].startswith("⚠ not saved: ") and "outside the 640x480 photo" in st["msg"] and "\n" not in st["msg"]
+    st = tool.apply(st, [{"seq": 4, "kind": "click", "x": float("nan"), "y": 5}, {"seq": 5, "kind": "warp"}])
+    assert "malformed" in st["msg"] and proj.load("r.png")["version"] == v
+    st = tool.apply(st, [{"seq": 6, "kind": "click", "x": 5, "y": 5, "image": "other.png"}])
+    assert "not applied" in st["msg"] and proj.load("r.png")["version"] == v
+
+
+def test_typed_field_text_stored_exactly(proj):
+    tool = Tool(proj)
+    st = tool.click(tool.open("r.png"), 10, 10)
+    for f, text, want in (("width", "0.74", 0.74), ("height", "1.83", 1.83), ("depth", " 0.39 ", 0.39)):
+        st = tool.apply(st, [{"seq": st["ack"] + 1, "kind": "field", "field": f, "text": text}])
+        assert proj.load("r.png")["rack"][f] == want
+    st = tool.apply(st, [{"seq": st["ack"] + 1, "kind": "field", "field": "width", "text": "2,74"}])
+    assert "not a number" in st["msg"] and proj.load("r.png")["rack"]["width"] == 0.74
+    assert proj.load("r.png")["rack"]["size_confirmed"] is True
+
+
+def test_box_depth_and_offset_by_clicking(proj):
+    """Mode 7: a click on the selected box's top-back edge sets its depth; mode 8: a click on the
+    board where its front stands sets its front offset (camera from the rack plane)."""
+    from test_annotate_geometry import BOARDS
+
+    tool = Tool(proj)
+    truth = clicks(CAM)
+    st = label_by_clicks(tool, tool.open("r.png"), dict(truth, boxes=[]))
+    st = tool.set_rack(st, depth=0.6)
+    s, x0, x1, z0, z1, o, d = 1, 0.20, 0.90, 0.0, 0.50, 0.0, 0.50   # BOXES[3]
+    zb = BOARDS[s]
+    p = CAM.project([[x0, o, zb + z0], [x1, o, zb + z1]])
+    st["mode"] = "boxes"
+    st = tool.click(st, *p[0])
+    st = tool.click(st, *p[1])
+    st = tool.apply(st, [{"seq": 1, "kind": "mode", "mode": "depth"}])
+    st = tool.click(st, *CAM.project([[(x0 + x1) / 2, o + d, zb + z1]])[0])
+    box = proj.load("r.png")["boxes"][0]
+    assert box["depth"] == pytest.approx(d, abs=0.02) and st["mode"] == "boxes"
+    st = tool.apply(st, [{"seq": 2, "kind": "mode", "mode": "offset"}])
+    st = tool.click(st, *CAM.project([[x0 + 0.1, 0.07, zb]])[0])
+    assert proj.load("r.png")["boxes"][0]["front_offset"] == pytest.approx(0.07, abs=0.01)
