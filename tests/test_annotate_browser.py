@@ -250,3 +250,102 @@ def test_typed_numbers_stored_as_typed(page_at):
     settle(page)
     assert project.load(PHOTO.name)["rack"]["depth"] == 0.5
     assert page.evaluate("rl.view.mode") == "boxes" and depth.input_value() == "0.5"
+
+
+def test_zoom_keeps_the_point_under_the_cursor_pan_and_view_filters(page_at):
+    """Wheel zoom keeps the photo point under the cursor (before: every click re-centred the
+    view, a corner landed 72 px off at 2x); right-drag pans; brightness/contrast change only the
+    view; a click when zoomed lands on the pixel aimed at."""
+    from annotate.browser import click_image, image_to_client
+
+    project, page = page_at
+    cx, cy = image_to_client(page, 300, 200)
+    page.mouse.move(cx, cy)
+    for _ in range(3):
+        page.mouse.wheel(0, -300)
+    page.wait_for_function("rl.s / rl.fit > 2")
+    x, y = page.evaluate("([a, b]) => rl.toImage(a, b)", [cx, cy])
+    assert (x, y) == (pytest.approx(300, abs=0.5), pytest.approx(200, abs=0.5))
+    tx = page.evaluate("rl.tx")
+    page.mouse.down(button="right")
+    page.mouse.move(cx - 120, cy - 40, steps=4)
+    page.mouse.up(button="right")
+    assert page.evaluate("rl.tx") == pytest.approx(tx - 120, abs=1)
+    page.evaluate("() => { const b = document.querySelector('#rl-bright'); b.value = 220;"
+                  " b.dispatchEvent(new Event('input', {bubbles: true})); }")
+    assert "brightness(220%)" in page.locator("#rl-img").get_attribute("style")
+    click_image(page, 330.25, 210.5)              # zoomed in and panned: still the pixel aimed at
+    settle(page)
+    ann = project.load(PHOTO.name)
+    assert ann["rack"]["corners"] == [[pytest.approx(330.25, abs=0.3), pytest.approx(210.5, abs=0.3)]]
+    assert ann["version"] == 1                     # the view changes saved nothing
+
+
+def test_server_away_banner_and_recovery(tmp_path):
+    """With the server down the page says so (before: a broken-image icon, no message) and takes
+    no clicks; when the server is back the page recovers by itself and the work goes on."""
+    from playwright.sync_api import sync_playwright
+
+    from annotate.browser import click_image, launch, require_browser, wait_ready
+
+    require_browser()
+    proj_dir = tmp_path / "project"
+    proj_dir.mkdir()
+    shutil.copy(PHOTO, proj_dir / PHOTO.name)
+    port = _free_port()
+    project, demo, url = serve(proj_dir, port)
+    with sync_playwright() as pw:
+        ctx = launch(pw, tmp_path / "chrome-profile")
+        try:
+            page = ctx.new_page()
+            page.goto(url)
+            wait_ready(page)
+            click_image(page, *CORNERS[0], wait=True)
+            demo.close()
+            banner = page.locator("#rl-banner")
+            banner.wait_for(state="visible", timeout=20000)
+            assert "not reachable" in banner.inner_text()
+            click_image(page, *CORNERS[1])          # not taken while the server is away
+            project, demo, url = serve(proj_dir, port)
+            page.wait_for_function("() => document.querySelector('#rl-banner') && document.querySelector('#rl-banner').hidden"
+                                   " && window.rl && rl.view && rl.W > 0", timeout=30000)
+            wait_ready(page)
+            click_image(page, *CORNERS[1], wait=True)
+        finally:
+            ctx.close()
+            demo.close()
+    got = project.load(PHOTO.name)["rack"]["corners"]
+    np.testing.assert_allclose(got, CORNERS[:2], atol=1.0)
+
+
+def test_unreadable_photos_listed_and_skipped(tmp_path):
+    """A corrupt photo and a 30000 x 30000 PNG in the project (before: the page failed to load for
+    everyone): both listed as unreadable, the page opens the good photo, next skips them."""
+    from playwright.sync_api import sync_playwright
+
+    from annotate.browser import click_image, launch, require_browser, wait_ready
+    from test_image_bombs import write_png_bomb
+
+    require_browser()
+    proj_dir = tmp_path / "project"
+    proj_dir.mkdir()
+    (proj_dir / "00_broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 not a jpeg")
+    write_png_bomb(proj_dir / "00_huge.png", 30000, 30000)
+    shutil.copy(PHOTO, proj_dir / PHOTO.name)
+    project, demo, url = serve(proj_dir)
+    with sync_playwright() as pw:
+        ctx = launch(pw, tmp_path / "chrome-profile")
+        try:
+            page = ctx.new_page()
+            page.goto(url)
+            wait_ready(page)
+            assert page.evaluate("rl.view.name") == PHOTO.name
+            assert "2 unreadable (skipped)" in page.locator("#header").inner_text()
+            page.keyboard.press("n")                  # the only readable photo: stays
+            settle(page)
+            assert page.evaluate("rl.view.name") == PHOTO.name
+            click_image(page, *CORNERS[0], wait=True)
+        finally:
+            ctx.close()
+            demo.close()
+    assert project.statuses() == {"00_broken.jpg": "unreadable", "00_huge.png": "unreadable", PHOTO.name: "in progress"}
