@@ -140,6 +140,10 @@ VIEWER_JS = r"""
       rl.W = v.image_size[0]; rl.H = v.image_size[1]; rl.name = v.name; fitView();
     }
     draw(v);
+    for (const [id, h] of Object.entries(v.text || {})) {
+      const el = document.getElementById(id);
+      if (el && el.innerHTML !== h) el.innerHTML = h;
+    }
     for (const [id, f] of Object.entries(FIELDS)) {
       const inp = document.querySelector('#' + id + ' input');
       if (inp && document.activeElement !== inp) inp.value = (v.fields[f] === null || v.fields[f] === undefined) ? '' : v.fields[f];
@@ -147,10 +151,6 @@ VIEWER_JS = r"""
     for (const b of document.querySelectorAll('[id^="mode-"]')) {
       const on = b.id === 'mode-' + v.mode;
       b.classList.toggle('primary', on); b.classList.toggle('secondary', !on);
-    }
-    if (v.preview !== rl.previewSrc) {
-      rl.previewSrc = v.preview; const p = $('#rl-preview');
-      if (p) { p.src = v.preview || ''; p.hidden = !v.preview; }
     }
     if (rl.inflight && v.ack >= rl.inflight[rl.inflight.length - 1].seq) {
       const done = rl.inflight, now = performance.now();
@@ -163,6 +163,12 @@ VIEWER_JS = r"""
       if (rl.up) banner(null);
       pump();
     }
+  }
+  function onPreview() {
+    const el = $('#rl-preview-data pre'), p = $('#rl-preview');
+    if (!el || !p || el.textContent === rl.previewSrc) return;
+    rl.previewSrc = el.textContent;
+    p.src = rl.previewSrc || ''; p.hidden = !rl.previewSrc;
   }
   function onPhoto() {
     const el = $('#rl-photo-data pre');
@@ -347,12 +353,13 @@ VIEWER_JS = r"""
   }, true);
   // --- wiring, once gradio has rendered the page ----------------------------------------------
   function init() {
-    const vd = $('#rl-view-data'), pd = $('#rl-photo-data'), vp = $('#rl-viewport');
-    if (!vd || !pd || !vp) { setTimeout(init, 30); return; }
+    const vd = $('#rl-view-data'), pd = $('#rl-photo-data'), pv = $('#rl-preview-data'), vp = $('#rl-viewport');
+    if (!vd || !pd || !pv || !vp) { setTimeout(init, 30); return; }
     const opts = {subtree: true, childList: true, characterData: true};
     new MutationObserver(onPhoto).observe(pd, opts);
+    new MutationObserver(onPreview).observe(pv, opts);
     new MutationObserver(onView).observe(vd, opts);
-    onPhoto(); onView();
+    onPhoto(); onView(); onPreview();
   }
   if (document.readyState === 'loading') document.addEventListener('DOMContentLoaded', init); else init();
 })();
@@ -369,6 +376,8 @@ CSS = """
 #header { font-size: 1.05em; }
 .mode-row button { min-width: 0; }
 .rl-hidden { display: none !important; }
+.rl-text p { margin: 0.2em 0; }
+.rl-text ul { margin: 0.2em 0 0.2em 1.2em; padding: 0; }
 #rl-viewport { position: relative; overflow: hidden; background: #222; cursor: crosshair; user-select: none; }
 #rl-stage { position: absolute; left: 0; top: 0; transform-origin: 0 0; }
 #rl-img, #rl-svg { position: absolute; left: 0; top: 0; max-width: none; }
@@ -400,7 +409,12 @@ class Tool:
         self._images: OrderedDict[str, np.ndarray] = OrderedDict()
         self._photo_b64: OrderedDict[str, str] = OrderedDict()
         self._preds: OrderedDict[str, dict] = OrderedDict()
+        self._layouts: OrderedDict[str, tuple] = OrderedDict()
         self._lock = threading.RLock()
+        self._history: dict[str, tuple] = {}     # undo history waiting to be written, per photo
+        self._history_cv = threading.Condition()
+        self._history_busy = False
+        threading.Thread(target=self._history_writer, daemon=True, name="annotate-history").start()
 
     def photo_b64(self, name: str) -> str:
         """The photo as the browser shows it: base64 JPEG (quality 92, 4:4:4 chroma), at most
@@ -450,6 +464,7 @@ class Tool:
             st["msg"] = f"⚠ {e} — listed as unreadable; the rest of the project works"
             return st
         st["ann"] = ann
+        self.flush_history()
         st["undo"], st["redo"] = self.project.load_history(name, ann["version"])
         with contextlib.suppress(OSError, StoreError):
             self.project.set_last_opened(name, user)
@@ -521,8 +536,30 @@ class Tool:
         return st
 
     def _keep_history(self, st: dict) -> None:
-        with contextlib.suppress(OSError, StoreError):
-            self.project.save_history(st["name"], st["ann"]["version"], st["undo"], st["redo"])
+        """Hand the undo history to the writer thread (off the click's path; the newest wins)."""
+        with self._history_cv:
+            self._history[st["name"]] = (st["ann"]["version"], list(st["undo"]), list(st["redo"]))
+            self._history_cv.notify()
+
+    def _history_writer(self) -> None:
+        while True:
+            with self._history_cv:
+                while not self._history:
+                    self._history_cv.wait()
+                name, (version, undo, redo) = self._history.popitem()
+                self._history_busy = True
+            try:
+                with contextlib.suppress(OSError, StoreError):
+                    self.project.save_history(name, version, undo, redo)
+            finally:
+                with self._history_cv:
+                    self._history_busy = False
+                    self._history_cv.notify_all()
+
+    def flush_history(self, timeout: float = 10.0) -> None:
+        """Until every waiting undo history is written (tests; a new page load reads it)."""
+        with self._history_cv:
+            self._history_cv.wait_for(lambda: not self._history and not self._history_busy, timeout)
 
     def _save(self, st: dict, ann: dict) -> bool:
         try:
@@ -1033,15 +1070,28 @@ class Tool:
         return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], float)
 
     def layouts(self, ann: dict):
+        """(scene, top, front) of an annotation; the last few are kept (a click's answer needs
+        them for the summary and the preview)."""
+        key = json.dumps([_content(ann), self.project.settings], sort_keys=True, default=str)
+        with self._lock:
+            hit = self._layouts.get(key)
+            if hit is not None:
+                self._layouts.move_to_end(key)
+                return hit
         scene = self._scene(ann)
-        if scene is None or not scene.shelf_v:
-            return scene, None, None
-        st = self.project.settings
-        try:
-            top, front = scene.layouts(st["R"], L.Grid(st["D"], st["extent"]))
-        except G.GeometryError:
-            return scene, None, None
-        return scene, top, front
+        out = (scene, None, None)
+        if scene is not None and scene.shelf_v:
+            st = self.project.settings
+            try:
+                top, front = scene.layouts(st["R"], L.Grid(st["D"], st["extent"]))
+                out = (scene, top, front)
+            except G.GeometryError:
+                pass
+        with self._lock:
+            self._layouts[key] = out
+            while len(self._layouts) > 4:
+                self._layouts.popitem(last=False)
+        return out
 
     def overlay(self, st: dict) -> list[dict]:
         """Everything drawn over the photo, as shapes in photo pixels for the page to draw: the
@@ -1224,6 +1274,29 @@ DELETE_CACHE = (60, 300)
 CONCURRENCY = dict(concurrency_limit=1, concurrency_id="annotate")
 
 
+def _md_html(text: str) -> str:
+    """The little markdown the tool's texts use (**bold**, `code`, '- ' list lines) as HTML,
+    everything else escaped; drawn by the page (no markdown renderer on every click)."""
+    import re
+
+    out, items = [], []
+    for line in (text or "").split("\n"):
+        h = html.escape(line)
+        h = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", h)
+        h = re.sub(r"`(.+?)`", r"<code>\1</code>", h)
+        if h.startswith("- "):
+            items.append(f"<li>{h[2:]}</li>")
+            continue
+        if items:
+            out.append("<ul>" + "".join(items) + "</ul>")
+            items = []
+        if h:
+            out.append(f"<p>{h}</p>")
+    if items:
+        out.append("<ul>" + "".join(items) + "</ul>")
+    return "".join(out)
+
+
 def _pre(text: str, **attrs) -> str:
     a = "".join(f' {k.replace("_", "-")}="{html.escape(str(v))}"' for k, v in attrs.items())
     return f"<pre{a}>{html.escape(text)}</pre>"
@@ -1252,16 +1325,15 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
         with gr.Row(elem_classes="mode-row"):
             for i, m in enumerate(MODES):
                 gr.Button(f"{i + 1} {m}", elem_id=f"mode-{m}", size="sm")
-        mode_help = gr.Markdown(elem_id="mode-help")
+        gr.HTML('<div id="mode-help" class="rl-text"></div>')
         with gr.Row():
             with gr.Column(scale=3):
                 gr.HTML(VIEWER_HTML)
-                message = gr.Markdown(elem_id="message")
+                gr.HTML('<div id="message" class="rl-text"></div>')
             with gr.Column(scale=2):
                 gr.Markdown("**Live layouts** — per shelf (S1 = lowest): top view above, front view below; "
                             "orange = box, blue = free shelf space")
-                gr.HTML('<img id="rl-preview" alt="layouts" hidden>')
-                summary = gr.Markdown(elem_id="summary")
+                gr.HTML('<img id="rl-preview" alt="layouts" hidden><div id="summary" class="rl-text"></div>')
         with gr.Row():
             with gr.Column():
                 gr.Markdown("**Rack**")
@@ -1273,7 +1345,7 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
                 gr.Button("confirm size (c)", elem_id="btn-confirm-size", size="sm")
             with gr.Column():
                 gr.Markdown("**Selection**")
-                sel_md = gr.Markdown(elem_id="selection")
+                gr.HTML('<div id="selection" class="rl-text"></div>')
                 with gr.Row():
                     gr.Number(label="box depth m (empty: shelf depth; or mode 7)", elem_id="box-depth",
                               elem_classes="rl-field", minimum=0)
@@ -1305,9 +1377,9 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
         send = gr.Button("send", elem_id="rl-send", elem_classes="rl-hidden")
         view_data = gr.HTML(elem_id="rl-view-data", elem_classes="rl-hidden")
         photo_data = gr.HTML(elem_id="rl-photo-data", elem_classes="rl-hidden")
+        preview_data = gr.HTML(elem_id="rl-preview-data", elem_classes="rl-hidden")
 
-        outputs = [state, header, image_dd, status_dd, preset_dd, message, summary, sel_md, mode_help,
-                   view_data, photo_data]
+        outputs = [state, header, image_dd, status_dd, preset_dd, view_data, photo_data]
 
         def preview_url(st):
             pv = tool.render_preview(st)
@@ -1326,22 +1398,23 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
             name = st.get("name")
             photo_key = f"{name}:{project.image_path(name).stat().st_mtime_ns}" if st.get("ann") is not None else ""
             view = {"ack": st.get("ack", 0), "name": name, "image_size": a.get("image_size"), "mode": st.get("mode"),
-                    "overlay": tool.overlay(st), "preview": preview_url(st), "sel": st.get("sel"),
+                    "overlay": tool.overlay(st), "sel": st.get("sel"),
                     "fields": {"width": rack.get("width"), "height": rack.get("height"), "depth": rack.get("depth"),
                                "box_depth": bd, "box_offset": bo},
-                    "ms": None if t0 is None else round((time.perf_counter() - t0) * 1000, 1)}
+                    "text": {"message": _md_html(st.get("msg", "")), "summary": _md_html(tool.summary(st)),
+                             "selection": _md_html(sel_txt),
+                             "mode-help": _md_html(f"**{st.get('mode')}**: {MODE_HELP.get(st.get('mode'), '')}")}}
             vals = {"header": tool.header(st), "image_dd": (tuple(choices), name), "status": a.get("status"),
-                    "preset": rack.get("preset"), "message": st.get("msg", ""), "summary": tool.summary(st),
-                    "sel": sel_txt, "mode_help": f"**{st.get('mode')}**: {MODE_HELP.get(st.get('mode'), '')}",
-                    "photo": photo_key}
+                    "preset": rack.get("preset"), "photo": photo_key}
             last = st.setdefault("_sent", {})
             out = [st]
-            for k in ("header", "image_dd", "status", "preset", "message", "summary", "sel", "mode_help"):
+            for k in ("header", "image_dd", "status", "preset"):
                 if last.get(k, object()) == vals[k]:
                     out.append(gr.skip())
                     continue
                 last[k] = vals[k]
                 out.append(gr.update(choices=list(vals[k][0]), value=vals[k][1]) if k == "image_dd" else vals[k])
+            view["ms"] = None if t0 is None else round((time.perf_counter() - t0) * 1000, 1)
             out.append(_pre(json.dumps(view)))
             if last.get("photo") == photo_key:
                 out.append(gr.skip())
@@ -1349,6 +1422,18 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
                 last["photo"] = photo_key
                 out.append(_pre(tool.photo_b64(name) if photo_key else "", data_key=photo_key))
             return out
+
+        def on_preview(st):
+            """The layouts preview, right after each answer (so the click's outline is on screen
+            first): sent only when it changed."""
+            if st is None:
+                return gr.skip()
+            url = preview_url(st) or ""
+            last = st.setdefault("_sent", {})
+            if last.get("preview") == url:
+                return gr.skip()
+            last["preview"] = url
+            return _pre(url)
 
         def ensure(st, request=None):
             if st is not None:
@@ -1389,14 +1474,17 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
             st["msg"] = (f"added {', '.join(added)}" if added else "") + (("; ⚠ " + "; ⚠ ".join(errs)) if errs else "")
             return render(st)
 
-        demo.load(on_load, None, outputs, **CONCURRENCY)
+        demo.load(on_load, None, outputs, **CONCURRENCY).then(on_preview, [state], [preview_data],
+                                                                 show_progress="hidden", **CONCURRENCY)
         send.click(on_actions, [state, actions_tb], outputs, js="(s, a) => [s, window.rl ? window.rl.take() : '[]']",
-                   trigger_mode="multiple", show_progress="hidden", queue=True, **CONCURRENCY)
+                   trigger_mode="multiple", show_progress="hidden", queue=True, **CONCURRENCY).then(
+            on_preview, [state], [preview_data], show_progress="hidden", **CONCURRENCY)
         # the dropdowns go through the page's queue too (in order with the clicks), not to the server
         for dd, kind, key in ((image_dd, "open", "name"), (filter_dd, "filter", "value"),
                               (status_dd, "status", "value"), (preset_dd, "preset", "name")):
             dd.input(None, [dd], None, js=f"(v) => {{ window.rl && window.rl.enqueue({{kind: '{kind}', {key}: v}}); return []; }}")
-        upload.upload(on_upload, [state, upload], outputs, **CONCURRENCY)
+        upload.upload(on_upload, [state, upload], outputs, **CONCURRENCY).then(
+            on_preview, [state], [preview_data], show_progress="hidden", **CONCURRENCY)
     demo.tool = tool
     return demo
 

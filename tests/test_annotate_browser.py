@@ -134,6 +134,8 @@ def test_annotate_in_browser(server, tmp_path):
             expect(summary).to_contain_text("S2")
             text = summary.inner_text()
             assert "S1" in text and "2 box(es)" in text and "1 box(es)" in text, text
+            page.wait_for_function("() => { const p = document.querySelector('#rl-preview'); "
+                                   "return p && !p.hidden && p.src.startsWith('data:image/png'); }", timeout=15000)
             src = page.locator("#rl-preview").get_attribute("src")
             import base64
             import cv2
