@@ -59,6 +59,10 @@ def click_image(page, x: float, y: float, image_width: int | None = None, wait: 
     """Click the photo at photo pixel (x, y) (as a labeller would: mouse down and up). With
     `wait`, until the server's answer is on screen. (`image_width` is no longer needed.)"""
     cx, cy = image_to_client(page, x, y)
+    vw, vh = page.evaluate("[innerWidth, innerHeight]")
+    if not (0 <= cx < vw and 0 <= cy < vh):   # scrolled away (e.g. after typing in a field): scroll back
+        page.evaluate("() => document.querySelector('#rl-viewport').scrollIntoView({block: 'center'})")
+        cx, cy = image_to_client(page, x, y)
     page.mouse.click(cx, cy)
     if wait:
         page.wait_for_function(SETTLED_JS, polling=10, timeout=15000)
