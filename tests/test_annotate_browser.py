@@ -351,3 +351,32 @@ def test_unreadable_photos_listed_and_skipped(tmp_path):
             ctx.close()
             demo.close()
     assert project.statuses() == {"00_broken.jpg": "unreadable", "00_huge.png": "unreadable", PHOTO.name: "in progress"}
+
+
+def test_drag_draws_a_box(server, tmp_path):
+    """In boxes mode a drag from one corner of a box's front face to the other draws it."""
+    from playwright.sync_api import sync_playwright
+
+    from annotate.browser import image_to_client, launch, wait_ready
+
+    project, url = server
+    mark_rack(project)
+    with sync_playwright() as pw:
+        ctx = launch(pw, tmp_path / "chrome-profile")
+        try:
+            page = ctx.new_page()
+            page.goto(url)
+            wait_ready(page)
+            page.keyboard.press("3")
+            settle(page)
+            (x0, y0), (x1, y1) = (image_to_client(page, *p) for p in BOXES[1])
+            page.mouse.move(x0, y0)
+            page.mouse.down()
+            page.mouse.move(x1, y1, steps=5)
+            page.mouse.up()
+            settle(page)
+        finally:
+            ctx.close()
+    got = project.load(PHOTO.name)["boxes"]
+    assert len(got) == 1
+    np.testing.assert_allclose([got[0]["p0"], got[0]["p1"]], BOXES[1], atol=1.0)
