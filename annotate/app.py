@@ -6,12 +6,25 @@ shelves and boxes, racklay.layout draws every shelf's top and front layout live 
 photo, and the metric boxes are projected back onto the photo as outlines. Every action is saved
 at once through annotate.store (atomic, version-checked); this module never touches the files.
 
+How a click travels: the photo viewer is the page's own (VIEWER_JS): the photo is sent once per
+photo, zoom, pan, brightness and contrast are done in the browser, and the outlines are drawn
+over the photo from a list of shapes the server computes (Tool.overlay). Every action of the
+labeller (a click on the photo, a mode key, a button, a typed number) goes into one queue in
+the page and reaches the server in order, in batches: one batch at a time, the next as soon as
+the answer to the previous one is on screen, so no click is dropped however fast they come.
+Each action has a sequence number; the server applies each number once (a batch re-sent after a
+lost answer is not applied twice).
+
 Offline by design: analytics off, a built-in theme with system fonts, no CDN assets.
 """
 
 
+import base64
 import contextlib
 import copy
+import html
+import json
+import math
 import os
 import threading
 from collections import OrderedDict
@@ -26,138 +39,442 @@ from racklay.viz import PALETTE, colorize, content_window
 from . import geometry as G
 from . import schema as S
 from .dataset import read_imported
-from .store import ConflictError, Project, StoreError
+from .store import DONE_STATUSES, ConflictError, Project, StoreError
 
-DISPLAY_W, DISPLAY_H = 960, 640  # the photo viewer, in CSS pixels
-MODES = ("corners", "shelves", "boxes", "select", "move", "resize")
+DISPLAY_H = 640  # the photo viewer's height, in CSS pixels (it is as wide as its column)
+#: the longest side of the photo as sent to the browser (larger photos are shown scaled down;
+#: clicks are still in the photo's own pixels)
+VIEW_MAX_SIDE = 4096
+MODES = ("corners", "shelves", "boxes", "select", "move", "resize", "depth", "offset")
 MODE_HELP = {
     "corners": "click the 4 corners of the rack's front face (any order); a 5th click moves the nearest corner",
     "shelves": "click once on each shelf board's front edge",
-    "boxes": "click two opposite corners of a box's (or stack's) front face",
+    "boxes": "click two opposite corners of a box's (or stack's) front face, or drag from one to the other",
     "select": "click a corner, shelf line, box or proposal to select it",
     "move": "click where the selected item should go (a box moves its centre there)",
     "resize": "click where the nearest corner of the selected box should go",
+    "depth": "click the top-back edge of the selected box: its depth (then back to the previous mode)",
+    "offset": "click the board where the selected box's front stands: its front offset (then back)",
 }
-#: key -> button elem_id (the keydown script in HEAD clicks the button)
+FILTERS = ("all", "unfinished", "todo", "in progress", "done", "needs review", "approved", "invalid", "unreadable")
+#: key -> what it does (the page's keydown handler; never while typing in a field)
 SHORTCUTS = [
-    ("1 … 6", "mode: corners, shelves, boxes, select, move, resize", None),
-    ("n / →", "next image", "btn-next"), ("p / ←", "previous image", "btn-prev"),
-    ("z / Ctrl+Z", "undo", "btn-undo"), ("y / Ctrl+Y", "redo", "btn-redo"),
-    ("Del / Backspace / x", "delete selected (a proposal: reject)", "btn-delete"),
-    ("s / Ctrl+S", "save now", "btn-save"), ("d", "mark done", "btn-done"),
-    ("a / r", "accept / reject selected proposal", None), ("A", "accept all proposals", "btn-accept-all"),
-    ("+ / - / 0", "zoom in / out / reset (centred on the last click)", None),
-    ("Esc", "cancel a half-drawn box", "btn-cancel"),
+    ("1 … 8", "mode: corners, shelves, boxes, select, move, resize, depth, offset"),
+    ("n / →", "next photo (in the list's filter)"), ("p / ←", "previous photo"),
+    ("u", "next unfinished photo"),
+    ("z / Ctrl+Z", "undo"), ("y / Ctrl+Y", "redo"),
+    ("Del / Backspace / x", "delete selected (a proposal: reject)"),
+    ("s / Ctrl+S", "save now"), ("d", "mark done (refused while the photo has warnings)"),
+    ("c", "confirm the rack size"), ("f", "selected box: stands on its board / floats (on something)"),
+    ("a / r", "accept / reject selected proposal"), ("A", "accept all proposals"),
+    ("wheel, + / - / 0", "zoom at the cursor / reset; right-drag or Space+drag pans"),
+    ("Enter", "leave a number field (its value is applied)"),
+    ("Esc", "cancel a half-drawn box"),
 ]
-KEYMAP = {
-    "1": "mode-corners", "2": "mode-shelves", "3": "mode-boxes", "4": "mode-select", "5": "mode-move",
-    "6": "mode-resize", "n": "btn-next", "ArrowRight": "btn-next", "p": "btn-prev", "ArrowLeft": "btn-prev",
-    "z": "btn-undo", "Ctrl+z": "btn-undo", "y": "btn-redo", "Ctrl+y": "btn-redo", "Ctrl+Z": "btn-redo",
-    "Delete": "btn-delete", "Backspace": "btn-delete", "x": "btn-delete", "s": "btn-save", "Ctrl+s": "btn-save",
-    "d": "btn-done", "a": "btn-accept", "r": "btn-reject", "A": "btn-accept-all", "+": "btn-zoom-in",
-    "=": "btn-zoom-in", "-": "btn-zoom-out", "0": "btn-zoom-reset", "Escape": "btn-cancel",
-}
+#: page element id -> action; 'mode:X' and 'view:X' are handled in the page (view: no server)
+BUTTONS = {f"mode-{m}": f"mode:{m}" for m in MODES}
+BUTTONS.update({
+    "btn-next": "next", "btn-prev": "prev", "btn-next-todo": "next_unfinished", "btn-undo": "undo",
+    "btn-redo": "redo", "btn-delete": "delete", "btn-save": "save", "btn-done": "done",
+    "btn-accept": "accept", "btn-reject": "reject", "btn-accept-all": "accept_all", "btn-cancel": "cancel",
+    "btn-confirm-size": "confirm_size", "btn-on-board": "toggle_on_board",
+    "btn-zoom-in": "view:in", "btn-zoom-out": "view:out", "btn-zoom-reset": "view:reset",
+})
+KEYMAP = {str(i + 1): f"mode:{m}" for i, m in enumerate(MODES)}
+KEYMAP.update({
+    "n": "next", "ArrowRight": "next", "p": "prev", "ArrowLeft": "prev", "u": "next_unfinished",
+    "z": "undo", "Ctrl+z": "undo", "y": "redo", "Ctrl+y": "redo", "Ctrl+Z": "redo",
+    "Delete": "delete", "Backspace": "delete", "x": "delete", "s": "save", "Ctrl+s": "save",
+    "d": "done", "c": "confirm_size", "f": "toggle_on_board", "a": "accept", "r": "reject", "A": "accept_all",
+    "+": "view:in", "=": "view:in", "-": "view:out", "0": "view:reset", "Escape": "cancel",
+})
+#: number fields (elem_id -> action field); the page sends the text as typed when it changes
+FIELDS = {"rack-width": "width", "rack-height": "height", "rack-depth": "depth",
+          "box-depth": "box_depth", "box-offset": "box_offset"}
+
+VIEWER_HTML = """<div id="rl-viewer">
+<div id="rl-banner" hidden></div>
+<div id="rl-toolbar"><span id="rl-zoom">fit</span>
+ <label>brightness <input type="range" id="rl-bright" min="30" max="300" value="100"></label>
+ <label>contrast <input type="range" id="rl-contrast" min="30" max="300" value="100"></label>
+ <button id="rl-view-reset" type="button">reset view</button>
+ <span class="rl-hint">wheel: zoom at the cursor · right-drag or Space+drag: pan · view only, nothing is saved</span></div>
+<div id="rl-viewport" style="height:%dpx"><div id="rl-stage"><img id="rl-img" alt="" draggable="false">
+<svg id="rl-svg" xmlns="http://www.w3.org/2000/svg"></svg></div></div>
+</div>""" % DISPLAY_H
+
+VIEWER_JS = r"""
+(() => {
+  const KEYMAP = __KEYMAP__, BUTTONS = __BUTTONS__, FIELDS = __FIELDS__;
+  const rl = window.rl = {q: [], inflight: null, seq: 0, view: null, up: true, stats: [], W: 0, H: 0,
+                          s: 1, fit: 1, tx: 0, ty: 0, mouse: null, photoKey: null, previewSrc: null};
+  const $ = (s) => document.querySelector(s);
+  // --- the action queue: one batch at a time, in order ---------------------------------------
+  rl.enqueue = (a, t) => {
+    a.seq = ++rl.seq; a.t = t === undefined ? performance.now() : t;
+    rl.q.push(a); pump(); return a.seq;
+  };
+  function pump() {
+    if (rl.inflight || !rl.q.length || !rl.up) return;
+    const btn = $('#rl-send');
+    if (!btn) { setTimeout(pump, 30); return; }
+    rl.inflight = rl.q.splice(0);
+    rl.sentAt = performance.now();
+    btn.click();
+  }
+  rl.take = () => JSON.stringify((rl.inflight || []).map(({t, ...a}) => a));
+  // a batch without an answer for a while: ask again (the server applies each number once)
+  setInterval(() => {
+    if (rl.inflight && rl.up && performance.now() - rl.sentAt > 8000) {
+      rl.sentAt = performance.now(); const b = $('#rl-send'); if (b) b.click();
+    }
+  }, 1000);
+  // --- the server's answer ------------------------------------------------------------------
+  function onView() {
+    const el = $('#rl-view-data pre');
+    if (!el || el.textContent === rl.lastText) return;
+    rl.lastText = el.textContent;
+    let v; try { v = JSON.parse(el.textContent); } catch (e) { return; }
+    rl.view = v;
+    if (v.image_size && (v.image_size[0] !== rl.W || v.image_size[1] !== rl.H || v.name !== rl.name)) {
+      rl.W = v.image_size[0]; rl.H = v.image_size[1]; rl.name = v.name; fitView();
+    }
+    draw(v);
+    for (const [id, h] of Object.entries(v.text || {})) {
+      const el = document.getElementById(id);
+      if (el && el.innerHTML !== h) el.innerHTML = h;
+    }
+    for (const [id, f] of Object.entries(FIELDS)) {
+      const inp = document.querySelector('#' + id + ' input');
+      if (inp && document.activeElement !== inp) inp.value = (v.fields[f] === null || v.fields[f] === undefined) ? '' : v.fields[f];
+    }
+    for (const b of document.querySelectorAll('[id^="mode-"]')) {
+      const on = b.id === 'mode-' + v.mode;
+      b.classList.toggle('primary', on); b.classList.toggle('secondary', !on);
+    }
+    if (rl.inflight && v.ack >= rl.inflight[rl.inflight.length - 1].seq) {
+      const done = rl.inflight, now = performance.now();
+      rl.inflight = null;
+      requestAnimationFrame(() => {
+        const shown = performance.now();
+        for (const a of done) rl.stats.push({kind: a.kind, queued: rl.sentAt - a.t, rtt: shown - a.t,
+                                             server: v.ms, batch: done.length, answered: now - a.t});
+      });
+      if (rl.up) banner(null);
+      pump();
+    }
+  }
+  function onPreview() {
+    const el = $('#rl-preview-data pre'), p = $('#rl-preview');
+    if (!el || !p || el.textContent === rl.previewSrc) return;
+    rl.previewSrc = el.textContent;
+    p.src = rl.previewSrc || ''; p.hidden = !rl.previewSrc;
+  }
+  function onPhoto() {
+    const el = $('#rl-photo-data pre');
+    if (!el) return;
+    const key = el.getAttribute('data-key');
+    if (key === rl.photoKey) return;
+    rl.photoKey = key;
+    const img = $('#rl-img');
+    img.src = el.textContent ? 'data:image/jpeg;base64,' + el.textContent.trim() : '';
+  }
+  // --- drawing: the photo in a stage that is zoomed and panned by a CSS transform --------------
+  function esc(s) { return String(s).replace(/[&<>"]/g, c => ({'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;'})[c]); }
+  function draw(v) {
+    const svg = $('#rl-svg'), img = $('#rl-img'), stage = $('#rl-stage');
+    if (!svg) return;
+    stage.style.width = rl.W + 'px'; stage.style.height = rl.H + 'px';
+    img.style.width = rl.W + 'px'; img.style.height = rl.H + 'px';
+    svg.setAttribute('width', rl.W); svg.setAttribute('height', rl.H);
+    svg.setAttribute('viewBox', `-0.5 -0.5 ${rl.W} ${rl.H}`);
+    const k = 1 / rl.s, out = [];
+    for (const sh of v.overlay || []) {
+      const w = (sh.w || 1.5) * k;
+      if (sh.t === 'poly') {
+        const pts = sh.pts.map(p => p[0].toFixed(2) + ',' + p[1].toFixed(2)).join(' ');
+        out.push(`<${sh.closed ? 'polygon' : 'polyline'} points="${pts}" fill="none" stroke="${sh.c}" stroke-width="${w}"${sh.dash ? ` stroke-dasharray="${4 * k},${3 * k}"` : ''}/>`);
+      } else if (sh.t === 'dot') {
+        out.push(`<circle cx="${sh.x}" cy="${sh.y}" r="${(sh.r || 4) * k}" fill="${sh.c}" stroke="#000" stroke-width="${0.8 * k}"/>`);
+      } else if (sh.t === 'cross') {
+        const r = (sh.r || 6) * k;
+        out.push(`<path d="M${sh.x - r},${sh.y - r}L${sh.x + r},${sh.y + r}M${sh.x - r},${sh.y + r}L${sh.x + r},${sh.y - r}" stroke="${sh.c}" stroke-width="${2 * k}"/>`);
+      } else if (sh.t === 'text') {
+        out.push(`<text x="${sh.x}" y="${sh.y}" fill="${sh.c}" font-size="${12 * k}" stroke="#000" stroke-width="${0.3 * k}">${esc(sh.s)}</text>`);
+      }
+    }
+    svg.innerHTML = out.join('');
+  }
+  function applyTransform() {
+    const stage = $('#rl-stage');
+    if (stage) stage.style.transform = `translate(${rl.tx}px, ${rl.ty}px) scale(${rl.s})`;
+    const z = $('#rl-zoom'); if (z) z.textContent = rl.s / rl.fit > 1.001 ? `zoom ${(rl.s / rl.fit).toFixed(1)}×` : 'fit';
+    if (rl.view) draw(rl.view);
+  }
+  function fitView() {
+    const vp = $('#rl-viewport');
+    if (!vp || !rl.W) return;
+    const vw = vp.clientWidth, vh = vp.clientHeight;
+    rl.fit = rl.s = Math.min(vw / rl.W, vh / rl.H);
+    rl.tx = (vw - rl.W * rl.s) / 2; rl.ty = (vh - rl.H * rl.s) / 2;
+    applyTransform();
+  }
+  rl.fitView = fitView;
+  function zoomAt(cx, cy, f) {   // keeps the photo point under (cx, cy) where it is
+    const ns = Math.min(Math.max(rl.s * f, rl.fit), rl.fit * 32), k = ns / rl.s;
+    rl.tx = cx - (cx - rl.tx) * k; rl.ty = cy - (cy - rl.ty) * k; rl.s = ns;
+    if (Math.abs(ns - rl.fit) < 1e-9) return fitView();
+    applyTransform();
+  }
+  rl.zoomAt = zoomAt;
+  // photo pixel (x right, y down; pixel centres at integers) <-> page (client) coordinates
+  rl.toImage = (clientX, clientY) => {
+    const r = $('#rl-viewport').getBoundingClientRect();
+    return [(clientX - r.left - rl.tx) / rl.s - 0.5, (clientY - r.top - rl.ty) / rl.s - 0.5];
+  };
+  rl.toClient = (x, y) => {
+    const r = $('#rl-viewport').getBoundingClientRect();
+    return [r.left + rl.tx + (x + 0.5) * rl.s, r.top + rl.ty + (y + 0.5) * rl.s];
+  };
+  function viewAction(what) {
+    const vp = $('#rl-viewport'), m = rl.mouse || [vp.clientWidth / 2, vp.clientHeight / 2];
+    if (what === 'in') zoomAt(m[0], m[1], 2); else if (what === 'out') zoomAt(m[0], m[1], 0.5); else fitView();
+  }
+  function act(name) {
+    if (name.startsWith('view:')) return viewAction(name.slice(5));
+    if (name.startsWith('mode:')) return rl.enqueue({kind: 'mode', mode: name.slice(5)});
+    rl.enqueue({kind: 'act', name: name});
+  }
+  rl.act = act;
+  function banner(text) {
+    const b = $('#rl-banner'); if (!b) return;
+    b.hidden = !text; b.textContent = text || '';
+  }
+  // --- the server's heartbeat: a banner while it is away, and a fresh page when it is back ----
+  let misses = 0;
+  async function beat() {
+    const ctl = new AbortController(), to = setTimeout(() => ctl.abort(), 6000);
+    let ok = true;
+    try { await fetch(location.pathname, {cache: 'no-store', signal: ctl.signal}); } catch (e) { ok = false; }
+    clearTimeout(to);
+    misses = ok ? 0 : misses + 1;
+    if (!ok && misses < 2) return;   // one slow answer on a busy machine is not an outage
+    if (!ok && rl.up) {
+      rl.up = false;
+      banner(`⚠ the annotation server is not reachable (since ${new Date().toLocaleTimeString()}): ` +
+             'clicks are not taken until it is back; everything saved so far is safe. The page reloads by itself when it returns.');
+    } else if (ok && !rl.up) {
+      banner('the server is back: reloading the page…');
+      setTimeout(() => location.reload(), 300);
+    }
+  }
+  (async function loop() { await beat(); setTimeout(loop, 1500); })();
+  // --- mouse and keys ----------------------------------------------------------------------------
+  let drag = null, space = false;
+  function onDown(e) {
+    const vp = $('#rl-viewport'); if (!vp || !vp.contains(e.target)) return;
+    // a number being typed is applied first (its change event queues it before this click)
+    const f = document.activeElement;
+    if (f && f !== document.body && f.blur) f.blur();
+    e.preventDefault();
+    const pan = e.button === 1 || e.button === 2 || (e.button === 0 && space);
+    drag = {pan, x: e.clientX, y: e.clientY, tx: rl.tx, ty: rl.ty, t: performance.now(), button: e.button};
+  }
+  function onMove(e) {
+    const vp = $('#rl-viewport'); if (!vp) return;
+    const r = vp.getBoundingClientRect();
+    if (e.clientX >= r.left && e.clientX <= r.right && e.clientY >= r.top && e.clientY <= r.bottom)
+      rl.mouse = [e.clientX - r.left, e.clientY - r.top];
+    if (drag && drag.pan) { rl.tx = drag.tx + e.clientX - drag.x; rl.ty = drag.ty + e.clientY - drag.y; applyTransform(); }
+  }
+  function inside(p) { return p[0] >= -0.5 && p[1] >= -0.5 && p[0] <= rl.W - 0.5 && p[1] <= rl.H - 0.5; }
+  function onUp(e) {
+    const d = drag; drag = null;
+    if (!d || d.pan || e.button !== 0 || !rl.view || !rl.W) return;
+    if (!rl.up) { banner($('#rl-banner').textContent || '⚠ the server is not reachable'); return; }
+    const p0 = rl.toImage(d.x, d.y), p1 = rl.toImage(e.clientX, e.clientY);
+    const moved = Math.hypot(e.clientX - d.x, e.clientY - d.y) > 6;
+    const z = rl.s / rl.fit;
+    if (moved && rl.view.mode === 'boxes' && inside(p0) && inside(p1))
+      return rl.enqueue({kind: 'box', p0: p0, p1: p1, image: rl.view.name}, d.t);
+    if (!inside(p0)) return;
+    rl.enqueue({kind: 'click', x: p0[0], y: p0[1], z: z, image: rl.view.name}, d.t);
+  }
+  document.addEventListener('mousedown', onDown, true);
+  document.addEventListener('mousemove', onMove, true);
+  document.addEventListener('mouseup', onUp, true);
+  document.addEventListener('contextmenu', (e) => { const vp = $('#rl-viewport'); if (vp && vp.contains(e.target)) e.preventDefault(); }, true);
+  document.addEventListener('wheel', (e) => {
+    const vp = $('#rl-viewport'); if (!vp || !vp.contains(e.target)) return;
+    e.preventDefault();
+    const r = vp.getBoundingClientRect();
+    zoomAt(e.clientX - r.left, e.clientY - r.top, Math.exp(-e.deltaY * 0.002));
+  }, {capture: true, passive: false});
+  window.addEventListener('resize', () => { if (rl.s === rl.fit) fitView(); });
+  function typing(t) {
+    const tag = ((t && t.tagName) || '').toLowerCase();
+    if (tag === 'textarea' || tag === 'select' || (t && t.isContentEditable)) return true;
+    return tag === 'input' && !['range', 'checkbox', 'radio', 'button'].includes((t.type || '').toLowerCase());
+  }
+  document.addEventListener('keydown', (e) => {
+    const t = e.target;
+    if (typing(t)) {
+      // Enter (or Esc) leaves a number field; its value is applied as typed (the change event)
+      if ((e.key === 'Enter' || e.key === 'Escape') && t.closest && t.closest('.rl-field')) { e.preventDefault(); t.blur(); }
+      return;
+    }
+    if (e.key === ' ') { space = true; const vp = $('#rl-viewport'); if (vp && rl.mouse) e.preventDefault(); return; }
+    if (e.altKey) return;
+    const key = (e.ctrlKey || e.metaKey) ? 'Ctrl+' + e.key : e.key;
+    const a = KEYMAP[key];
+    if (!a) return;
+    e.preventDefault();
+    if (t && t.blur && t !== document.body) t.blur();
+    act(a);
+  }, true);
+  document.addEventListener('keyup', (e) => { if (e.key === ' ') space = false; }, true);
+  document.addEventListener('click', (e) => {
+    const b = e.target.closest && e.target.closest('button');
+    if (!b) return;
+    if (b.id === 'rl-view-reset') { fitView(); return; }
+    const a = BUTTONS[b.id];
+    if (!a) return;
+    e.preventDefault(); e.stopPropagation();
+    act(a);
+  }, true);
+  document.addEventListener('change', (e) => {
+    const f = e.target.closest && e.target.closest('.rl-field');
+    if (!f || !FIELDS[f.id]) return;
+    rl.enqueue({kind: 'field', field: FIELDS[f.id], text: e.target.value, image: rl.view && rl.view.name});
+  }, true);
+  document.addEventListener('input', (e) => {
+    if (e.target.id !== 'rl-bright' && e.target.id !== 'rl-contrast') return;
+    $('#rl-img').style.filter = `brightness(${$('#rl-bright').value}%) contrast(${$('#rl-contrast').value}%)`;
+  }, true);
+  document.addEventListener('pointerup', (e) => {
+    if (e.target.type === 'range') e.target.blur();   // hotkeys keep working after a slider
+  }, true);
+  // --- wiring, once gradio has rendered the page ----------------------------------------------
+  function init() {
+    const vd = $('#rl-view-data'), pd = $('#rl-photo-data'), pv = $('#rl-preview-data'), vp = $('#rl-viewport');
+    if (!vd || !pd || !pv || !vp) { setTimeout(init, 30); return; }
+    const opts = {subtree: true, childList: true, characterData: true};
+    new MutationObserver(onPhoto).observe(pd, opts);
+    new MutationObserver(onPreview).observe(pv, opts);
+    new MutationObserver(onView).observe(vd, opts);
+    onPhoto(); onView(); onPreview();
+  }
+  if (document.readyState === 'loading') document.addEventListener('DOMContentLoaded', init); else init();
+})();
+"""
 
 
 def _head() -> str:
-    import json
-
-    return """<script>
-(() => {
-  const KEYMAP = %s;
-  document.addEventListener('keydown', (e) => {
-    const t = e.target, tag = ((t && t.tagName) || '').toLowerCase();
-    if (tag === 'input' || tag === 'textarea' || tag === 'select' || (t && t.isContentEditable)) return;
-    if (e.altKey) return;
-    const key = (e.ctrlKey || e.metaKey) ? 'Ctrl+' + e.key : e.key;
-    const id = KEYMAP[key];
-    if (!id) return;
-    const el = document.getElementById(id);
-    if (!el) return;
-    e.preventDefault();
-    (el.tagName === 'BUTTON' ? el : (el.querySelector('button') || el)).click();
-  });
-})();
-</script>""" % json.dumps(KEYMAP)
+    js = (VIEWER_JS.replace("__KEYMAP__", json.dumps(KEYMAP)).replace("__BUTTONS__", json.dumps(BUTTONS))
+          .replace("__FIELDS__", json.dumps(FIELDS)))
+    return f"<script>{js}</script>"
 
 
 CSS = """
-#photo img { cursor: crosshair; }
 #header { font-size: 1.05em; }
 .mode-row button { min-width: 0; }
+.rl-hidden { display: none !important; }
+.rl-text p { margin: 0.2em 0; }
+.rl-text ul { margin: 0.2em 0 0.2em 1.2em; padding: 0; }
+#rl-viewport { position: relative; overflow: hidden; background: #222; cursor: crosshair; user-select: none; }
+#rl-stage { position: absolute; left: 0; top: 0; transform-origin: 0 0; }
+#rl-img, #rl-svg { position: absolute; left: 0; top: 0; max-width: none; }
+#rl-svg { pointer-events: none; overflow: visible; }
+#rl-banner { background: #b00020; color: #fff; padding: 8px 12px; font-weight: 600; border-radius: 4px; margin-bottom: 6px; }
+#rl-toolbar { font-size: 0.85em; display: flex; gap: 12px; align-items: center; flex-wrap: wrap; margin-bottom: 4px; }
+#rl-toolbar input[type=range] { width: 110px; vertical-align: middle; }
+.rl-hint { color: #888; }
+#rl-preview { max-width: 100%; }
 """
 
-# overlay colours (RGB)
+# overlay colours
 C_RACK, C_SHELF, C_BOX, C_FLOAT = (255, 220, 0), (0, 220, 255), tuple(int(v) for v in PALETTE[L.BOX]), (255, 60, 60)
 C_PROP, C_SEL, C_PEND, C_IMPORT = (60, 240, 90), (255, 255, 255), (255, 0, 255), (190, 120, 255)
 
 
+def _hex(c) -> str:
+    return "#%02x%02x%02x" % tuple(int(v) for v in c)
+
+
 class Tool:
     """Server-side logic, independent of gradio: each method takes and returns the session state
-    (a plain dict) so it can be tested without a browser."""
-
-    #: rendered photos kept on disk: gradio copies each into its cache as the handler returns, so
-    #: only the newest few are still needed (the copies go with delete_cache and at exit)
-    KEEP_SHOTS = 4
+    (a plain dict) so it can be tested without a browser. Clicks are in photo pixels."""
 
     def __init__(self, project: Project, predictor=None, user: str | None = None, tmp_dir: str | None = None):
         self.project = project
         self.predictor = predictor
         self.user = user
         self._images: OrderedDict[str, np.ndarray] = OrderedDict()
+        self._photo_b64: OrderedDict[str, str] = OrderedDict()
         self._preds: OrderedDict[str, dict] = OrderedDict()
+        self._layouts: OrderedDict[str, tuple] = OrderedDict()
         self._lock = threading.RLock()
-        self._tmp_root = tmp_dir   # the server run's temp folder (None: the system's)
-        self._tmp = None
-        self._shots: list[str] = []
-        self._n_shots = 0
+        self._history: dict[str, tuple] = {}     # undo history waiting to be written, per photo
+        self._history_cv = threading.Condition()
+        self._history_busy = False
+        threading.Thread(target=self._history_writer, daemon=True, name="annotate-history").start()
 
-    def photo_file(self, st: dict) -> str | None:
-        """The rendered photo as a JPEG file for the viewer (4:4:4 chroma, quality 92, so thin
-        coloured outlines stay sharp). Encoding it as PNG took 670 ms per click for a 1280x1006
-        photo (gradio's PIL encoder) against ~15 ms here; the layouts preview stays PNG."""
+    def photo_b64(self, name: str) -> str:
+        """The photo as the browser shows it: base64 JPEG (quality 92, 4:4:4 chroma), at most
+        VIEW_MAX_SIDE pixels a side, encoded once per photo (the outlines are drawn by the page)."""
         import cv2
-        import tempfile
 
-        img = self.render_photo(st)
-        if img is None:
-            return None
-        ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(img[:, :, ::-1]),
-                               [cv2.IMWRITE_JPEG_QUALITY, 92, cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
-                                cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
         with self._lock:
-            if self._tmp is None:
-                self._tmp = tempfile.mkdtemp(prefix="annotate-view-", dir=self._tmp_root)
-            self._n_shots += 1
-            path = os.path.join(self._tmp, f"view-{self._n_shots}.jpg")
-            with open(path, "wb") as f:
-                f.write(buf.tobytes())
-            self._shots.append(path)
-            while len(self._shots) > self.KEEP_SHOTS:  # gradio has copied older ones into its cache by now
-                try:
-                    os.unlink(self._shots.pop(0))
-                except OSError:
-                    pass
-        return path
+            if name not in self._photo_b64:
+                img = self.image(name)
+                h, w = img.shape[:2]
+                k = VIEW_MAX_SIDE / max(h, w)
+                if k < 1:
+                    img = cv2.resize(img, (max(1, int(w * k)), max(1, int(h * k))), interpolation=cv2.INTER_AREA)
+                ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(img[:, :, ::-1]),
+                                       [cv2.IMWRITE_JPEG_QUALITY, 92, cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
+                                        cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
+                self._photo_b64[name] = base64.b64encode(buf.tobytes()).decode("ascii")
+                while len(self._photo_b64) > 4:
+                    self._photo_b64.popitem(last=False)
+            self._photo_b64.move_to_end(name)
+            return self._photo_b64[name]
 
     # --- state ---------------------------------------------------------------------------
-    def open(self, name: str | None, user: str | None = None) -> dict:
-        """A session state for image `name`; `user` is the logged-in user (saves record it)."""
+    def open(self, name: str | None, user: str | None = None, keep: dict | None = None) -> dict:
+        """A session state for image `name`; `user` is the logged-in user (saves record it).
+        `keep`: the previous state, whose list filter and action counter carry over."""
         st = {"name": name, "ann": None, "undo": [], "redo": [], "pending": None, "sel": None,
-              "mode": "corners", "zoom": 1.0, "center": None, "msg": "", "error": None, "user": user}
+              "mode": "corners", "msg": "", "error": None, "user": user,
+              "filter": (keep or {}).get("filter", "all"), "ack": (keep or {}).get("ack", 0)}
         if name is None:
             st["msg"] = "no images in the project yet: upload some"
             return st
         try:
+            why = self.project.photo_problem(name)
+            if why:
+                raise StoreError(why)
             ann = self.project.load(name)
         except (S.SchemaError, StoreError) as e:
             st["error"] = str(e)
             st["msg"] = f"⚠ {e} — this file is not overwritten; fix or delete it by hand"
             return st
+        try:
+            self.image(name)
+        except (StoreError, ValueError) as e:   # a header that looked fine, pixels that do not decode
+            self.project.mark_unreadable(name, str(e))
+            st["error"] = str(e)
+            st["msg"] = f"⚠ {e} — listed as unreadable; the rest of the project works"
+            return st
         st["ann"] = ann
+        self.flush_history()
+        st["undo"], st["redo"] = self.project.load_history(name, ann["version"])
+        with contextlib.suppress(OSError, StoreError):
+            self.project.set_last_opened(name, user)
         rack = ann["rack"]
         st["mode"] = "corners" if len(rack["corners"]) < 4 else ("shelves" if not ann["shelves"] else "boxes")
-        st["msg"] = f"opened {name} (version {ann['version']}, {ann['status']})"
+        hist = f", {len(st['undo'])} undo step(s)" if st["undo"] else ""
+        st["msg"] = f"opened {name} (version {ann['version']}, {ann['status']}{hist})"
         return st
 
     def image(self, name: str) -> np.ndarray:
@@ -169,12 +486,33 @@ class Tool:
             self._images.move_to_end(name)
             return self._images[name]
 
-    def step(self, st: dict, delta: int) -> dict:
-        names = self.project.images()
+    def listed(self, st: dict) -> list[str]:
+        """The photos the list shows under the session's filter (the open one always)."""
+        f = st.get("filter", "all")
+        stats = self.project.statuses()
+        keep = {"all": lambda s: True, "unfinished": lambda s: s not in DONE_STATUSES + ("unreadable",)}.get(
+            f, lambda s: s == f)
+        return [n for n, s in stats.items() if keep(s) or n == st.get("name")]
+
+    def step(self, st: dict, delta: int, unfinished: bool = False) -> dict:
+        """The next (previous) photo in the list's filter, or the next unfinished one; unreadable
+        photos are skipped."""
+        stats = self.project.statuses()
+        names = list(stats)
         if not names:
-            return self.open(None, st.get("user"))
-        i = names.index(st["name"]) if st.get("name") in names else -1
-        return self.open(names[(i + delta) % len(names)], st.get("user"))
+            return self.open(None, st.get("user"), st)
+        if unfinished:
+            ok = [n for n in names if stats[n] not in DONE_STATUSES + ("unreadable", "invalid")]
+        else:
+            ok = [n for n in self.listed(st) if stats[n] != "unreadable" or n == st.get("name")]
+        cur = st.get("name")
+        i = names.index(cur) if cur in names else -1
+        for k in range(1, len(names) + 1):
+            n = names[(i + delta * k) % len(names)]
+            if n in ok and n != cur:
+                return self.open(n, st.get("user"), st)
+        st["msg"] = "no unfinished photo left: all done" if unfinished else "no other photo in this list"
+        return st
 
     # --- applying an edit: save at once, with undo ----------------------------------------
     def act(self, st: dict, fn) -> dict:
@@ -196,8 +534,35 @@ class Tool:
             st["undo"].append(before)
             st["undo"] = st["undo"][-200:]
             st["redo"] = []
+            self._keep_history(st)
             st["msg"] = msg or f"saved (version {st['ann']['version']})"
         return st
+
+    def _keep_history(self, st: dict) -> None:
+        """Hand the undo history to the writer thread (off the click's path; the newest wins)."""
+        with self._history_cv:
+            self._history[st["name"]] = (st["ann"]["version"], list(st["undo"]), list(st["redo"]))
+            self._history_cv.notify()
+
+    def _history_writer(self) -> None:
+        while True:
+            with self._history_cv:
+                while not self._history:
+                    self._history_cv.wait()
+                name, (version, undo, redo) = self._history.popitem()
+                self._history_busy = True
+            try:
+                with contextlib.suppress(OSError, StoreError):
+                    self.project.save_history(name, version, undo, redo)
+            finally:
+                with self._history_cv:
+                    self._history_busy = False
+                    self._history_cv.notify_all()
+
+    def flush_history(self, timeout: float = 10.0) -> None:
+        """Until every waiting undo history is written (tests; a new page load reads it)."""
+        with self._history_cv:
+            self._history_cv.wait_for(lambda: not self._history and not self._history_busy, timeout)
 
     def _save(self, st: dict, ann: dict) -> bool:
         try:
@@ -221,6 +586,7 @@ class Tool:
             st[src].pop()
             st[dst].append(current)
             st["sel"], st["pending"] = None, None
+            self._keep_history(st)
             st["msg"] = f"{'redone' if redo else 'undone'} (version {st['ann']['version']})"
         return st
 
@@ -228,36 +594,90 @@ class Tool:
         if st.get("ann") is None:
             return st
         if self._save(st, copy.deepcopy(st["ann"])):
+            self._keep_history(st)
             st["msg"] = f"saved (version {st['ann']['version']})"
         return st
 
-    # --- clicks ----------------------------------------------------------------------------
-    def display_to_image(self, st: dict, x: float, y: float) -> tuple[float, float]:
-        x0, y0, s = self.view(st)
-        return x0 + (x + 0.5) / s - 0.5, y0 + (y + 0.5) / s - 0.5
+    # --- the page's actions, in order ------------------------------------------------------
+    def apply(self, st: dict, actions) -> dict:
+        """Apply a batch of the page's actions in order. Each has a sequence number `seq`; one
+        already applied is skipped (a batch sent again after a lost answer). A malformed action
+        is reported in the message and skipped."""
+        for a in actions if isinstance(actions, list) else []:
+            seq = a.get("seq") if isinstance(a, dict) else None
+            if isinstance(seq, int) and seq <= st.get("ack", 0):
+                continue
+            try:
+                st = self.apply_one(st, a)
+            except (ValueError, TypeError, KeyError, AttributeError) as e:
+                st["msg"] = f"⚠ ignored a malformed request ({type(e).__name__}: {e})"
+            if isinstance(seq, int):
+                st["ack"] = seq
+        return st
 
-    def view(self, st: dict) -> tuple[float, float, float]:
-        """(x0, y0, scale): the displayed window's top-left in image pixels, and display pixels
-        per image pixel. Small photos are enlarged to fill the viewer (DISPLAY_W x DISPLAY_H);
-        zoom crops a window around the last click."""
-        if st.get("ann") is None:
-            return 0.0, 0.0, 1.0
-        W, H = st["ann"]["image_size"]
-        base = max(1.0, round(min(DISPLAY_W / W, DISPLAY_H / H), 3))
-        z = max(1.0, float(st.get("zoom") or 1.0))
-        if z == 1:
-            return 0.0, 0.0, base
-        cx, cy = st.get("center") or (W / 2, H / 2)
-        w, h = W / z, H / z
-        return float(int(np.clip(cx - w / 2, 0, W - w))), float(int(np.clip(cy - h / 2, 0, H - h))), base * z
+    def apply_one(self, st: dict, a: dict) -> dict:
+        kind = a["kind"]
+        img = a.get("image")
+        if kind in ("click", "box", "field") and img is not None and img != st.get("name"):
+            st["msg"] = f"a {kind} made on {img} was not applied: {st.get('name')} is open now"
+            return st
+        if kind == "click":
+            return self.click(st, _finite(a["x"]), _finite(a["y"]), zoom=_finite(a.get("z", 1.0)))
+        if kind == "box":
+            p0 = [_finite(a["p0"][0]), _finite(a["p0"][1])]
+            p1 = [_finite(a["p1"][0]), _finite(a["p1"][1])]
+            st["pending"] = None
+            return self.add_box(st, p0, p1)
+        if kind == "mode":
+            if a["mode"] not in MODES:
+                raise ValueError(f"unknown mode {a['mode']!r}")
+            if a["mode"] in ("depth", "offset") and st.get("mode") not in ("depth", "offset"):
+                st["mode_before"] = st.get("mode")
+            st["mode"], st["pending"] = a["mode"], None
+            st["msg"] = ""
+            return st
+        if kind == "field":
+            return self.set_field(st, a["field"], a.get("text"))
+        if kind == "preset":
+            return self.set_rack(st, preset_name=a["name"])
+        if kind == "status":
+            return self.set_status(st, a["value"])
+        if kind == "open":
+            name = a["name"]
+            if name not in self.project.images():
+                raise ValueError(f"no photo {name!r} in the project")
+            return self.open(name, st.get("user"), st)
+        if kind == "filter":
+            if a["value"] not in FILTERS:
+                raise ValueError(f"unknown filter {a['value']!r}")
+            st["filter"] = a["value"]
+            n = len(self.listed(st))
+            st["msg"] = f"list: {a['value']} ({n} photo(s))"
+            return st
+        if kind == "act":
+            fn = {"undo": self.undo, "redo": lambda s: self.undo(s, redo=True), "delete": self.delete,
+                  "save": self.save_now, "done": lambda s: self.set_status(s, "done"), "accept": self.accept,
+                  "reject": self.reject, "accept_all": lambda s: self.accept(s, all_=True), "cancel": self.cancel,
+                  "next": lambda s: self.step(s, +1), "prev": lambda s: self.step(s, -1),
+                  "next_unfinished": lambda s: self.step(s, +1, unfinished=True),
+                  "confirm_size": self.confirm_size, "toggle_on_board": self.toggle_on_board}.get(a["name"])
+            if fn is None:
+                raise ValueError(f"unknown action {a['name']!r}")
+            return fn(st)
+        raise ValueError(f"unknown kind {kind!r}")
 
-    def click(self, st: dict, x: float, y: float) -> dict:
-        """A click at display pixel (x, y) in the current mode."""
+    def cancel(self, st: dict) -> dict:
+        st["pending"] = None
+        st["msg"] = "box cancelled"
+        return st
+
+    # --- clicks (photo pixels: x right, y down, pixel centres at integers) -------------------
+    def click(self, st: dict, x: float, y: float, zoom: float = 1.0) -> dict:
+        """A click at photo pixel (x, y) in the current mode. `zoom`: how far the labeller had
+        zoomed in (a closer look picks more precisely)."""
         if st.get("ann") is None:
             return st
-        x, y = self.display_to_image(st, x, y)
         pt = [round(float(x), 2), round(float(y), 2)]
-        st["center"] = pt
         mode = st["mode"]
         if mode == "corners":
             return self.act(st, lambda a: self._corner(st, a, pt))
@@ -272,15 +692,9 @@ class Tool:
                 st["msg"] = "now click the opposite corner of the box's front face"
                 return st
             p0, st["pending"] = st["pending"], None
-
-            def add_box(a):
-                b = {"id": _next_id(a["boxes"]), "p0": p0, "p1": pt, "source": "manual"}
-                a["boxes"].append(b)
-                st["sel"] = ["box", b["id"]]
-                return f"box {b['id']} added"
-            return self.act(st, add_box)
+            return self.add_box(st, p0, pt)
         if mode == "select":
-            st["sel"] = self.pick(st, pt)
+            st["sel"] = self.pick(st, pt, zoom)
             st["msg"] = f"selected {st['sel'][0]} {st['sel'][1]}" if st["sel"] else "nothing here"
             return st
         if mode in ("move", "resize"):
@@ -288,14 +702,66 @@ class Tool:
                 st["msg"] = "select something first (mode 4)"
                 return st
             return self.act(st, lambda a: self._move(st, a, pt, resize=mode == "resize"))
+        if mode in ("depth", "offset"):
+            return self._depth_click(st, pt, mode)
         return st
+
+    def add_box(self, st: dict, p0, p1) -> dict:
+        def add(a):
+            b = {"id": _next_id(a["boxes"]), "p0": list(p0), "p1": list(p1), "source": "manual"}
+            a["boxes"].append(b)
+            st["sel"] = ["box", b["id"]]
+            return f"box {b['id']} added"
+        return self.act(st, add)
+
+    def _selected_box(self, st: dict):
+        sel = st.get("sel")
+        if not sel or sel[0] != "box" or st.get("ann") is None:
+            return None
+        return next((b for b in st["ann"]["boxes"] if b["id"] == sel[1]), None)
+
+    def _depth_click(self, st: dict, pt, mode: str) -> dict:
+        """A click on the selected box's top-back edge (depth) or on the board where its front
+        stands (front offset), through the camera recovered from the rack plane."""
+        b = self._selected_box(st)
+        if b is None:
+            st["msg"] = "select a box first (mode 4; a new box is selected)"
+            return st
+        scene = self._scene(st["ann"])
+        mb = next((m for m in scene.boxes if m.id == b["id"]), None) if scene is not None else None
+        if mb is None or mb.shelf is None:
+            st["msg"] = "mark the rack, its shelves and the box's shelf first"
+            return st
+        cam = G.camera_from_plane(scene.plane, st["ann"]["image_size"])
+        back = st.pop("mode_before", None) or "boxes"
+        if mode == "depth":
+            s = G.depth_from_click(cam, mb, pt, scene.depth)
+            val = round(float(np.clip(s - mb.front_offset, 0.01, max(scene.depth - mb.front_offset, 0.01))), 3)
+            field, what = "depth", "depth"
+        else:
+            o = G.offset_from_click(cam, scene.shelf_v[mb.shelf], pt)
+            if o is None:
+                st["msg"] = "⚠ that click is not on the top of the box's board: click where the box's front stands on it"
+                return st
+            val = round(float(np.clip(o, 0.0, max(scene.depth - 0.01, 0.0))), 3)
+            field, what = "front_offset", "front offset"
+        st["mode"] = back
+        note = "" if cam.focal_from_photo else " (the view is nearly frontal: a typical phone lens is assumed; check it)"
+
+        def upd(a):
+            for x in a["boxes"]:
+                if x["id"] == b["id"]:
+                    x[field] = val
+            return f"box {b['id']}: {what} {val:g} m from the click{note}"
+        return self.act(st, upd)
 
     def _corner(self, st, a, pt):
         c = a["rack"]["corners"]
         if a["rack"]["width"] is None:
             p = S.preset(self.project.settings, self.project.settings.get("default_preset"))
             if p:
-                a["rack"].update(width=p["width"], height=p["height"], depth=p["depth"], preset=p["name"])
+                a["rack"].update(width=p["width"], height=p["height"], depth=p["depth"], preset=p["name"],
+                                 size_confirmed=False)
         if len(c) < 4:
             c.append(pt)
             if len(c) == 4:
@@ -333,12 +799,12 @@ class Tool:
                     return f"{kind} {key} moved"
         return "the selected item is gone"
 
-    def pick(self, st: dict, pt) -> list | None:
+    def pick(self, st: dict, pt, zoom: float = 1.0) -> list | None:
         """The item under a click: a corner, then the smallest box or proposal containing it,
-        then the nearest shelf line."""
+        then the nearest shelf line (within a 50th of the photo, less when zoomed in)."""
         a = st["ann"]
         W, H = a["image_size"]
-        tol = max(W, H) / 50 / max(1.0, float(st.get("zoom") or 1.0))
+        tol = max(W, H) / 50 / max(1.0, float(zoom or 1.0))
         for k, q in enumerate(a["rack"]["corners"]):
             if np.hypot(q[0] - pt[0], q[1] - pt[1]) <= tol:
                 return ["corner", k]
@@ -411,7 +877,7 @@ class Tool:
                 p = S.preset(self.project.settings, preset_name)
                 if p is None:
                     return f"unknown preset {preset_name!r}"
-                r.update(width=p["width"], height=p["height"], depth=p["depth"], preset=p["name"])
+                r.update(width=p["width"], height=p["height"], depth=p["depth"], preset=p["name"], size_confirmed=True)
                 return f"rack preset {p['name']}"
             for k, v in (("width", width), ("height", height), ("depth", depth)):
                 if v is not None and v != r.get(k):
@@ -419,18 +885,103 @@ class Tool:
                         return f"⚠ rack {k} must be between 0 and 100 m"
                     r[k] = float(v)
                     r["preset"] = None
-            return "rack size changed" if r != before_rack else ""
+                    r["size_confirmed"] = True
+            return f"rack size {r['width']:g} × {r['height']:g} × {r['depth']:g} m" if r != before_rack else ""
         return self.act(st, upd)
 
     def set_status(self, st: dict, status: str) -> dict:
+        """Set the photo's status; `done` and `approved` are refused (one line saying what to
+        fix) while done_problems() finds anything."""
         if status not in S.STATUSES:
             st["msg"] = f"unknown status {status!r}"
             return st
+        if status in DONE_STATUSES and st.get("ann") is not None:
+            probs = self.done_problems(st["ann"])
+            if probs:
+                more = f" (and {len(probs) - 1} more, see the summary)" if len(probs) > 1 else ""
+                st["msg"] = f"⚠ not marked {status}: {probs[0]}{more}; your work is saved"
+                return st
 
         def upd(a):
             a["status"] = status
             return f"status: {status}"
         return self.act(st, upd)
+
+
+    def done_problems(self, a: dict) -> list[str]:
+        """What stops this annotation from being `done`: missing corners, rack size or shelves,
+        a rack size nobody confirmed (the default preset the first corner applied), waiting
+        model proposals, and every geometry warning (annotate.geometry)."""
+        out = []
+        r = a["rack"]
+        if len(r["corners"]) < 4:
+            out.append(f"only {len(r['corners'])} of 4 rack corners set")
+        if r["width"] is None or r["height"] is None or r["depth"] is None:
+            out.append("the rack size is not set: pick a preset or type width, height and depth")
+        elif r.get("size_confirmed") is False:
+            out.append(f"the rack size {r['width']:g} × {r['height']:g} × {r['depth']:g} m is the default preset, "
+                       "not confirmed: type the size, pick a preset, or press c (confirm size)")
+        if not a["shelves"]:
+            out.append("no shelf marked (mode 2)")
+        if a.get("proposals"):
+            out.append(f"{len(a['proposals'])} model proposal(s) wait: accept (a) or reject (r) them")
+        R = self.project.settings["R"]
+        if len(a["shelves"]) > R:
+            out.append(f"{len(a['shelves'])} shelves marked but the project has R={R} channels")
+        if len(r["corners"]) == 4 and r["width"] and r["height"] and r["depth"]:
+            try:
+                out += G.build_scene(a, self.project.settings).warnings
+            except (G.GeometryError, ValueError) as e:
+                out.append(str(e))
+        return out
+
+    def confirm_size(self, st: dict) -> dict:
+        def upd(a):
+            r = a["rack"]
+            if r["width"] is None:
+                return "no rack size to confirm yet: click a corner or pick a preset"
+            r["size_confirmed"] = True
+            return f"rack size {r['width']:g} × {r['height']:g} × {r['depth']:g} m confirmed"
+        return self.act(st, upd)
+
+    def toggle_on_board(self, st: dict) -> dict:
+        b = self._selected_box(st)
+        if b is None:
+            st["msg"] = "select a box first (mode 4)"
+            return st
+
+        def upd(a):
+            for x in a["boxes"]:
+                if x["id"] == b["id"]:
+                    if x.get("on_board", True):
+                        x["on_board"] = False
+                        return f"box {b['id']} floats: its bottom is where you clicked (on something)"
+                    x.pop("on_board", None)
+                    return f"box {b['id']} stands on its board"
+        return self.act(st, upd)
+
+    def set_field(self, st: dict, field: str, text) -> dict:
+        """A number typed into a field, applied exactly as typed (`text` is the field's text)."""
+        text = "" if text is None else str(text).strip()
+        if text == "":
+            value = None
+        else:
+            try:
+                value = float(text)
+            except ValueError:
+                st["msg"] = f"⚠ {field.replace('_', ' ')}: {text!r} is not a number"
+                return st
+            if not math.isfinite(value):
+                st["msg"] = f"⚠ {field.replace('_', ' ')}: {text!r} is not a finite number"
+                return st
+        if field in ("width", "height", "depth"):
+            if value is None:
+                st["msg"] = f"⚠ rack {field} cannot be empty"
+                return st
+            return self.set_rack(st, **{field: value})
+        if field in ("box_depth", "box_offset"):
+            return self.set_box_field(st, "depth" if field == "box_depth" else "front_offset", value)
+        raise ValueError(f"unknown field {field!r}")
 
     # --- proposals ---------------------------------------------------------------------------
     def prediction(self, name: str) -> dict:
@@ -522,80 +1073,79 @@ class Tool:
         return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], float)
 
     def layouts(self, ann: dict):
+        """(scene, top, front) of an annotation; the last few are kept (a click's answer needs
+        them for the summary and the preview)."""
+        key = json.dumps([_content(ann), self.project.settings], sort_keys=True, default=str)
+        with self._lock:
+            hit = self._layouts.get(key)
+            if hit is not None:
+                self._layouts.move_to_end(key)
+                return hit
         scene = self._scene(ann)
-        if scene is None or not scene.shelf_v:
-            return scene, None, None
-        st = self.project.settings
-        try:
-            top, front = scene.layouts(st["R"], L.Grid(st["D"], st["extent"]))
-        except G.GeometryError:
-            return scene, None, None
-        return scene, top, front
+        out = (scene, None, None)
+        if scene is not None and scene.shelf_v:
+            st = self.project.settings
+            try:
+                top, front = scene.layouts(st["R"], L.Grid(st["D"], st["extent"]))
+                out = (scene, top, front)
+            except G.GeometryError:
+                pass
+        with self._lock:
+            self._layouts[key] = out
+            while len(self._layouts) > 4:
+                self._layouts.popitem(last=False)
+        return out
 
-    def render_photo(self, st: dict) -> np.ndarray | None:
-        import cv2
-
-        if st.get("name") is None:
-            return None
-        img = self.image(st["name"])
+    def overlay(self, st: dict) -> list[dict]:
+        """Everything drawn over the photo, as shapes in photo pixels for the page to draw: the
+        rack outline and corners, shelf lines, boxes (red: on no shelf), proposals, imported
+        boxes, the half-drawn box's first corner. Outline widths are screen pixels."""
         a = st.get("ann")
         if a is None:
-            return img
-        x0, y0, z = self.view(st)
-        H, W = img.shape[:2]
-        if z != 1:
-            zoom = max(1.0, float(st.get("zoom") or 1.0))
-            crop = img[int(y0):int(np.ceil(y0 + H / zoom)), int(x0):int(np.ceil(x0 + W / zoom))]
-            canvas = cv2.resize(crop, (int(round(crop.shape[1] * z)), int(round(crop.shape[0] * z))),
-                                interpolation=cv2.INTER_LINEAR)
-        else:
-            canvas = img.copy()
-        t = max(1, int(round(max(canvas.shape[:2]) / 450)))
+            return []
+        out: list[dict] = []
 
-        def P(pts):
-            p = (np.asarray(pts, float).reshape(-1, 2) - [x0, y0] + 0.5) * z - 0.5
-            return np.round(p).astype(np.int32)
+        def poly(pts, c, w=1.5, closed=True):
+            out.append({"t": "poly", "pts": [[round(float(x), 2), round(float(y), 2)] for x, y in np.asarray(pts).reshape(-1, 2)],
+                        "c": _hex(c), "w": w, "closed": closed})
 
         sel = st.get("sel") or [None, None]
         corners = a["rack"]["corners"]
-        scene, top, front = self.layouts(a)
-        scene = scene or self._scene(a)
+        scene = self._scene(a)
         if len(corners) == 4:
-            cv2.polylines(canvas, [P(G.order_corners(corners))], True, C_RACK, t, cv2.LINE_AA)
+            poly(G.order_corners(corners), C_RACK, 2)
         for k, q in enumerate(corners):
-            c = tuple(int(v) for v in P(q)[0])
-            cv2.circle(canvas, c, 3 * t + (2 * t if sel == ["corner", k] else 0),
-                       C_SEL if sel == ["corner", k] else C_RACK, -1, cv2.LINE_AA)
+            out.append({"t": "dot", "x": q[0], "y": q[1], "r": 6 if sel == ["corner", k] else 4,
+                        "c": _hex(C_SEL if sel == ["corner", k] else C_RACK)})
         if scene is not None:
             for k, (sid, v) in enumerate(zip(scene.shelf_ids, scene.shelf_v)):
-                seg = P(G.shelf_line(scene.plane, v))
-                cv2.line(canvas, tuple(seg[0]), tuple(seg[1]), C_SEL if sel == ["shelf", sid] else C_SHELF,
-                         2 * t if sel == ["shelf", sid] else t, cv2.LINE_AA)
-                cv2.putText(canvas, f"S{k + 1}", (int(seg[0][0]) + 3 * t, int(seg[0][1]) - 3 * t),
-                            cv2.FONT_HERSHEY_SIMPLEX, 0.4 * t, C_SHELF, max(1, t // 2), cv2.LINE_AA)
+                seg = G.shelf_line(scene.plane, v)
+                chosen = sel == ["shelf", sid]
+                poly(seg, C_SEL if chosen else C_SHELF, 3 if chosen else 1.5, closed=False)
+                out.append({"t": "text", "x": round(float(seg[0][0]) + 4, 1), "y": round(float(seg[0][1]) - 4, 1),
+                            "s": f"S{k + 1}", "c": _hex(C_SHELF)})
             imp = read_imported(self.project, a) if a.get("imported") else {}
             if "front" in imp and scene.shelf_v:
                 grid = L.Grid(imp["front"].shape[-1], self.project.settings["extent"])
                 for p in G.front_box_rects(imp["front"], imp.get("top"), grid, scene.shelf_v, scene.width, scene.depth):
-                    cv2.polylines(canvas, [P(G.rect_outline(scene.plane, p.u0, p.u1, p.v0, p.v1))], True, C_IMPORT, t, cv2.LINE_4)
+                    poly(G.rect_outline(scene.plane, p.u0, p.u1, p.v0, p.v1), C_IMPORT, 1)
         else:
             for s in a["shelves"]:
-                cv2.drawMarker(canvas, tuple(int(v) for v in P(s["point"])[0]), C_SHELF, cv2.MARKER_CROSS, 8 * t, t)
+                out.append({"t": "cross", "x": s["point"][0], "y": s["point"][1], "c": _hex(C_SHELF)})
+        metric = {m.id: m for m in scene.boxes} if scene is not None and scene.shelf_v else {}
         for kind, items, col in (("proposal", a.get("proposals", []), C_PROP), ("box", a["boxes"], C_BOX)):
             for b in items:
-                poly = self._box_poly(scene, b)
+                polyg = self._box_poly(scene, b)
                 colour = col
-                if kind == "box" and scene is not None and scene.shelf_v:
-                    mb = G.metric_box(scene.plane, b, scene.shelf_v, scene.depth, scene.depth)
-                    colour = C_FLOAT if mb.shelf is None else col
+                if kind == "box" and b["id"] in metric and metric[b["id"]].shelf is None:
+                    colour = C_FLOAT
                 chosen = sel == [kind, b["id"]]
-                cv2.polylines(canvas, [P(poly)], True, C_SEL if chosen else colour, (2 * t if chosen else t), cv2.LINE_AA)
+                poly(polyg, C_SEL if chosen else colour, 3 if chosen else 1.5)
                 if kind == "proposal":
-                    cv2.putText(canvas, "?", tuple(int(v) for v in P(poly[3])[0]), cv2.FONT_HERSHEY_SIMPLEX,
-                                0.5 * t, C_PROP, max(1, t // 2), cv2.LINE_AA)
+                    out.append({"t": "text", "x": float(polyg[3][0]), "y": float(polyg[3][1]), "s": "?", "c": _hex(C_PROP)})
         if st.get("pending"):
-            cv2.drawMarker(canvas, tuple(int(v) for v in P(st["pending"])[0]), C_PEND, cv2.MARKER_TILTED_CROSS, 10 * t, t)
-        return canvas
+            out.append({"t": "cross", "x": st["pending"][0], "y": st["pending"][1], "c": _hex(C_PEND), "r": 8})
+        return out
 
     def render_preview(self, st: dict, tile: int = 150) -> np.ndarray | None:
         """Every shelf's top (upper row) and front (lower row) layout, colourised, lowest shelf
@@ -655,12 +1205,16 @@ class Tool:
         return "\n".join(lines)
 
     def header(self, st: dict) -> str:
-        done, n = self.project.progress()
-        names = self.project.images()
+        stats = self.project.statuses()
+        done = sum(v in DONE_STATUSES for v in stats.values())
+        bad = sum(v == "unreadable" for v in stats.values())
+        names, n = list(stats), len(stats)
         name = st.get("name")
         k = names.index(name) + 1 if name in names else 0
-        status = st["ann"]["status"] if st.get("ann") else "—"
-        return f"**{done} of {n} done** · image {k}/{n}: `{name}` · status **{status}** · mode **{st.get('mode')}**"
+        status = st["ann"]["status"] if st.get("ann") else stats.get(name, "—")
+        unread = f" · {bad} unreadable (skipped)" if bad else ""
+        return (f"**{done} of {n} done**{unread} · image {k}/{n}: `{name}` · status **{status}** · "
+                f"mode **{st.get('mode')}**")
 
     def selection(self, st: dict) -> tuple[str, float | None, float | None]:
         sel = st.get("sel")
@@ -679,6 +1233,13 @@ class Tool:
                         txt += f": x {mb.u0 - scene.width / 2:+.2f}…{mb.u1 - scene.width / 2:+.2f} m, height {mb.v1 - mb.v0:.2f} m, on {where}"
                     return txt, b.get("depth"), b.get("front_offset", 0.0)
         return f"{kind} {key + 1 if kind == 'corner' else key}", None, None
+
+
+def _finite(v) -> float:
+    """A number from the page: finite, or ValueError."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ValueError(f"expected a finite number, got {v!r}")
+    return float(v)
 
 
 def _content(a: dict) -> dict:
@@ -707,13 +1268,47 @@ def _seg_dist(seg, pt) -> float:
     return float(np.linalg.norm(a + t * d - p))
 
 
+
 # --- the gradio UI ------------------------------------------------------------------------------
-#: gradio's delete_cache: every minute, remove the files this app put in gradio's cache (rendered
-#: photos, uploads, accepted or refused) once they are 5 minutes old
+#: gradio's delete_cache: every minute, remove the files this app put in gradio's cache (uploads,
+#: accepted or refused) once they are 5 minutes old
 DELETE_CACHE = (60, 300)
+#: every server event of the app runs one at a time, in the order it arrived
+CONCURRENCY = dict(concurrency_limit=1, concurrency_id="annotate")
+
+
+def _md_html(text: str) -> str:
+    """The little markdown the tool's texts use (**bold**, `code`, '- ' list lines) as HTML,
+    everything else escaped; drawn by the page (no markdown renderer on every click)."""
+    import re
+
+    out, items = [], []
+    for line in (text or "").split("\n"):
+        h = html.escape(line)
+        h = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", h)
+        h = re.sub(r"`(.+?)`", r"<code>\1</code>", h)
+        if h.startswith("- "):
+            items.append(f"<li>{h[2:]}</li>")
+            continue
+        if items:
+            out.append("<ul>" + "".join(items) + "</ul>")
+            items = []
+        if h:
+            out.append(f"<p>{h}</p>")
+    if items:
+        out.append("<ul>" + "".join(items) + "</ul>")
+    return "".join(out)
+
+
+def _pre(text: str, **attrs) -> str:
+    a = "".join(f' {k.replace("_", "-")}="{html.escape(str(v))}"' for k, v in attrs.items())
+    return f"<pre{a}>{html.escape(text)}</pre>"
 
 
 def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir: str | None = None):
+    import time
+
+    import cv2
     import gradio as gr
 
     tool = Tool(project, predictor, user, tmp_dir=tmp_dir)
@@ -723,115 +1318,148 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
         state = gr.State(None)
         header = gr.Markdown(elem_id="header")
         with gr.Row():
-            btn_prev = gr.Button("◀ prev", elem_id="btn-prev", size="sm", scale=0)
-            image_dd = gr.Dropdown(choices=project.images(), label="photo file", elem_id="image-select", scale=3)
-            btn_next = gr.Button("next ▶", elem_id="btn-next", size="sm", scale=0)
+            filter_dd = gr.Dropdown(choices=list(FILTERS), value="all", label="list", elem_id="filter", scale=1)
+            image_dd = gr.Dropdown(choices=project.images(), label="photo (status)", elem_id="image-select", scale=3)
+            btn_prev = gr.Button("◀ prev (p)", elem_id="btn-prev", size="sm", scale=0)
+            btn_next = gr.Button("next ▶ (n)", elem_id="btn-next", size="sm", scale=0)
+            btn_todo = gr.Button("next unfinished (u)", elem_id="btn-next-todo", size="sm", scale=0)
             status_dd = gr.Dropdown(choices=list(S.STATUSES), label="annotation status", elem_id="status", scale=2)
             btn_done = gr.Button("mark done (d)", elem_id="btn-done", size="sm", scale=0)
         with gr.Row(elem_classes="mode-row"):
-            mode_btns = {m: gr.Button(f"{i + 1} {m}", elem_id=f"mode-{m}", size="sm") for i, m in enumerate(MODES)}
-        mode_help = gr.Markdown(elem_id="mode-help")
+            for i, m in enumerate(MODES):
+                gr.Button(f"{i + 1} {m}", elem_id=f"mode-{m}", size="sm")
+        gr.HTML('<div id="mode-help" class="rl-text"></div>')
         with gr.Row():
             with gr.Column(scale=3):
-                photo = gr.Image(type="filepath", interactive=False, buttons=[], show_label=False,
-                                 elem_id="photo", height=DISPLAY_H)
-                message = gr.Markdown(elem_id="message")
+                gr.HTML(VIEWER_HTML)
+                gr.HTML('<div id="message" class="rl-text"></div>')
             with gr.Column(scale=2):
                 gr.Markdown("**Live layouts** — per shelf (S1 = lowest): top view above, front view below; "
                             "orange = box, blue = free shelf space")
-                preview = gr.Image(type="numpy", format="png", interactive=False, buttons=[], show_label=False,
-                                   elem_id="preview")
-                summary = gr.Markdown(elem_id="summary")
+                gr.HTML('<img id="rl-preview" alt="layouts" hidden><div id="summary" class="rl-text"></div>')
         with gr.Row():
             with gr.Column():
                 gr.Markdown("**Rack**")
                 preset_dd = gr.Dropdown(choices=presets, label="preset", elem_id="preset")
                 with gr.Row():
-                    width_n = gr.Number(label="width m", elem_id="rack-width", minimum=0)
-                    height_n = gr.Number(label="height m", elem_id="rack-height", minimum=0)
-                    depth_n = gr.Number(label="depth m", elem_id="rack-depth", minimum=0)
+                    gr.Number(label="width m", elem_id="rack-width", elem_classes="rl-field", minimum=0)
+                    gr.Number(label="height m", elem_id="rack-height", elem_classes="rl-field", minimum=0)
+                    gr.Number(label="depth m", elem_id="rack-depth", elem_classes="rl-field", minimum=0)
+                gr.Button("confirm size (c)", elem_id="btn-confirm-size", size="sm")
             with gr.Column():
                 gr.Markdown("**Selection**")
-                sel_md = gr.Markdown(elem_id="selection")
+                gr.HTML('<div id="selection" class="rl-text"></div>')
                 with gr.Row():
-                    box_depth = gr.Number(label="box depth m (empty: shelf depth)", elem_id="box-depth", minimum=0)
-                    box_off = gr.Number(label="front offset m", elem_id="box-offset", minimum=0)
+                    gr.Number(label="box depth m (empty: shelf depth; or mode 7)", elem_id="box-depth",
+                              elem_classes="rl-field", minimum=0)
+                    gr.Number(label="front offset m (or mode 8)", elem_id="box-offset", elem_classes="rl-field", minimum=0)
                 with gr.Row():
-                    btn_delete = gr.Button("delete (Del)", elem_id="btn-delete", size="sm")
-                    btn_accept = gr.Button("accept (a)", elem_id="btn-accept", size="sm")
-                    btn_reject = gr.Button("reject (r)", elem_id="btn-reject", size="sm")
-                    btn_accept_all = gr.Button("accept all (A)", elem_id="btn-accept-all", size="sm")
+                    gr.Button("on board / floats (f)", elem_id="btn-on-board", size="sm")
+                    gr.Button("delete (Del)", elem_id="btn-delete", size="sm")
+                    gr.Button("accept (a)", elem_id="btn-accept", size="sm")
+                    gr.Button("reject (r)", elem_id="btn-reject", size="sm")
+                    gr.Button("accept all (A)", elem_id="btn-accept-all", size="sm")
             with gr.Column():
                 gr.Markdown("**Edit & view**")
                 with gr.Row():
-                    btn_undo = gr.Button("undo (z)", elem_id="btn-undo", size="sm")
-                    btn_redo = gr.Button("redo (y)", elem_id="btn-redo", size="sm")
-                    btn_save = gr.Button("save (s)", elem_id="btn-save", size="sm")
-                    btn_cancel = gr.Button("cancel box (Esc)", elem_id="btn-cancel", size="sm")
+                    gr.Button("undo (z)", elem_id="btn-undo", size="sm")
+                    gr.Button("redo (y)", elem_id="btn-redo", size="sm")
+                    gr.Button("save (s)", elem_id="btn-save", size="sm")
+                    gr.Button("cancel box (Esc)", elem_id="btn-cancel", size="sm")
                 with gr.Row():
-                    btn_zin = gr.Button("zoom + ", elem_id="btn-zoom-in", size="sm")
-                    btn_zout = gr.Button("zoom −", elem_id="btn-zoom-out", size="sm")
-                    btn_zreset = gr.Button("zoom 1:1", elem_id="btn-zoom-reset", size="sm")
+                    gr.Button("zoom + ", elem_id="btn-zoom-in", size="sm")
+                    gr.Button("zoom −", elem_id="btn-zoom-out", size="sm")
+                    gr.Button("fit", elem_id="btn-zoom-reset", size="sm")
                 upload = gr.File(label="add photos (PNG/JPEG)", file_count="multiple", file_types=[".png", ".jpg", ".jpeg"],
                                  elem_id="upload")
         with gr.Accordion("Keyboard shortcuts", open=True):
-            gr.Markdown("\n".join(["| key | action |", "|---|---|"] + [f"| {k} | {v} |" for k, v, _ in SHORTCUTS]),
+            gr.Markdown("\n".join(["| key | action |", "|---|---|"] + [f"| {k} | {v} |" for k, v in SHORTCUTS]),
                         elem_id="shortcuts")
+        # the page's channel to the server (hidden): a batch of actions in, the view's data out
+        actions_tb = gr.Textbox(elem_id="rl-actions", elem_classes="rl-hidden", container=False)
+        send = gr.Button("send", elem_id="rl-send", elem_classes="rl-hidden")
+        view_data = gr.HTML(elem_id="rl-view-data", elem_classes="rl-hidden")
+        photo_data = gr.HTML(elem_id="rl-photo-data", elem_classes="rl-hidden")
+        preview_data = gr.HTML(elem_id="rl-preview-data", elem_classes="rl-hidden")
 
-        outputs = [state, header, image_dd, status_dd, preset_dd, width_n, height_n, depth_n, photo, preview,
-                   summary, message, mode_help, sel_md, box_depth, box_off] + list(mode_btns.values())
+        outputs = [state, header, image_dd, status_dd, preset_dd, view_data, photo_data]
 
-        def render(st):
+        def preview_url(st):
+            pv = tool.render_preview(st)
+            if pv is None:
+                return None
+            ok, buf = cv2.imencode(".png", np.ascontiguousarray(pv[:, :, ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
+
+        def render(st, t0=None):
+            """Every output; one unchanged since this session's last answer is not sent again."""
             sel_txt, bd, bo = tool.selection(st)
             a = st.get("ann") or {}
             rack = a.get("rack") or {}
-            names = project.images()
-            return [st, tool.header(st), gr.update(choices=names, value=st.get("name")),
-                    a.get("status"), rack.get("preset"), rack.get("width"), rack.get("height"), rack.get("depth"),
-                    tool.photo_file(st), tool.render_preview(st), tool.summary(st), st.get("msg", ""),
-                    f"**{st.get('mode')}**: {MODE_HELP.get(st.get('mode'), '')}", sel_txt, bd, bo] + [
-                gr.update(variant="primary" if m == st.get("mode") else "secondary") for m in MODES]
+            stats = project.statuses()
+            choices = [(f"{n} · {stats.get(n, '?')}", n) for n in tool.listed(st)]
+            name = st.get("name")
+            photo_key = f"{name}:{project.image_path(name).stat().st_mtime_ns}" if st.get("ann") is not None else ""
+            view = {"ack": st.get("ack", 0), "name": name, "image_size": a.get("image_size"), "mode": st.get("mode"),
+                    "overlay": tool.overlay(st), "sel": st.get("sel"),
+                    "fields": {"width": rack.get("width"), "height": rack.get("height"), "depth": rack.get("depth"),
+                               "box_depth": bd, "box_offset": bo},
+                    "text": {"message": _md_html(st.get("msg", "")), "summary": _md_html(tool.summary(st)),
+                             "selection": _md_html(sel_txt),
+                             "mode-help": _md_html(f"**{st.get('mode')}**: {MODE_HELP.get(st.get('mode'), '')}")}}
+            vals = {"header": tool.header(st), "image_dd": (tuple(choices), name), "status": a.get("status"),
+                    "preset": rack.get("preset"), "photo": photo_key}
+            last = st.setdefault("_sent", {})
+            out = [st]
+            for k in ("header", "image_dd", "status", "preset"):
+                if last.get(k, object()) == vals[k]:
+                    out.append(gr.skip())
+                    continue
+                last[k] = vals[k]
+                out.append(gr.update(choices=list(vals[k][0]), value=vals[k][1]) if k == "image_dd" else vals[k])
+            view["ms"] = None if t0 is None else round((time.perf_counter() - t0) * 1000, 1)
+            out.append(_pre(json.dumps(view)))
+            if last.get("photo") == photo_key:
+                out.append(gr.skip())
+            else:
+                last["photo"] = photo_key
+                out.append(_pre(tool.photo_b64(name) if photo_key else "", data_key=photo_key))
+            return out
 
-        def ensure(st):
-            return st if st is not None else tool.open(project.resume_image())
+        def on_preview(st):
+            """The layouts preview, right after each answer (so the click's outline is on screen
+            first): sent only when it changed."""
+            if st is None:
+                return gr.skip()
+            url = preview_url(st) or ""
+            last = st.setdefault("_sent", {})
+            if last.get("preview") == url:
+                return gr.skip()
+            last["preview"] = url
+            return _pre(url)
+
+        def ensure(st, request=None):
+            if st is not None:
+                return st
+            who = getattr(request, "username", None)
+            return tool.open(project.resume_image(who), who)
 
         def on_load(request: gr.Request):
             # the logged-in user (--auth-file) is kept in the session state and recorded on saves
-            return render(tool.open(project.resume_image(), getattr(request, "username", None)))
+            return render(ensure(None, request))
 
-        def on_select(st, evt: gr.SelectData):
-            st = ensure(st)
-            x, y = evt.index
-            return render(tool.click(st, float(x), float(y)))
+        def on_actions(st, text, request: gr.Request):
+            t0 = time.perf_counter()
+            st = ensure(st, request)
+            try:
+                actions = json.loads(text or "[]")
+            except json.JSONDecodeError:
+                actions = []
+                st["msg"] = "⚠ ignored a malformed request (not JSON)"
+            return render(tool.apply(st, actions), t0)
 
-        def wrap(fn):
-            def h(st, *args):
-                return render(fn(ensure(st), *args))
-            return h
-
-        def set_mode(m):
-            def h(st):
-                st = ensure(st)
-                st["mode"], st["pending"] = m, None
-                st["msg"] = ""
-                return render(st)
-            return h
-
-        def zoom(f):
-            def h(st):
-                st = ensure(st)
-                st["zoom"] = 1.0 if f == 0 else float(np.clip(st.get("zoom", 1.0) * f, 1.0, 8.0))
-                st["msg"] = f"zoom {st['zoom']:g}×"
-                return render(st)
-            return h
-
-        def cancel(st):
-            st["pending"] = None
-            st["msg"] = "box cancelled"
-            return st
-
-        def on_upload(st, files):
-            st = ensure(st)
+        def on_upload(st, files, request: gr.Request):
+            st = ensure(st, request)
             added, errs = [], []
             for f in files or []:
                 path = f if isinstance(f, str) else getattr(f, "name", str(f))
@@ -845,40 +1473,21 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
                     with contextlib.suppress(OSError):   # gradio's copy of the upload: done with it
                         os.unlink(path)
             if added and st.get("name") is None:
-                st = tool.open(added[0], st.get("user"))
+                st = tool.open(added[0], st.get("user"), st)
             st["msg"] = (f"added {', '.join(added)}" if added else "") + (("; ⚠ " + "; ⚠ ".join(errs)) if errs else "")
             return render(st)
 
-        demo.load(on_load, None, outputs)
-        photo.select(on_select, [state], outputs)
-        image_dd.input(wrap(lambda st, name: tool.open(name, st.get("user"))), [state, image_dd], outputs)
-        btn_prev.click(wrap(lambda st: tool.step(st, -1)), [state], outputs)
-        btn_next.click(wrap(lambda st: tool.step(st, +1)), [state], outputs)
-        status_dd.input(wrap(lambda st, s: tool.set_status(st, s)), [state, status_dd], outputs)
-        btn_done.click(wrap(lambda st: tool.set_status(st, "done")), [state], outputs)
-        for m, b in mode_btns.items():
-            b.click(set_mode(m), [state], outputs)
-        preset_dd.input(wrap(lambda st, p: tool.set_rack(st, preset_name=p)), [state, preset_dd], outputs)
-        # numbers are applied on Enter or when the field loses focus (not on every keystroke)
-        for comp, fn in ((width_n, lambda st, v: tool.set_rack(st, width=v)),
-                         (height_n, lambda st, v: tool.set_rack(st, height=v)),
-                         (depth_n, lambda st, v: tool.set_rack(st, depth=v)),
-                         (box_depth, lambda st, v: tool.set_box_field(st, "depth", v)),
-                         (box_off, lambda st, v: tool.set_box_field(st, "front_offset", v))):
-            comp.submit(wrap(fn), [state, comp], outputs)
-            comp.blur(wrap(fn), [state, comp], outputs)
-        btn_delete.click(wrap(tool.delete), [state], outputs)
-        btn_accept.click(wrap(tool.accept), [state], outputs)
-        btn_reject.click(wrap(tool.reject), [state], outputs)
-        btn_accept_all.click(wrap(lambda st: tool.accept(st, all_=True)), [state], outputs)
-        btn_undo.click(wrap(tool.undo), [state], outputs)
-        btn_redo.click(wrap(lambda st: tool.undo(st, redo=True)), [state], outputs)
-        btn_save.click(wrap(tool.save_now), [state], outputs)
-        btn_cancel.click(wrap(cancel), [state], outputs)
-        btn_zin.click(zoom(2.0), [state], outputs)
-        btn_zout.click(zoom(0.5), [state], outputs)
-        btn_zreset.click(zoom(0), [state], outputs)
-        upload.upload(on_upload, [state, upload], outputs)
+        demo.load(on_load, None, outputs, **CONCURRENCY).then(on_preview, [state], [preview_data],
+                                                                 show_progress="hidden", **CONCURRENCY)
+        send.click(on_actions, [state, actions_tb], outputs, js="(s, a) => [s, window.rl ? window.rl.take() : '[]']",
+                   trigger_mode="multiple", show_progress="hidden", queue=True, **CONCURRENCY).then(
+            on_preview, [state], [preview_data], show_progress="hidden", **CONCURRENCY)
+        # the dropdowns go through the page's queue too (in order with the clicks), not to the server
+        for dd, kind, key in ((image_dd, "open", "name"), (filter_dd, "filter", "value"),
+                              (status_dd, "status", "value"), (preset_dd, "preset", "name")):
+            dd.input(None, [dd], None, js=f"(v) => {{ window.rl && window.rl.enqueue({{kind: '{kind}', {key}: v}}); return []; }}")
+        upload.upload(on_upload, [state, upload], outputs, **CONCURRENCY).then(
+            on_preview, [state], [preview_data], show_progress="hidden", **CONCURRENCY)
     demo.tool = tool
     return demo
 
@@ -1000,3 +1609,4 @@ def serve(project_dir, host: str = "127.0.0.1", port: int = 7860, model: str | N
     if block:
         demo.block_thread()
     return demo
+

@@ -21,9 +21,11 @@ def missing_browser() -> str | None:
     return ("needs " + " and ".join(missing)) if missing else None
 
 
-#: true once the status message contains the text and the new photo has loaded
-UPDATED_JS = ("t => document.querySelector('#message').innerText.includes(t) && "
-              "(e => e && e.complete && e.naturalWidth > 0)(document.querySelector('#photo img'))")
+#: true once the page has shown the server's answer to every action it queued
+SETTLED_JS = "() => window.rl && rl.view && !rl.inflight && rl.q.length === 0 && rl.W > 0"
+#: true once the status message contains the text and every queued action is answered
+UPDATED_JS = ("t => document.querySelector('#message').innerText.includes(t) && window.rl && !rl.inflight && "
+              "rl.q.length === 0")
 
 
 def require_browser() -> None:
@@ -43,15 +45,24 @@ def launch(pw, profile_dir, viewport=(1500, 1350)):
                                                  viewport={"width": viewport[0], "height": viewport[1]})
 
 
-def click_image(page, x: float, y: float, image_width: int, selector: str = "#photo img") -> None:
-    """Click the photo at image pixel (x, y): accounts for the tool enlarging small photos and
-    the browser shrinking large ones (object-fit: scale-down, centred)."""
-    page.wait_for_function("s => { const e = document.querySelector(s); return e && e.complete && e.naturalWidth > 0; }",
-                           arg=selector, polling=10)
-    img = page.locator(selector)
-    box = img.bounding_box()
-    nw, nh = img.evaluate("e => [e.naturalWidth, e.naturalHeight]")
-    s = min(1.0, box["width"] / nw, box["height"] / nh)
-    ox, oy = (box["width"] - nw * s) / 2, (box["height"] - nh * s) / 2
-    k = nw / image_width
-    page.mouse.click(box["x"] + ox + (x + 0.5) * k * s, box["y"] + oy + (y + 0.5) * k * s)
+def wait_ready(page, timeout: float = 30000) -> None:
+    """Until the page shows a photo and has no action waiting for the server."""
+    page.wait_for_function(SETTLED_JS + " && document.querySelector('#rl-img').complete", polling=20, timeout=timeout)
+
+
+def image_to_client(page, x: float, y: float) -> tuple[float, float]:
+    """Page coordinates of photo pixel (x, y) in the tool's viewer (whatever the zoom and pan)."""
+    return tuple(page.evaluate("([x, y]) => rl.toClient(x, y)", [x, y]))
+
+
+def click_image(page, x: float, y: float, image_width: int | None = None, wait: bool = False) -> None:
+    """Click the photo at photo pixel (x, y) (as a labeller would: mouse down and up). With
+    `wait`, until the server's answer is on screen. (`image_width` is no longer needed.)"""
+    cx, cy = image_to_client(page, x, y)
+    vw, vh = page.evaluate("[innerWidth, innerHeight]")
+    if not (0 <= cx < vw and 0 <= cy < vh):   # scrolled away (e.g. after typing in a field): scroll back
+        page.evaluate("() => document.querySelector('#rl-viewport').scrollIntoView({block: 'center'})")
+        cx, cy = image_to_client(page, x, y)
+    page.mouse.click(cx, cy)
+    if wait:
+        page.wait_for_function(SETTLED_JS, polling=10, timeout=15000)

@@ -10,8 +10,13 @@ homography is exact for a plane.
   the rack's top.
 * Box: two opposite corners of the box's (or stack's) front face -> a metric x-range and
   z-range on the plane -> the shelf it stands on (the highest board at or below its bottom, with
-  a snap tolerance) -> a racklay.layout.Box in that shelf's frame: x_shelf = u - W/2, and a
-  box with front offset o and depth d spans y in [-depth/2 + o, -depth/2 + o + d].
+  a snap tolerance; its bottom is put on that board unless the box says on_board: false) -> a
+  racklay.layout.Box in that shelf's frame: x_shelf = u - W/2, and a box with front offset o and
+  depth d spans y in [-depth/2 + o, -depth/2 + o + d]. Its top may rise above the next board.
+* Depth by clicking: the camera is recovered from the rack-plane homography (square pixels,
+  principal point at the photo's centre, focal length from the homography when the view is
+  oblique enough); a click on a box's top-back edge then gives its depth, a click on the board
+  where the box's front stands gives its front offset.
 * Layouts: racklay.layout.rasterize_shelf and stack_shelves only; nothing is re-drawn here.
 * Back-projection: metric boxes and shelves -> polygon outlines in the photo.
 * Model proposals: connected components of predicted front-view boxes -> metric rectangles
@@ -202,7 +207,9 @@ def metric_box(plane: RackPlane, b: dict, shelf_v, rack_depth: float, default_de
         if v0 >= shelf_v[i] - snap:
             shelf = i
             z0 = max(v0 - shelf_v[i], 0.0)
-            if z0 <= snap:
+            # a box stands on its board unless the labeller says it does not (on_board: false):
+            # a box set back on the shelf looks higher than the board edge in the photo
+            if z0 <= snap or b.get("on_board", True):
                 z0 = 0.0
             break
     if shelf is None and warnings is not None:
@@ -214,6 +221,94 @@ def metric_box(plane: RackPlane, b: dict, shelf_v, rack_depth: float, default_de
     # the box's height counts from where it stands
     return MetricBox(int(b["id"]), float(u0), float(u1), float(v0) if shelf is None else shelf_v[shelf] + z0,
                      float(v1), depth, off, shelf, z0)
+
+
+# --- the camera, from the rack plane: box depth and front offset by clicking -----------------
+@dataclass
+class Camera:
+    """A pinhole camera in the rack's frame: x along the rack (u), y into the rack (depth, away
+    from the camera), z up (v); image point ~ K (R X + t)."""
+
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    focal_from_photo: bool  # False: the view is too frontal; a typical phone focal length is assumed
+
+    def project(self, X) -> np.ndarray:
+        X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
+        h = (X @ self.R.T + self.t) @ self.K.T
+        return h[:, :2] / h[:, 2:3]
+
+    def ray(self, pt) -> tuple[np.ndarray, np.ndarray]:
+        """(camera centre, direction) in the rack frame of the ray through image point pt."""
+        c = -self.R.T @ self.t
+        d = self.R.T @ np.linalg.solve(self.K, [float(pt[0]), float(pt[1]), 1.0])
+        return c, d
+
+
+#: focal length (in pixels, per pixel of the photo's longer side) assumed when a near-frontal
+#: view does not determine it: a phone's main camera, about 65 degrees across the longer side
+DEFAULT_FOCAL = 0.8
+
+
+def camera_from_plane(plane: RackPlane, image_size) -> Camera:
+    """The camera that sees the rack's front plane through `plane`'s homography (Zhang's
+    constraints with square pixels and the principal point at the photo's centre)."""
+    W, Hh = image_size
+    cx, cy = (W - 1) / 2, (Hh - 1) / 2
+    T = np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1.0]])
+    M = T @ plane.Hinv  # plane (u, v, 1) -> centred image
+    h1, h2 = M[:, 0], M[:, 1]
+    cands = []
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f2a = -(h1[0] * h2[0] + h1[1] * h2[1]) / (h1[2] * h2[2])
+        f2b = (h2[0] ** 2 + h2[1] ** 2 - h1[0] ** 2 - h1[1] ** 2) / (h1[2] ** 2 - h2[2] ** 2)
+    side = float(max(W, Hh))
+    for f2 in (f2a, f2b):
+        if np.isfinite(f2) and f2 > 0 and 0.3 * side <= np.sqrt(f2) <= 5 * side:
+            cands.append(np.sqrt(f2))
+    found = bool(cands)
+    f = float(np.median(cands)) if found else DEFAULT_FOCAL * side
+    K = np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
+    B = np.linalg.solve(K, plane.Hinv)  # ~ [r_x, r_z, t]
+    lam = 2.0 / (np.linalg.norm(B[:, 0]) + np.linalg.norm(B[:, 1]))
+    if B[2, 2] * lam < 0:
+        lam = -lam
+    rx, rz, t = B[:, 0] * lam, B[:, 1] * lam, B[:, 2] * lam
+    rx /= np.linalg.norm(rx)
+    rz = rz - rx * np.dot(rx, rz)
+    rz /= np.linalg.norm(rz)
+    ry = np.cross(rz, rx)  # x, y, z right-handed: y = z cross x
+    R = np.stack([rx, ry, rz], axis=1)
+    if (-R.T @ t)[1] > 0:  # the camera must be in front of the rack (y < 0)
+        R[:, 1] = -R[:, 1]
+    return Camera(K, R, t, found)
+
+
+def depth_from_click(cam: Camera, b: MetricBox, pt, max_depth: float) -> float:
+    """How far back (from the rack's front plane) the top-back edge of box b lies when the click
+    `pt` is on it: the depth s whose projected edge {(u, s, b.v1)} passes closest to the click."""
+    s = np.linspace(0.0, max(max_depth, 0.01) * 1.5, 1201)
+    ends = []
+    for u in (b.u0, b.u1):
+        ends.append(cam.project(np.stack([np.full_like(s, u), s, np.full_like(s, b.v1)], axis=1)))
+    a, c = ends
+    d = c - a
+    p = np.asarray(pt, dtype=np.float64)[None, :]
+    dist = np.abs(d[:, 0] * (p[:, 1] - a[:, 1]) - d[:, 1] * (p[:, 0] - a[:, 0])) / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
+    return float(s[int(np.argmin(dist))])
+
+
+def offset_from_click(cam: Camera, board_v: float, pt) -> float | None:
+    """How far back from the rack's front plane the click `pt` is, on the board at height
+    board_v (where a set-back box's front stands); None when the ray misses the board's top."""
+    c, d = cam.ray(pt)
+    if abs(d[2]) < 1e-12:
+        return None
+    lam = (board_v - c[2]) / d[2]
+    if lam <= 0:
+        return None
+    return float(c[1] + lam * d[1])
 
 
 # --- back to the photo ---------------------------------------------------------------------

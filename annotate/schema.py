@@ -68,6 +68,12 @@ def _str(v, source, field, choices=None, allow_empty=False) -> str:
     return v
 
 
+def _bool(v, source, field) -> bool:
+    if not isinstance(v, bool):
+        _fail(source, field, f"expected true or false, got {v!r}")
+    return v
+
+
 def _point(v, source, field) -> list[float]:
     if not isinstance(v, (list, tuple)) or len(v) != 2:
         _fail(source, field, f"expected [x, y] pixel coordinates, got {v!r}")
@@ -119,7 +125,7 @@ def new_annotation(image: str, width: int, height: int) -> dict:
 _ANN_FIELDS = {"schema_version", "image", "image_size", "version", "status", "rack", "shelves", "boxes"}
 _ANN_OPTIONAL = {"proposals", "rejected", "imported", "updated_by", "updated_at"}
 _BOX_FIELDS = {"id", "p0", "p1"}
-_BOX_OPTIONAL = {"depth", "front_offset", "source", "score"}
+_BOX_OPTIONAL = {"depth", "front_offset", "source", "score", "on_board"}
 
 
 def _validate_box(b, source, field) -> dict:
@@ -135,6 +141,8 @@ def _validate_box(b, source, field) -> dict:
         _str(b["source"], source, f"{field}.source", BOX_SOURCES)
     if b.get("score") is not None:
         _num(b["score"], source, f"{field}.score", lo=0, hi=1)
+    if "on_board" in b:
+        _bool(b["on_board"], source, f"{field}.on_board")
     return b
 
 
@@ -152,7 +160,7 @@ def validate_annotation(d: Any, source: str = "annotation") -> dict:
     _int(sz[1], source, "image_size[1]", lo=1)
     _int(d["version"], source, "version", lo=0)
     _str(d["status"], source, "status", STATUSES)
-    rack = _obj(d["rack"], source, "rack", {"corners", "width", "height", "depth"}, {"preset"})
+    rack = _obj(d["rack"], source, "rack", {"corners", "width", "height", "depth"}, {"preset", "size_confirmed"})
     if not isinstance(rack["corners"], list) or len(rack["corners"]) > 4:
         _fail(source, "rack.corners", "expected a list of at most 4 [x, y] points")
     for i, p in enumerate(rack["corners"]):
@@ -162,6 +170,8 @@ def validate_annotation(d: Any, source: str = "annotation") -> dict:
             _num(rack[k], source, f"rack.{k}", lo=0, hi=100, lo_open=True)
     if rack.get("preset") is not None:
         _str(rack["preset"], source, "rack.preset")
+    if "size_confirmed" in rack:
+        _bool(rack["size_confirmed"], source, "rack.size_confirmed")
     if not isinstance(d["shelves"], list):
         _fail(source, "shelves", "expected a list")
     for i, s in enumerate(d["shelves"]):

@@ -6,6 +6,8 @@
                                     saved like annotations (locked, version-checked)
       annotations/NAME.json         one annotation per photo (written on every action)
       annotations/.locks/NAME.lock  advisory locks held only while a save compares versions
+      annotations/.history/NAME.json  undo/redo history of the image (so a reload keeps it)
+      annotations/.history/.opened.json  the photo each user had open last
       imported/NAME.top.npy ...     read-only layouts brought in by `annotate import`
 
 Every write is atomic (racklay.atomic: temp file + rename), so a killed server leaves each file
@@ -32,6 +34,9 @@ IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 SETTINGS_FILE = "project.json"
 ANN_DIR = "annotations"
 IMPORT_DIR = "imported"
+HISTORY_DIR = ".history"
+#: undo (and redo) steps kept on disk per image
+HISTORY_STEPS = 50
 #: upload limit in bytes, and the longest side of a project photo; the pixel limit (width x
 #: height) is racklay.data's, shared by every command (RACKLAY_MAX_MEGAPIXELS, default 40 Mpx)
 MAX_UPLOAD_BYTES = 40 * 1024 * 1024
@@ -230,13 +235,93 @@ class Project:
                 atomic_write_json(sp, old)
                 self.settings = old
 
+    # --- undo history and the photo last opened (a reload continues where the labeller was) ---
+    def _history_path(self, name: str) -> Path:
+        S.check_image_name(name, str(self.root))
+        return self._inside(self.root / ANN_DIR / HISTORY_DIR / f"{name}.json")
+
+    def save_history(self, name: str, version: int, undo: list, redo: list) -> None:
+        """Keep the image's undo and redo steps (annotations, newest last) for a reload; they
+        belong to annotation version `version` and are dropped when the file moved on."""
+        p = self._history_path(name)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(p, {"version": int(version), "undo": undo[-HISTORY_STEPS:], "redo": redo[-HISTORY_STEPS:]})
+
+    def load_history(self, name: str, version: int) -> tuple[list, list]:
+        """(undo, redo) saved for annotation version `version`; empty when there is none, it is
+        for another version (someone saved since) or it is unreadable (it is only a convenience,
+        never ground truth: each step is validated like an annotation)."""
+        p = self._history_path(name)
+        try:
+            h = S._read_json(p)
+            if h.get("version") != version:
+                return [], []
+            for a in h["undo"] + h["redo"]:
+                S.validate_annotation(a, str(p))
+                if a["image"] != name:
+                    return [], []
+            return list(h["undo"]), list(h["redo"])
+        except (OSError, S.SchemaError, KeyError, TypeError, AttributeError):
+            return [], []
+
+    def set_last_opened(self, name: str, user: str | None = None) -> None:
+        p = self._inside(self.root / ANN_DIR / HISTORY_DIR / ".opened.json")
+        p.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            seen = S._read_json(p)
+            seen = seen if isinstance(seen, dict) else {}
+        except (OSError, S.SchemaError):
+            seen = {}
+        if seen.get(user or "") != name:
+            atomic_write_json(p, {**{k: v for k, v in seen.items() if isinstance(v, str)}, user or "": name})
+
+    def last_opened(self, user: str | None = None) -> str | None:
+        try:
+            seen = S._read_json(self.root / ANN_DIR / HISTORY_DIR / ".opened.json")
+            name = seen.get(user or "") if isinstance(seen, dict) else None
+        except (OSError, S.SchemaError):
+            return None
+        return name if isinstance(name, str) and name in self.images() else None
+
+    def photo_problem(self, name: str) -> str | None:
+        """Why a project photo cannot be used (one line naming it), or None. From the header only
+        (racklay.data limits, PNG/JPEG, MAX_SIDE); cached by the file's size and time."""
+        p = self.image_path(name)
+        try:
+            stt = p.stat()
+        except OSError as e:
+            return f"{name}: {e.strerror or 'unreadable'}"
+        key = (stt.st_mtime_ns, stt.st_size, stt.st_ino)
+        cache = self.__dict__.setdefault("_photo_cache", {})
+        hit = cache.get(name)
+        if hit and hit[0] == key:
+            return hit[1]
+        try:
+            photo_info(p, name)
+            why = None
+        except StoreError as e:
+            why = str(e)
+        cache[name] = (key, why)
+        return why
+
+    def mark_unreadable(self, name: str, why: str) -> None:
+        """Remember that a photo failed to decode although its header was fine (until it changes)."""
+        p = self.image_path(name)
+        with contextlib.suppress(OSError):
+            stt = p.stat()
+            self.__dict__.setdefault("_photo_cache", {})[name] = ((stt.st_mtime_ns, stt.st_size, stt.st_ino), why)
+
     # --- progress ---
     def statuses(self) -> dict[str, str]:
-        """Status of every image ('todo' when never saved, 'invalid' when its file is bad).
-        Files are re-read only when their modification time or size changed."""
+        """Status of every image ('todo' when never saved, 'invalid' when its file is bad,
+        'unreadable' when the photo itself cannot be used). Files are re-read only when their
+        modification time or size changed."""
         out = {}
         cache = self.__dict__.setdefault("_status_cache", {})
         for name in self.images():
+            if self.photo_problem(name):
+                out[name] = "unreadable"
+                continue
             p = self.annotation_path(name)
             try:
                 stt = p.stat()
@@ -260,20 +345,23 @@ class Project:
         st = self.statuses()
         return sum(s in DONE_STATUSES for s in st.values()), len(st)
 
-    def resume_image(self) -> str | None:
-        """The image to open first: the most recently saved one still in progress, else the first
-        image not done, else the first."""
+    def resume_image(self, user: str | None = None) -> str | None:
+        """The image to open first: the one this user had open last, else the most recently saved
+        one still in progress, else the first image not done, else the first readable one."""
         names = self.images()
         if not names:
             return None
         st = self.statuses()
+        last = self.last_opened(user)
+        if last and st.get(last) != "unreadable":
+            return last
         busy = [n for n in names if st[n] == "in progress"]
         if busy:
             return max(busy, key=lambda n: self.annotation_path(n).stat().st_mtime)
         for n in names:
-            if st[n] not in DONE_STATUSES:
+            if st[n] not in DONE_STATUSES + ("unreadable",):
                 return n
-        return names[0]
+        return next((n for n in names if st[n] != "unreadable"), names[0])
 
 
 def photo_info(source, name: str):

@@ -67,7 +67,8 @@ def clicks(cam):
     for k, (s, x0, x1, z0, z1, o, d) in enumerate(BOXES):
         zb = BOARDS[s]
         p = cam.project([[x0, o, zb + z0], [x1, o, zb + z1]])  # bottom-left and top-right of its front face
-        ann["boxes"].append({"id": k, "p0": p[0].tolist(), "p1": p[1].tolist(), "depth": d, "front_offset": o})
+        ann["boxes"].append({"id": k, "p0": p[0].tolist(), "p1": p[1].tolist(), "depth": d, "front_offset": o,
+                             **({"on_board": False} if z0 > 0 else {})})
     S.validate_annotation(ann)
     return ann
 
@@ -164,3 +165,26 @@ def test_proposals_clipped_below_next_board():
     L.fill_axis_rect(front[0], GRID, -0.5, 0.5, 0.0, 1.5, L.BOX)  # a 1.5 m "box" on a 0.65 m shelf
     props = G.front_box_rects(front, None, GRID, [0.1], W, DEPTH, tops=[0.75])
     assert len(props) == 1 and props[0].v1 == pytest.approx(0.75) and props[0].v0 == pytest.approx(0.1)
+
+
+def _one_box_scene(v0, v1, on_board=None):
+    """A frontal 2 x 2 m rack filling a 640 x 640 photo (320 px a metre), boards at 0.1 and 0.75 m."""
+    ann = S.new_annotation("x.png", 640, 640)
+    ann["rack"].update(corners=[[0, 0], [640, 0], [640, 640], [0, 640]], width=2.0, height=2.0, depth=0.6)
+    px = lambda v: 640 - v * 320  # noqa: E731
+    ann["shelves"] = [{"id": 0, "point": [100, px(0.10)]}, {"id": 1, "point": [100, px(0.75)]}]
+    b = {"id": 0, "p0": [64, px(v0)], "p1": [256, px(v1)]}
+    if on_board is not None:
+        b["on_board"] = on_board
+    ann["boxes"] = [b]
+    return G.build_scene(ann, SETTINGS)
+
+
+def test_box_set_back_stands_on_its_board():
+    """A box set back on its shelf looks 8 cm above the board in the photo (before: it floated
+    0.07-0.10 m up); it stands on the board unless the labeller says it floats."""
+    b = _one_box_scene(0.18, 0.50).boxes[0]
+    assert (b.shelf, b.z0, b.v0) == (0, 0.0, pytest.approx(0.10))
+    free = _one_box_scene(0.18, 0.50, on_board=False).boxes[0]
+    assert free.shelf == 0 and free.z0 == pytest.approx(0.08)
+
