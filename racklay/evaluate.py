@@ -64,7 +64,7 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
                          f"have R={ref[0]}; use a model trained for R={ref[0]}")
     S = pred.layout_size
     ds = RackLayDataset(root.root, ids=ids, image_size=pred.image_size, layout_size=S, views=views, R=pred.R,
-                        letterbox=bool(getattr(pred.cfg, "letterbox", False)))
+                        letterbox=pred.cfg.letterbox)
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False, num_workers=workers)
     metrics = LayoutMetrics()
     out_root = RackLayRoot(pred_out) if pred_out is not None else None

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .predict import ONNX_CONFIG_KEY, config_to_dict, image_hw
+from .predict import ONNX_CONFIG_KEY, config_to_dict
 
 DEFAULT_OPSET = 17
 
@@ -44,7 +44,7 @@ def export_onnx_bytes(model, cfg, opset: int = DEFAULT_OPSET, batch: int = 1) ->
     import torch
 
     views = tuple(cfg.views)
-    h, w = image_hw(cfg)
+    h, w = cfg.input_hw
     wrapped = _tuple_outputs(model, views)
     x = torch.zeros(batch, 3, h, w)
     buf = io.BytesIO()
@@ -90,7 +90,7 @@ def parity(model, onnx_model, cfg, batch: int = 2, seed: int = 0, image: np.ndar
     if image is not None:
         x = ref.prepare(image)
     else:
-        h, w = image_hw(cfg)
+        h, w = cfg.input_hw
         x = torch.from_numpy(np.random.default_rng(seed).standard_normal((batch, 3, h, w), dtype=np.float32))
     t0 = time.perf_counter()
     want = ref.logits(x)

@@ -87,7 +87,7 @@ class ModelConfig:
     def input_hw(self) -> tuple[int, int]:
         """(H, W) of the network input."""
         s = self.image_size
-        return (int(s), int(s)) if isinstance(s, int) else (int(s[0]), int(s[1]))
+        return (int(s[0]), int(s[1])) if isinstance(s, (tuple, list)) else (int(s), int(s))
 
     def variant(self) -> str:
         """Paper name of the variant, e.g. RackLay-D-disc."""

@@ -79,11 +79,6 @@ def config_from_dict(d: dict):
     return ModelConfig(**kw)
 
 
-def image_hw(cfg) -> tuple[int, int]:
-    s = cfg.image_size
-    return (int(s), int(s)) if isinstance(s, (int, np.integer)) else (int(s[0]), int(s[1]))
-
-
 def as_rgb_uint8(image: np.ndarray, source: str = "image") -> np.ndarray:
     """Accept (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA uint8; return (H, W, 3) RGB uint8."""
     a = np.asarray(image)
@@ -169,7 +164,7 @@ class Predictor:
 
     @property
     def image_size(self) -> tuple[int, int]:
-        return image_hw(self.cfg)
+        return self.cfg.input_hw
 
     @property
     def layout_size(self) -> int:
@@ -207,7 +202,7 @@ class Predictor:
         """RGB uint8 photo of any size -> normalised (1, 3, H, W) tensor at the model's input size."""
         from .torchdata import image_to_tensor, prepare_image
 
-        img = prepare_image(as_rgb_uint8(image, source), self.image_size, bool(getattr(self.cfg, "letterbox", False)))
+        img = prepare_image(as_rgb_uint8(image, source), self.image_size, self.cfg.letterbox)
         return image_to_tensor(img)[None]
 
     def predict(self, image: np.ndarray) -> dict:

@@ -348,7 +348,7 @@ def split_ids(cfg: TrainConfig) -> tuple[list[str], list[str]]:
 
 
 @torch.no_grad()
-def validate(model, loader, cfg: TrainConfig, weight, device, progress=False, bf16: bool | None = None) -> dict:
+def validate(model, loader, cfg: TrainConfig, weight, device, progress=False, bf16: bool = False) -> dict:
     """Validation loss and LayoutMetrics result on a loader."""
     from tqdm import tqdm
 
@@ -360,8 +360,7 @@ def validate(model, loader, cfg: TrainConfig, weight, device, progress=False, bf
     loss, n = 0.0, 0
     for batch in tqdm(loader, desc="val", leave=False, disable=not progress):
         x = batch["image"].to(device)
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bool(bf16) if bf16 is not None
-                            else resolve_amp(cfg.amp, device) == "bf16"):
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
             out = model(x)
         for v, logits in out.items():
             tgt = batch[v].to(device)

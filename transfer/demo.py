@@ -118,7 +118,11 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     log("[4/4] Table 2 on the proxy-real test split (rendered, not real):")
     log("")
     log(res["paths"]["table_md"].read_text())
-    gain = _gain(res["records"], max(cfg.fractions))
+    from .report import summarize
+
+    means = summarize(res["records"], fraction=max(cfg.fractions))
+    gain = (means["finetune"]["top box mIoU"][0], means["real"]["top box mIoU"][0]) \
+        if "finetune" in means and "real" in means else None
     if gain is not None:
         log(f"fine-tuned vs real only, top-view box mIoU: {gain[0]:.2f} vs {gain[1]:.2f} ({gain[0] - gain[1]:+.2f})")
     best_f = max(cfg.fractions)
@@ -132,16 +136,3 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     for k, v in rows:
         log(f"  {k:20s} {v}")
     return {"compare": res, "figures": figs, "weights": ft, "shipped": weights, "gain": gain, "wall_seconds": wall}
-
-
-def _gain(records: list[dict], fraction: float) -> tuple[float, float] | None:
-    """(fine-tuned, real only) top-view box mIoU at `fraction`, mean over seeds."""
-    from . import report
-
-    vals = {"finetune": [], "real": []}
-    for r in records:
-        if r["regime"] in vals and r["fraction"] == fraction:
-            vals[r["regime"]].append(report.record_values(r)["top box mIoU"])
-    if not vals["finetune"] or not vals["real"]:
-        return None
-    return sum(vals["finetune"]) / len(vals["finetune"]), sum(vals["real"]) / len(vals["real"])
