@@ -126,3 +126,20 @@ def test_cli_writes_calibrated_checkpoint(toy, tmp_path, capsys):
     # the input is never overwritten
     assert racklay_main(["calibrate", "--weights", str(src), "--data", str(toy), "--out", str(src)]) != 0
     assert "must differ" in capsys.readouterr().err
+
+
+def test_onnx_export_keeps_the_biases(tmp_path):
+    pytest.importorskip("onnxruntime")
+    torch.manual_seed(1)
+    cfg = ModelConfig(R=R, image_size=IMG, layout_size=S, decision_bias={"top": (0, 0.5, 2.0), "front": (0, 0, 1.5)})
+    src = tmp_path / "cal.safetensors"
+    save_checkpoint(src, RackLayNet(cfg).eval(), cfg)
+    onnx = tmp_path / "cal.onnx"
+    assert racklay_main(["export", "--weights", str(src), "--onnx", str(onnx)]) == 0
+    a, b = Predictor(src), Predictor(onnx)
+    assert b.cfg.decision_bias == a.cfg.decision_bias
+    x = torch.randn(1, 3, IMG, IMG)
+    ca, _ = a.predict_batch(x)
+    cb, _ = b.predict_batch(x)
+    for v in ("top", "front"):
+        assert (ca[v] == cb[v]).mean() > 0.99
