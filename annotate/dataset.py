@@ -11,6 +11,7 @@ fails. Either way a failed run leaves nothing half-written.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import shutil
 import tempfile
@@ -37,6 +38,8 @@ def parse_counts(text: str, what: str = "--split") -> dict[str, float]:
             if not eq or not name.strip():
                 raise ValueError
             out[name.strip()] = float(val)
+            if not math.isfinite(out[name.strip()]):
+                raise ValueError
         except ValueError:
             raise ValueError(f"{what}: cannot read {part!r} (expected name=value, e.g. train=0.8)") from None
         if out[name.strip()] < 0:
@@ -56,24 +59,19 @@ def check_fractions(fractions: dict[str, float], what: str = "--split-fractions"
 
 def split_ids(ids: list[str], counts: dict[str, float] | None = None,
               fractions: dict[str, float] | None = None, seed: int = 0) -> dict[str, list[str]]:
-    """Reproducible splits by exact counts or by fractions (racklay.data.make_splits; the
-    fractions must sum to 1)."""
-    if fractions is not None:
-        check_fractions(fractions)
+    """Reproducible splits by exact counts or by fractions (default train=0.8,test=0.2): the
+    command line's values checked with messages naming its flags, then cut by
+    racklay.data.make_splits (the one shuffle-and-cut of the toolkit)."""
     if counts is not None:
-        need = int(sum(counts.values()))
         if any(c != int(c) for c in counts.values()):
             raise ValueError(f"--split: counts must be whole numbers, got {counts}")
+        need = int(sum(counts.values()))
         if need > len(ids):
             raise ValueError(f"--split asks for {need} images but {len(ids)} are exported")
-        order = list(ids)
-        np.random.default_rng(seed).shuffle(order)
-        out, start = {}, 0
-        for name, n in counts.items():
-            out[name] = sorted(order[start:start + int(n)])
-            start += int(n)
-        return out
-    return make_splits(ids, fractions or {"train": 0.8, "test": 0.2}, seed)
+        return make_splits(ids, counts={k: int(v) for k, v in counts.items()}, seed=seed)
+    fractions = fractions or {"train": 0.8, "test": 0.2}
+    check_fractions(fractions)
+    return make_splits(ids, fractions, seed)
 
 
 def annotation_layouts(project: Project, ann: dict) -> tuple[np.ndarray, np.ndarray, G.Scene]:
@@ -97,8 +95,8 @@ def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict
             "status": ann["status"], "rack": {k: ann["rack"][k] for k in ("width", "height", "depth", "preset")},
             "shelf_heights_m": [round(v, 4) for v in scene.shelf_v],
             "clear_heights_m": [round(v, 4) for v in scene.clear],
-            "boxes": [{"id": b.id, "shelf": b.shelf, "x0": round(b.u0 - scene.width / 2, 4),
-                       "x1": round(b.u1 - scene.width / 2, 4), "z0": round(b.z0, 4),
+            "boxes": [{"id": b.id, "shelf": b.shelf, "x0": round(L.u_to_x(b.u0, scene.width), 4),
+                       "x1": round(L.u_to_x(b.u1, scene.width), 4), "z0": round(b.z0, 4),
                        "height": round(b.v1 - b.v0, 4), "depth": round(b.depth, 4),
                        "front_offset": round(b.front_offset, 4)} for b in scene.boxes],
             "grid": {"D": project.settings["D"], "extent": project.settings["extent"]},
