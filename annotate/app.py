@@ -38,7 +38,6 @@ from racklay.viz import PALETTE, colorize, content_window
 
 from . import geometry as G
 from . import schema as S
-from .dataset import read_imported
 from .store import DONE_STATUSES, ConflictError, Project, StoreError
 
 DISPLAY_H = 640  # the photo viewer's height, in CSS pixels (it is as wide as its column)
@@ -1124,7 +1123,7 @@ class Tool:
                 poly(seg, C_SEL if chosen else C_SHELF, 3 if chosen else 1.5, closed=False)
                 out.append({"t": "text", "x": round(float(seg[0][0]) + 4, 1), "y": round(float(seg[0][1]) - 4, 1),
                             "s": f"S{k + 1}", "c": _hex(C_SHELF)})
-            imp = read_imported(self.project, a) if a.get("imported") else {}
+            imp = self.project.read_imported(a) if a.get("imported") else {}
             if "front" in imp and scene.shelf_v:
                 grid = L.Grid(imp["front"].shape[-1], self.project.settings["extent"])
                 for p in G.front_box_rects(imp["front"], imp.get("top"), grid, scene.shelf_v, scene.width, scene.depth):
@@ -1159,7 +1158,7 @@ class Tool:
         rows = []
         if top is not None:
             rows += [("top", top), ("front", front)]
-        imp = read_imported(self.project, a) if a.get("imported") else {}
+        imp = self.project.read_imported(a) if a.get("imported") else {}
         rows += [(f"imported {v} (read-only)", imp[v]) for v in L.VIEWS if v in imp]
         if not rows:
             return None

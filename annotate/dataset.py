@@ -10,7 +10,6 @@ fails. Either way a failed run leaves nothing half-written.
 """
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import shutil
@@ -21,12 +20,12 @@ from pathlib import Path
 import numpy as np
 
 from racklay import layout as L
-from racklay.atomic import atomic_save_npy, encode_png
+from racklay.atomic import encode_png
 from racklay.data import DataError, RackLayRoot, make_splits
 
 from . import geometry as G
 from . import schema as S
-from .store import ANN_DIR, IMPORT_DIR, Project, StoreError, photo_info
+from .store import Project, StoreError, photo_info
 
 
 def parse_counts(text: str, what: str = "--split") -> dict[str, float]:
@@ -129,14 +128,12 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
     chosen, other_status, unannotated = [], {}, 0
     skipped: list[tuple[str, str]] = []
     warnings: list[str] = []
-    photos = project.images()
-    ann_dir = project.root / ANN_DIR
-    for name in photos:
-        p = project.annotation_path(name)
-        if not p.exists():
+    for name in project.images():
+        ann = project.read_annotation(name)  # a bad file stops the export, naming itself
+        if ann is None:
             unannotated += 1
             continue
-        ann = S.load_annotation(p)  # a bad file stops the export, naming itself
+        p = project.annotation_path(name)
         if ann["status"] not in only_status:
             other_status[ann["status"]] = other_status.get(ann["status"], 0) + 1
             continue
@@ -185,12 +182,9 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         raise
     # said, never silent: what was left out and why (annotations whose photo left the project
     # cannot be exported, but they are listed)
-    orphans = []
-    if ann_dir.is_dir():
-        have = set(photos)
-        orphans = sorted(str(q) for q in ann_dir.glob("*.json") if q.stem not in have)
     return {"out": str(out), "images": len(chosen), "splits": {k: len(v) for k, v in splits.items()},
-            "left_out": {"other_status": other_status, "unannotated": unannotated, "no_photo": orphans},
+            "left_out": {"other_status": other_status, "unannotated": unannotated,
+                         "no_photo": project.orphan_annotations()},
             "skipped": skipped, "warnings": warnings}
 
 
@@ -254,55 +248,23 @@ def import_dataset(root: str | os.PathLike | ImportPlan, project: Project, split
     ds, R, D = plan.ds, plan.R, plan.D
     st = project.settings
     # R and D must match the project's (a project without annotations adopts the dataset's)
-    if (st["R"], st["D"]) != (R, D) and any((project.root / ANN_DIR).glob("*.json")):
+    if (st["R"], st["D"]) != (R, D) and project.has_annotations():
         raise ValueError(f"{ds.root}: layouts are R={R}, D={D} but the project uses R={st['R']}, D={st['D']}")
-    for sid in plan.ids:
-        name = plan.name(sid)
+    names = [plan.name(sid) for sid in plan.ids]
+    for name in names:
         if project.image_path(name).exists() or project.annotation_path(name).exists():
             raise StoreError(f"{project.root / name}: already in the project (imported before?)")
-    written: list[Path] = []
-    new_dirs = [d for d in (project.root / ANN_DIR / ".locks", project.root / ANN_DIR, project.root / IMPORT_DIR)
-                if not d.exists()]
-    try:
+    with project.all_or_nothing(names):  # a failed write removes what was written
         if (st["R"], st["D"]) != (R, D):  # an empty project adopts the dataset's R and D
             project.save_settings(dict(st, R=R, D=D))
-        for sid in plan.ids:
-            name = plan.name(sid)
+        for sid, name in zip(plan.ids, names):
             imp = {"dataset": str(ds.root.resolve()), "id": sid, "top": None, "front": None}
             for view in plan.views:
-                arr = ds.read_layouts(view, sid, R=R, D=D)
-                rel = f"{IMPORT_DIR}/{name}.{view}.npy"
-                atomic_save_npy(project.project_file(rel), L.encode(arr))
-                written.append(project.project_file(rel))
-                imp[view] = rel
+                imp[view] = project.save_imported(name, view, ds.read_layouts(view, sid, R=R, D=D))
             image = ds.read_image(sid)
             project.add_image(name, encode_png(image))
-            written.append(project.image_path(name))
             ann = S.new_annotation(name, image.shape[1], image.shape[0])
             ann["status"] = "needs review"
             ann["imported"] = imp
-            written.append(project.root / ANN_DIR / ".locks" / f"{name}.lock")  # (a new name: ours)
             project.save(ann, user="annotate import")
-            written.append(project.annotation_path(name))
-    except BaseException:
-        for p in written:
-            p.unlink(missing_ok=True)
-        for d in new_dirs:
-            with contextlib.suppress(OSError):
-                d.rmdir()  # only if still empty
-        if project.settings is not st:
-            project.restore_settings(st)
-        raise
-    return [plan.name(sid) for sid in plan.ids]
-
-
-def read_imported(project: Project, ann: dict) -> dict[str, np.ndarray]:
-    """Class-id stacks of an annotation's imported layouts ({} when none)."""
-    from racklay.data import read_layout_file
-
-    imp = ann.get("imported") or {}
-    out = {}
-    for view in L.VIEWS:
-        if imp.get(view):
-            out[view] = read_layout_file(project.project_file(imp[view]))
-    return out
+    return names

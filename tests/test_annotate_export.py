@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from annotate.cli import main as annotate_main
-from annotate.dataset import read_imported, split_ids
+from annotate.dataset import split_ids
 from annotate.store import Project
 from racklay import layout as L
 from racklay.atomic import encode_png
@@ -87,7 +87,7 @@ def test_import_round_trip(tmp_path, capsys):
     assert (p2.settings["R"], p2.settings["D"]) == (4, 256)
     ann = p2.load("ds_000000.png")
     assert ann["status"] == "needs review"
-    lay = read_imported(p2, ann)
+    lay = p2.read_imported(ann)
     np.testing.assert_array_equal(lay["front"], RackLayRoot(out).read_layouts("front", "000000"))
     # the tool shows the imported layouts read-only beside the photo, and over it once the
     # rack and shelves are marked

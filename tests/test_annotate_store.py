@@ -183,3 +183,31 @@ def test_settings_save_with_lock_and_version_check(proj):
     os.close(fd)
     t.join(30)
     assert S.load_settings(proj.root / "project.json")["R"] == 2 and c.settings["version"] == 2
+
+
+def test_only_the_store_touches_project_files():
+    """docs/annotation-format.md: only annotate/store.py reads or writes a project's files
+    (annotations, locks, history, imported layouts, project.json); export and import go through
+    it. A guard on the source: no other annotate module names those files or folders (as store
+    constants or as path strings), parses them or writes with racklay.atomic."""
+    import ast
+    from pathlib import Path
+
+    import annotate
+
+    names = {"ANN_DIR", "IMPORT_DIR", "LOCK_DIR", "HISTORY_DIR", "SETTINGS_FILE", "load_annotation", "load_settings",
+             "atomic_write_json", "atomic_write_bytes", "atomic_save_npy", "_read_json"}
+    folders = ("annotations", "imported", ".locks", ".history", "project.json")
+    exact = set(folders) - {"imported"}   # also the annotation's field name
+    for path in sorted(Path(annotate.__file__).parent.rglob("*.py")):
+        if path.name in ("store.py", "schema.py", "auth.py"):   # schema: the parsers; auth: the login file
+            continue
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Name, ast.Attribute, ast.alias)):
+                name = node.id if isinstance(node, ast.Name) else node.attr if isinstance(node, ast.Attribute) else node.name
+                found |= {name} & names
+            elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+                if node.value in exact or node.value.startswith(tuple(f + "/" for f in folders)):
+                    found.add(node.value)
+        assert not found, f"{path.name} touches project files itself: {sorted(found)}"
