@@ -211,3 +211,25 @@ def test_only_the_store_touches_project_files():
                 if node.value in exact or node.value.startswith(tuple(f + "/" for f in folders)):
                     found.add(node.value)
         assert not found, f"{path.name} touches project files itself: {sorted(found)}"
+
+
+def test_format_types_match_the_validator_and_the_docs():
+    """annotate.schema's TypedDicts are the format: the validator takes its field lists from
+    them, the documented example validates, and every field of the types is documented."""
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "annotation-format.md").read_text()
+    example = json.loads(re.search(r"```json\n(.*?)```", doc, re.S).group(1))
+    assert S.validate_annotation(example, "docs example") is example
+    fresh = S.new_annotation("a.png", 640, 480)
+    assert S.Annotation.__required_keys__ <= set(fresh) <= S.Annotation.__required_keys__ | S.Annotation.__optional_keys__
+    documented = {w for span in re.findall(r"`([^`]*)`", doc) for w in re.findall(r"\w+", span)}
+    for kind in (S.Annotation, S.Rack, S.Shelf, S.Box, S.Imported, S.Settings, S.Preset):
+        for k in kind.__required_keys__ | kind.__optional_keys__:
+            assert k in documented, f"{kind.__name__}.{k} is not documented"
+    with pytest.raises(S.SchemaError, match=r"field 'rack\.colour': unknown field"):
+        S.validate_annotation(dict(example, rack=dict(example["rack"], colour="red")), "x")
+    missing = {k: v for k, v in example.items() if k not in ("image", "boxes")}
+    with pytest.raises(S.SchemaError, match=r"field 'boxes': missing"):   # the first missing, alphabetically
+        S.validate_annotation(missing, "x")
