@@ -319,6 +319,16 @@ def box_outline(plane: RackPlane, b: MetricBox) -> np.ndarray:
     return plane.to_image([[b.u0, b.v0], [b.u1, b.v0], [b.u1, b.v1], [b.u0, b.v1]])
 
 
+def box_polygon(scene: Scene | None, b: dict) -> np.ndarray:
+    """(4, 2) pixel polygon of a box annotation as the tool outlines and picks it: its metric
+    front face mapped back to the photo when there is a scene (the box's own depth ignored),
+    else the clicked rectangle."""
+    if scene is not None:
+        return box_outline(scene.plane, metric_box(scene.plane, b, scene.shelf_v or [-1e9], scene.depth, scene.depth))
+    (x0, y0), (x1, y1) = b["p0"], b["p1"]
+    return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], float)
+
+
 def shelf_line(plane: RackPlane, v: float) -> np.ndarray:
     """(2, 2) pixel end points of the board edge at height v."""
     return plane.to_image([[0.0, v], [plane.width, v]])
