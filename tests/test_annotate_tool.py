@@ -404,7 +404,6 @@ def test_typed_field_text_stored_exactly(proj):
 def test_box_depth_and_offset_by_clicking(proj):
     """Mode 7: a click on the selected box's top-back edge sets its depth; mode 8: a click on the
     board where its front stands sets its front offset (camera from the rack plane)."""
-
     tool = Tool(proj)
     truth = clicks(CAM)
     st = label_by_clicks(tool, tool.open("r.png"), dict(truth, boxes=[]))
