@@ -726,9 +726,9 @@ class Tool:
         if d.layouts is None:
             out = (d.scene, None, None)
             if d.scene is not None and d.scene.shelf_v:
-                st = self.project.settings
+                cfg = self.project.settings
                 try:
-                    top, front = d.scene.layouts(st["R"], L.Grid(st["D"], st["extent"]))
+                    top, front = d.scene.layouts(cfg["R"], L.Grid(cfg["D"], cfg["extent"]))
                     out = (d.scene, top, front)
                 except G.GeometryError:
                     pass
