@@ -6,404 +6,53 @@ shelves and boxes, racklay.layout draws every shelf's top and front layout live 
 photo, and the metric boxes are projected back onto the photo as outlines. Every action is saved
 at once through annotate.store (atomic, version-checked); this module never touches the files.
 
-How a click travels: the photo viewer is the page's own (VIEWER_JS): the photo is sent once per
-photo, zoom, pan, brightness and contrast are done in the browser, and the outlines are drawn
-over the photo from a list of shapes the server computes (Tool.overlay). Every action of the
-labeller (a click on the photo, a mode key, a button, a typed number) goes into one queue in
-the page and reaches the server in order, in batches: one batch at a time, the next as soon as
-the answer to the previous one is on screen, so no click is dropped however fast they come.
-Each action has a sequence number; the server applies each number once (a batch re-sent after a
-lost answer is not applied twice).
+Here: Tool, the server's logic (every action of the page, on a typed annotate.session.Session),
+and the gradio app around it. The page itself (viewer, keys, how a click travels) is
+annotate.page; what it shows is drawn by annotate.draw.
 
 Offline by design: analytics off, a built-in theme with system fonts, no CDN assets.
 """
 
 
-import base64
 import contextlib
 import copy
-import html
 import json
 import math
 import os
 import threading
 from collections import OrderedDict
+from dataclasses import dataclass
 
 os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")
 
 import numpy as np
 
 from racklay import layout as L
-from racklay.viz import PALETTE, colorize, content_window
 
+from . import draw as D
 from . import geometry as G
 from . import schema as S
-from .dataset import read_imported
+from .page import CSS, MODE_HELP, SHORTCUTS, VIEWER_HTML, head
+from .session import FILTERS, MODES, Session
 from .store import DONE_STATUSES, ConflictError, Project, StoreError
 
-DISPLAY_H = 640  # the photo viewer's height, in CSS pixels (it is as wide as its column)
-#: the longest side of the photo as sent to the browser (larger photos are shown scaled down;
-#: clicks are still in the photo's own pixels)
-VIEW_MAX_SIDE = 4096
-MODES = ("corners", "shelves", "boxes", "select", "move", "resize", "depth", "offset")
-MODE_HELP = {
-    "corners": "click the 4 corners of the rack's front face (any order); a 5th click moves the nearest corner",
-    "shelves": "click once on each shelf board's front edge",
-    "boxes": "click two opposite corners of a box's (or stack's) front face, or drag from one to the other",
-    "select": "click a corner, shelf line, box or proposal to select it",
-    "move": "click where the selected item should go (a box moves its centre there)",
-    "resize": "click where the nearest corner of the selected box should go",
-    "depth": "click the top-back edge of the selected box: its depth (then back to the previous mode)",
-    "offset": "click the board where the selected box's front stands: its front offset (then back)",
-}
-FILTERS = ("all", "unfinished", "todo", "in progress", "done", "needs review", "approved", "invalid", "unreadable")
-#: key -> what it does (the page's keydown handler; never while typing in a field)
-SHORTCUTS = [
-    ("1 … 8", "mode: corners, shelves, boxes, select, move, resize, depth, offset"),
-    ("n / →", "next photo (in the list's filter)"), ("p / ←", "previous photo"),
-    ("u", "next unfinished photo"),
-    ("z / Ctrl+Z", "undo"), ("y / Ctrl+Y", "redo"),
-    ("Del / Backspace / x", "delete selected (a proposal: reject)"),
-    ("s / Ctrl+S", "save now"), ("d", "mark done (refused while the photo has warnings)"),
-    ("c", "confirm the rack size"), ("f", "selected box: stands on its board / floats (on something)"),
-    ("a / r", "accept / reject selected proposal"), ("A", "accept all proposals"),
-    ("wheel, + / - / 0", "zoom at the cursor / reset; right-drag or Space+drag pans"),
-    ("Enter", "leave a number field (its value is applied)"),
-    ("Esc", "cancel a half-drawn box"),
-]
-#: page element id -> action; 'mode:X' and 'view:X' are handled in the page (view: no server)
-BUTTONS = {f"mode-{m}": f"mode:{m}" for m in MODES}
-BUTTONS.update({
-    "btn-next": "next", "btn-prev": "prev", "btn-next-todo": "next_unfinished", "btn-undo": "undo",
-    "btn-redo": "redo", "btn-delete": "delete", "btn-save": "save", "btn-done": "done",
-    "btn-accept": "accept", "btn-reject": "reject", "btn-accept-all": "accept_all", "btn-cancel": "cancel",
-    "btn-confirm-size": "confirm_size", "btn-on-board": "toggle_on_board",
-    "btn-zoom-in": "view:in", "btn-zoom-out": "view:out", "btn-zoom-reset": "view:reset",
-})
-KEYMAP = {str(i + 1): f"mode:{m}" for i, m in enumerate(MODES)}
-KEYMAP.update({
-    "n": "next", "ArrowRight": "next", "p": "prev", "ArrowLeft": "prev", "u": "next_unfinished",
-    "z": "undo", "Ctrl+z": "undo", "y": "redo", "Ctrl+y": "redo", "Ctrl+Z": "redo",
-    "Delete": "delete", "Backspace": "delete", "x": "delete", "s": "save", "Ctrl+s": "save",
-    "d": "done", "c": "confirm_size", "f": "toggle_on_board", "a": "accept", "r": "reject", "A": "accept_all",
-    "+": "view:in", "=": "view:in", "-": "view:out", "0": "view:reset", "Escape": "cancel",
-})
-#: number fields (elem_id -> action field); the page sends the text as typed when it changes
-FIELDS = {"rack-width": "width", "rack-height": "height", "rack-depth": "depth",
-          "box-depth": "box_depth", "box-offset": "box_offset"}
 
-VIEWER_HTML = """<div id="rl-viewer">
-<div id="rl-banner" hidden></div>
-<div id="rl-toolbar"><span id="rl-zoom">fit</span>
- <label>brightness <input type="range" id="rl-bright" min="30" max="300" value="100"></label>
- <label>contrast <input type="range" id="rl-contrast" min="30" max="300" value="100"></label>
- <button id="rl-view-reset" type="button">reset view</button>
- <span class="rl-hint">wheel: zoom at the cursor · right-drag or Space+drag: pan · view only, nothing is saved</span></div>
-<div id="rl-viewport" style="height:%dpx"><div id="rl-stage"><img id="rl-img" alt="" draggable="false">
-<svg id="rl-svg" xmlns="http://www.w3.org/2000/svg"></svg></div></div>
-</div>""" % DISPLAY_H
+@dataclass
+class _Derived:
+    """What the geometry makes of one annotation's rack, shelves and boxes: its scene (or why
+    there is none) and, computed when first asked for, its layouts."""
 
-VIEWER_JS = r"""
-(() => {
-  const KEYMAP = __KEYMAP__, BUTTONS = __BUTTONS__, FIELDS = __FIELDS__;
-  const rl = window.rl = {q: [], inflight: null, seq: 0, view: null, up: true, stats: [], W: 0, H: 0,
-                          s: 1, fit: 1, tx: 0, ty: 0, mouse: null, photoKey: null, previewSrc: null};
-  const $ = (s) => document.querySelector(s);
-  // --- the action queue: one batch at a time, in order ---------------------------------------
-  rl.enqueue = (a, t) => {
-    a.seq = ++rl.seq; a.t = t === undefined ? performance.now() : t;
-    rl.q.push(a); pump(); return a.seq;
-  };
-  function pump() {
-    if (rl.inflight || !rl.q.length || !rl.up) return;
-    const btn = $('#rl-send');
-    if (!btn) { setTimeout(pump, 30); return; }
-    rl.inflight = rl.q.splice(0);
-    rl.sentAt = performance.now();
-    btn.click();
-  }
-  rl.take = () => JSON.stringify((rl.inflight || []).map(({t, ...a}) => a));
-  // a batch without an answer for a while: ask again (the server applies each number once)
-  setInterval(() => {
-    if (rl.inflight && rl.up && performance.now() - rl.sentAt > 8000) {
-      rl.sentAt = performance.now(); const b = $('#rl-send'); if (b) b.click();
-    }
-  }, 1000);
-  // --- the server's answer ------------------------------------------------------------------
-  function onView() {
-    const el = $('#rl-view-data pre');
-    if (!el || el.textContent === rl.lastText) return;
-    rl.lastText = el.textContent;
-    let v; try { v = JSON.parse(el.textContent); } catch (e) { return; }
-    rl.view = v;
-    if (v.image_size && (v.image_size[0] !== rl.W || v.image_size[1] !== rl.H || v.name !== rl.name)) {
-      rl.W = v.image_size[0]; rl.H = v.image_size[1]; rl.name = v.name; fitView();
-    }
-    draw(v);
-    for (const [id, h] of Object.entries(v.text || {})) {
-      const el = document.getElementById(id);
-      if (el && el.innerHTML !== h) el.innerHTML = h;
-    }
-    for (const [id, f] of Object.entries(FIELDS)) {
-      const inp = document.querySelector('#' + id + ' input');
-      if (inp && document.activeElement !== inp) inp.value = (v.fields[f] === null || v.fields[f] === undefined) ? '' : v.fields[f];
-    }
-    for (const b of document.querySelectorAll('[id^="mode-"]')) {
-      const on = b.id === 'mode-' + v.mode;
-      b.classList.toggle('primary', on); b.classList.toggle('secondary', !on);
-    }
-    if (rl.inflight && v.ack >= rl.inflight[rl.inflight.length - 1].seq) {
-      const done = rl.inflight, now = performance.now();
-      rl.inflight = null;
-      requestAnimationFrame(() => {
-        const shown = performance.now();
-        for (const a of done) rl.stats.push({kind: a.kind, queued: rl.sentAt - a.t, rtt: shown - a.t,
-                                             server: v.ms, batch: done.length, answered: now - a.t});
-      });
-      if (rl.up) banner(null);
-      pump();
-    }
-  }
-  function onPreview() {
-    const el = $('#rl-preview-data pre'), p = $('#rl-preview');
-    if (!el || !p || el.textContent === rl.previewSrc) return;
-    rl.previewSrc = el.textContent;
-    p.src = rl.previewSrc || ''; p.hidden = !rl.previewSrc;
-  }
-  function onPhoto() {
-    const el = $('#rl-photo-data pre');
-    if (!el) return;
-    const key = el.getAttribute('data-key');
-    if (key === rl.photoKey) return;
-    rl.photoKey = key;
-    const img = $('#rl-img');
-    img.src = el.textContent ? 'data:image/jpeg;base64,' + el.textContent.trim() : '';
-  }
-  // --- drawing: the photo in a stage that is zoomed and panned by a CSS transform --------------
-  function esc(s) { return String(s).replace(/[&<>"]/g, c => ({'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;'})[c]); }
-  function draw(v) {
-    const svg = $('#rl-svg'), img = $('#rl-img'), stage = $('#rl-stage');
-    if (!svg) return;
-    stage.style.width = rl.W + 'px'; stage.style.height = rl.H + 'px';
-    img.style.width = rl.W + 'px'; img.style.height = rl.H + 'px';
-    svg.setAttribute('width', rl.W); svg.setAttribute('height', rl.H);
-    svg.setAttribute('viewBox', `-0.5 -0.5 ${rl.W} ${rl.H}`);
-    const k = 1 / rl.s, out = [];
-    for (const sh of v.overlay || []) {
-      const w = (sh.w || 1.5) * k;
-      if (sh.t === 'poly') {
-        const pts = sh.pts.map(p => p[0].toFixed(2) + ',' + p[1].toFixed(2)).join(' ');
-        out.push(`<${sh.closed ? 'polygon' : 'polyline'} points="${pts}" fill="none" stroke="${sh.c}" stroke-width="${w}"${sh.dash ? ` stroke-dasharray="${4 * k},${3 * k}"` : ''}/>`);
-      } else if (sh.t === 'dot') {
-        out.push(`<circle cx="${sh.x}" cy="${sh.y}" r="${(sh.r || 4) * k}" fill="${sh.c}" stroke="#000" stroke-width="${0.8 * k}"/>`);
-      } else if (sh.t === 'cross') {
-        const r = (sh.r || 6) * k;
-        out.push(`<path d="M${sh.x - r},${sh.y - r}L${sh.x + r},${sh.y + r}M${sh.x - r},${sh.y + r}L${sh.x + r},${sh.y - r}" stroke="${sh.c}" stroke-width="${2 * k}"/>`);
-      } else if (sh.t === 'text') {
-        out.push(`<text x="${sh.x}" y="${sh.y}" fill="${sh.c}" font-size="${12 * k}" stroke="#000" stroke-width="${0.3 * k}">${esc(sh.s)}</text>`);
-      }
-    }
-    svg.innerHTML = out.join('');
-  }
-  function applyTransform() {
-    const stage = $('#rl-stage');
-    if (stage) stage.style.transform = `translate(${rl.tx}px, ${rl.ty}px) scale(${rl.s})`;
-    const z = $('#rl-zoom'); if (z) z.textContent = rl.s / rl.fit > 1.001 ? `zoom ${(rl.s / rl.fit).toFixed(1)}×` : 'fit';
-    if (rl.view) draw(rl.view);
-  }
-  function fitView() {
-    const vp = $('#rl-viewport');
-    if (!vp || !rl.W) return;
-    const vw = vp.clientWidth, vh = vp.clientHeight;
-    rl.fit = rl.s = Math.min(vw / rl.W, vh / rl.H);
-    rl.tx = (vw - rl.W * rl.s) / 2; rl.ty = (vh - rl.H * rl.s) / 2;
-    applyTransform();
-  }
-  rl.fitView = fitView;
-  function zoomAt(cx, cy, f) {   // keeps the photo point under (cx, cy) where it is
-    const ns = Math.min(Math.max(rl.s * f, rl.fit), rl.fit * 32), k = ns / rl.s;
-    rl.tx = cx - (cx - rl.tx) * k; rl.ty = cy - (cy - rl.ty) * k; rl.s = ns;
-    if (Math.abs(ns - rl.fit) < 1e-9) return fitView();
-    applyTransform();
-  }
-  rl.zoomAt = zoomAt;
-  // photo pixel (x right, y down; pixel centres at integers) <-> page (client) coordinates
-  rl.toImage = (clientX, clientY) => {
-    const r = $('#rl-viewport').getBoundingClientRect();
-    return [(clientX - r.left - rl.tx) / rl.s - 0.5, (clientY - r.top - rl.ty) / rl.s - 0.5];
-  };
-  rl.toClient = (x, y) => {
-    const r = $('#rl-viewport').getBoundingClientRect();
-    return [r.left + rl.tx + (x + 0.5) * rl.s, r.top + rl.ty + (y + 0.5) * rl.s];
-  };
-  function viewAction(what) {
-    const vp = $('#rl-viewport'), m = rl.mouse || [vp.clientWidth / 2, vp.clientHeight / 2];
-    if (what === 'in') zoomAt(m[0], m[1], 2); else if (what === 'out') zoomAt(m[0], m[1], 0.5); else fitView();
-  }
-  function act(name) {
-    if (name.startsWith('view:')) return viewAction(name.slice(5));
-    if (name.startsWith('mode:')) return rl.enqueue({kind: 'mode', mode: name.slice(5)});
-    rl.enqueue({kind: 'act', name: name});
-  }
-  rl.act = act;
-  function banner(text) {
-    const b = $('#rl-banner'); if (!b) return;
-    b.hidden = !text; b.textContent = text || '';
-  }
-  // --- the server's heartbeat: a banner while it is away, and a fresh page when it is back ----
-  let misses = 0;
-  async function beat() {
-    const ctl = new AbortController(), to = setTimeout(() => ctl.abort(), 6000);
-    let ok = true;
-    try { await fetch(location.pathname, {cache: 'no-store', signal: ctl.signal}); } catch (e) { ok = false; }
-    clearTimeout(to);
-    misses = ok ? 0 : misses + 1;
-    if (!ok && misses < 2) return;   // one slow answer on a busy machine is not an outage
-    if (!ok && rl.up) {
-      rl.up = false;
-      banner(`⚠ the annotation server is not reachable (since ${new Date().toLocaleTimeString()}): ` +
-             'clicks are not taken until it is back; everything saved so far is safe. The page reloads by itself when it returns.');
-    } else if (ok && !rl.up) {
-      banner('the server is back: reloading the page…');
-      setTimeout(() => location.reload(), 300);
-    }
-  }
-  (async function loop() { await beat(); setTimeout(loop, 1500); })();
-  // --- mouse and keys ----------------------------------------------------------------------------
-  let drag = null, space = false;
-  function onDown(e) {
-    const vp = $('#rl-viewport'); if (!vp || !vp.contains(e.target)) return;
-    // a number being typed is applied first (its change event queues it before this click)
-    const f = document.activeElement;
-    if (f && f !== document.body && f.blur) f.blur();
-    e.preventDefault();
-    const pan = e.button === 1 || e.button === 2 || (e.button === 0 && space);
-    drag = {pan, x: e.clientX, y: e.clientY, tx: rl.tx, ty: rl.ty, t: performance.now(), button: e.button};
-  }
-  function onMove(e) {
-    const vp = $('#rl-viewport'); if (!vp) return;
-    const r = vp.getBoundingClientRect();
-    if (e.clientX >= r.left && e.clientX <= r.right && e.clientY >= r.top && e.clientY <= r.bottom)
-      rl.mouse = [e.clientX - r.left, e.clientY - r.top];
-    if (drag && drag.pan) { rl.tx = drag.tx + e.clientX - drag.x; rl.ty = drag.ty + e.clientY - drag.y; applyTransform(); }
-  }
-  function inside(p) { return p[0] >= -0.5 && p[1] >= -0.5 && p[0] <= rl.W - 0.5 && p[1] <= rl.H - 0.5; }
-  function onUp(e) {
-    const d = drag; drag = null;
-    if (!d || d.pan || e.button !== 0 || !rl.view || !rl.W) return;
-    if (!rl.up) { banner($('#rl-banner').textContent || '⚠ the server is not reachable'); return; }
-    const p0 = rl.toImage(d.x, d.y), p1 = rl.toImage(e.clientX, e.clientY);
-    const moved = Math.hypot(e.clientX - d.x, e.clientY - d.y) > 6;
-    const z = rl.s / rl.fit;
-    if (moved && rl.view.mode === 'boxes' && inside(p0) && inside(p1))
-      return rl.enqueue({kind: 'box', p0: p0, p1: p1, image: rl.view.name}, d.t);
-    if (!inside(p0)) return;
-    rl.enqueue({kind: 'click', x: p0[0], y: p0[1], z: z, image: rl.view.name}, d.t);
-  }
-  document.addEventListener('mousedown', onDown, true);
-  document.addEventListener('mousemove', onMove, true);
-  document.addEventListener('mouseup', onUp, true);
-  document.addEventListener('contextmenu', (e) => { const vp = $('#rl-viewport'); if (vp && vp.contains(e.target)) e.preventDefault(); }, true);
-  document.addEventListener('wheel', (e) => {
-    const vp = $('#rl-viewport'); if (!vp || !vp.contains(e.target)) return;
-    e.preventDefault();
-    const r = vp.getBoundingClientRect();
-    zoomAt(e.clientX - r.left, e.clientY - r.top, Math.exp(-e.deltaY * 0.002));
-  }, {capture: true, passive: false});
-  window.addEventListener('resize', () => { if (rl.s === rl.fit) fitView(); });
-  function typing(t) {
-    const tag = ((t && t.tagName) || '').toLowerCase();
-    if (tag === 'textarea' || tag === 'select' || (t && t.isContentEditable)) return true;
-    return tag === 'input' && !['range', 'checkbox', 'radio', 'button'].includes((t.type || '').toLowerCase());
-  }
-  document.addEventListener('keydown', (e) => {
-    const t = e.target;
-    if (typing(t)) {
-      // Enter (or Esc) leaves a number field; its value is applied as typed (the change event)
-      if ((e.key === 'Enter' || e.key === 'Escape') && t.closest && t.closest('.rl-field')) { e.preventDefault(); t.blur(); }
-      return;
-    }
-    if (e.key === ' ') { space = true; const vp = $('#rl-viewport'); if (vp && rl.mouse) e.preventDefault(); return; }
-    if (e.altKey) return;
-    const key = (e.ctrlKey || e.metaKey) ? 'Ctrl+' + e.key : e.key;
-    const a = KEYMAP[key];
-    if (!a) return;
-    e.preventDefault();
-    if (t && t.blur && t !== document.body) t.blur();
-    act(a);
-  }, true);
-  document.addEventListener('keyup', (e) => { if (e.key === ' ') space = false; }, true);
-  document.addEventListener('click', (e) => {
-    const b = e.target.closest && e.target.closest('button');
-    if (!b) return;
-    if (b.id === 'rl-view-reset') { fitView(); return; }
-    const a = BUTTONS[b.id];
-    if (!a) return;
-    e.preventDefault(); e.stopPropagation();
-    act(a);
-  }, true);
-  document.addEventListener('change', (e) => {
-    const f = e.target.closest && e.target.closest('.rl-field');
-    if (!f || !FIELDS[f.id]) return;
-    rl.enqueue({kind: 'field', field: FIELDS[f.id], text: e.target.value, image: rl.view && rl.view.name});
-  }, true);
-  document.addEventListener('input', (e) => {
-    if (e.target.id !== 'rl-bright' && e.target.id !== 'rl-contrast') return;
-    $('#rl-img').style.filter = `brightness(${$('#rl-bright').value}%) contrast(${$('#rl-contrast').value}%)`;
-  }, true);
-  document.addEventListener('pointerup', (e) => {
-    if (e.target.type === 'range') e.target.blur();   // hotkeys keep working after a slider
-  }, true);
-  // --- wiring, once gradio has rendered the page ----------------------------------------------
-  function init() {
-    const vd = $('#rl-view-data'), pd = $('#rl-photo-data'), pv = $('#rl-preview-data'), vp = $('#rl-viewport');
-    if (!vd || !pd || !pv || !vp) { setTimeout(init, 30); return; }
-    const opts = {subtree: true, childList: true, characterData: true};
-    new MutationObserver(onPhoto).observe(pd, opts);
-    new MutationObserver(onPreview).observe(pv, opts);
-    new MutationObserver(onView).observe(vd, opts);
-    onPhoto(); onView(); onPreview();
-  }
-  if (document.readyState === 'loading') document.addEventListener('DOMContentLoaded', init); else init();
-})();
-"""
-
-
-def _head() -> str:
-    js = (VIEWER_JS.replace("__KEYMAP__", json.dumps(KEYMAP)).replace("__BUTTONS__", json.dumps(BUTTONS))
-          .replace("__FIELDS__", json.dumps(FIELDS)))
-    return f"<script>{js}</script>"
-
-
-CSS = """
-#header { font-size: 1.05em; }
-.mode-row button { min-width: 0; }
-.rl-hidden { display: none !important; }
-.rl-text p { margin: 0.2em 0; }
-.rl-text ul { margin: 0.2em 0 0.2em 1.2em; padding: 0; }
-#rl-viewport { position: relative; overflow: hidden; background: #222; cursor: crosshair; user-select: none; }
-#rl-stage { position: absolute; left: 0; top: 0; transform-origin: 0 0; }
-#rl-img, #rl-svg { position: absolute; left: 0; top: 0; max-width: none; }
-#rl-svg { pointer-events: none; overflow: visible; }
-#rl-banner { background: #b00020; color: #fff; padding: 8px 12px; font-weight: 600; border-radius: 4px; margin-bottom: 6px; }
-#rl-toolbar { font-size: 0.85em; display: flex; gap: 12px; align-items: center; flex-wrap: wrap; margin-bottom: 4px; }
-#rl-toolbar input[type=range] { width: 110px; vertical-align: middle; }
-.rl-hint { color: #888; }
-#rl-preview { max-width: 100%; }
-"""
-
-# overlay colours
-C_RACK, C_SHELF, C_BOX, C_FLOAT = (255, 220, 0), (0, 220, 255), tuple(int(v) for v in PALETTE[L.BOX]), (255, 60, 60)
-C_PROP, C_SEL, C_PEND, C_IMPORT = (60, 240, 90), (255, 255, 255), (255, 0, 255), (190, 120, 255)
-
-
-def _hex(c) -> str:
-    return "#%02x%02x%02x" % tuple(int(v) for v in c)
+    scene: G.Scene | None
+    error: str | None = None
+    layouts: tuple | None = None
 
 
 class Tool:
-    """Server-side logic, independent of gradio: each method takes and returns the session state
-    (a plain dict) so it can be tested without a browser. Clicks are in photo pixels."""
+    """Server-side logic, independent of gradio: each method takes and returns the session (an
+    annotate.session.Session), so it can be tested without a browser. Clicks are in photo
+    pixels. What the page shows is drawn by annotate.draw from frame(); the annotation's scene is
+    built once for each new rack, shelves and boxes and shared by the edit, the outlines, the
+    texts and the preview."""
 
     def __init__(self, project: Project, predictor=None, user: str | None = None, tmp_dir: str | None = None):
         self.project = project
@@ -412,7 +61,7 @@ class Tool:
         self._images: OrderedDict[str, np.ndarray] = OrderedDict()
         self._photo_b64: OrderedDict[str, str] = OrderedDict()
         self._preds: OrderedDict[str, dict] = OrderedDict()
-        self._layouts: OrderedDict[str, tuple] = OrderedDict()
+        self._derived: OrderedDict[str, _Derived] = OrderedDict()
         self._lock = threading.RLock()
         self._history: dict[str, tuple] = {}     # undo history waiting to be written, per photo
         self._history_cv = threading.Condition()
@@ -420,35 +69,24 @@ class Tool:
         threading.Thread(target=self._history_writer, daemon=True, name="annotate-history").start()
 
     def photo_b64(self, name: str) -> str:
-        """The photo as the browser shows it: base64 JPEG (quality 92, 4:4:4 chroma), at most
-        VIEW_MAX_SIDE pixels a side, encoded once per photo (the outlines are drawn by the page)."""
-        import cv2
-
+        """The photo as the browser shows it (annotate.draw.photo_jpeg_b64), encoded once per photo."""
         with self._lock:
             if name not in self._photo_b64:
-                img = self.image(name)
-                h, w = img.shape[:2]
-                k = VIEW_MAX_SIDE / max(h, w)
-                if k < 1:
-                    img = cv2.resize(img, (max(1, int(w * k)), max(1, int(h * k))), interpolation=cv2.INTER_AREA)
-                ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(img[:, :, ::-1]),
-                                       [cv2.IMWRITE_JPEG_QUALITY, 92, cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
-                                        cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
-                self._photo_b64[name] = base64.b64encode(buf.tobytes()).decode("ascii")
+                self._photo_b64[name] = D.photo_jpeg_b64(self.image(name))
                 while len(self._photo_b64) > 4:
                     self._photo_b64.popitem(last=False)
             self._photo_b64.move_to_end(name)
             return self._photo_b64[name]
 
     # --- state ---------------------------------------------------------------------------
-    def open(self, name: str | None, user: str | None = None, keep: dict | None = None) -> dict:
-        """A session state for image `name`; `user` is the logged-in user (saves record it).
-        `keep`: the previous state, whose list filter and action counter carry over."""
-        st = {"name": name, "ann": None, "undo": [], "redo": [], "pending": None, "sel": None,
-              "mode": "corners", "msg": "", "error": None, "user": user,
-              "filter": (keep or {}).get("filter", "all"), "ack": (keep or {}).get("ack", 0)}
+    def open(self, name: str | None, user: str | None = None, keep: Session | None = None) -> Session:
+        """A session for image `name`; `user` is the logged-in user (saves record it).
+        `keep`: the previous session, whose list filter and action counter carry over."""
+        st = Session(name=name, user=user)
+        if keep is not None:
+            st.filter, st.ack = keep.filter, keep.ack
         if name is None:
-            st["msg"] = "no images in the project yet: upload some"
+            st.msg = "no images in the project yet: upload some"
             return st
         try:
             why = self.project.photo_problem(name)
@@ -456,25 +94,25 @@ class Tool:
                 raise StoreError(why)
             ann = self.project.load(name)
         except (S.SchemaError, StoreError) as e:
-            st["error"] = str(e)
-            st["msg"] = f"⚠ {e} — this file is not overwritten; fix or delete it by hand"
+            st.error = str(e)
+            st.msg = f"⚠ {e} — this file is not overwritten; fix or delete it by hand"
             return st
         try:
             self.image(name)
         except (StoreError, ValueError) as e:   # a header that looked fine, pixels that do not decode
             self.project.mark_unreadable(name, str(e))
-            st["error"] = str(e)
-            st["msg"] = f"⚠ {e} — listed as unreadable; the rest of the project works"
+            st.error = str(e)
+            st.msg = f"⚠ {e} — listed as unreadable; the rest of the project works"
             return st
-        st["ann"] = ann
+        st.ann = ann
         self.flush_history()
-        st["undo"], st["redo"] = self.project.load_history(name, ann["version"])
+        st.undo, st.redo = self.project.load_history(name, ann["version"])
         with contextlib.suppress(OSError, StoreError):
             self.project.set_last_opened(name, user)
         rack = ann["rack"]
-        st["mode"] = "corners" if len(rack["corners"]) < 4 else ("shelves" if not ann["shelves"] else "boxes")
-        hist = f", {len(st['undo'])} undo step(s)" if st["undo"] else ""
-        st["msg"] = f"opened {name} (version {ann['version']}, {ann['status']}{hist})"
+        st.mode = "corners" if len(rack["corners"]) < 4 else ("shelves" if not ann["shelves"] else "boxes")
+        hist = f", {len(st.undo)} undo step(s)" if st.undo else ""
+        st.msg = f"opened {name} (version {ann['version']}, {ann['status']}{hist})"
         return st
 
     def image(self, name: str) -> np.ndarray:
@@ -486,44 +124,45 @@ class Tool:
             self._images.move_to_end(name)
             return self._images[name]
 
-    def listed(self, st: dict) -> list[str]:
-        """The photos the list shows under the session's filter (the open one always)."""
-        f = st.get("filter", "all")
-        stats = self.project.statuses()
+    def listed(self, st: Session, stats: dict[str, str] | None = None) -> list[str]:
+        """The photos the list shows under the session's filter (the open one always).
+        `stats`: the project's statuses, when the caller has them."""
+        f = st.filter
+        stats = self.project.statuses() if stats is None else stats
         keep = {"all": lambda s: True, "unfinished": lambda s: s not in DONE_STATUSES + ("unreadable",)}.get(
             f, lambda s: s == f)
-        return [n for n, s in stats.items() if keep(s) or n == st.get("name")]
+        return [n for n, s in stats.items() if keep(s) or n == st.name]
 
-    def step(self, st: dict, delta: int, unfinished: bool = False) -> dict:
+    def step(self, st: Session, delta: int, unfinished: bool = False) -> Session:
         """The next (previous) photo in the list's filter, or the next unfinished one; unreadable
         photos are skipped."""
         stats = self.project.statuses()
         names = list(stats)
         if not names:
-            return self.open(None, st.get("user"), st)
+            return self.open(None, st.user, st)
         if unfinished:
             ok = [n for n in names if stats[n] not in DONE_STATUSES + ("unreadable", "invalid")]
         else:
-            ok = [n for n in self.listed(st) if stats[n] != "unreadable" or n == st.get("name")]
-        cur = st.get("name")
+            ok = [n for n in self.listed(st, stats) if stats[n] != "unreadable" or n == st.name]
+        cur = st.name
         i = names.index(cur) if cur in names else -1
         for k in range(1, len(names) + 1):
             n = names[(i + delta * k) % len(names)]
             if n in ok and n != cur:
-                return self.open(n, st.get("user"), st)
-        st["msg"] = "no unfinished photo left: all done" if unfinished else "no other photo in this list"
+                return self.open(n, st.user, st)
+        st.msg = "no unfinished photo left: all done" if unfinished else "no other photo in this list"
         return st
 
     # --- applying an edit: save at once, with undo ----------------------------------------
-    def act(self, st: dict, fn) -> dict:
-        if st.get("ann") is None:
-            st["msg"] = st.get("msg") or "nothing to edit"
+    def act(self, st: Session, fn) -> Session:
+        if st.ann is None:
+            st.msg = st.msg or "nothing to edit"
             return st
-        before = st["ann"]
+        before = st.ann
         ann = copy.deepcopy(before)
         msg = fn(ann)
         if _content(ann) == _content(before):
-            st["msg"] = msg or st.get("msg", "")
+            st.msg = msg or st.msg
             return st
         if ann["status"] == before["status"] == "todo":
             ann["status"] = "in progress"
@@ -531,17 +170,17 @@ class Tool:
             pm = self.refresh_proposals(ann)
             msg = f"{msg}; {pm}" if msg and pm else (msg or pm)
         if self._save(st, ann):
-            st["undo"].append(before)
-            st["undo"] = st["undo"][-200:]
-            st["redo"] = []
+            st.undo.append(before)
+            st.undo = st.undo[-200:]
+            st.redo = []
             self._keep_history(st)
-            st["msg"] = msg or f"saved (version {st['ann']['version']})"
+            st.msg = msg or f"saved (version {st.ann['version']})"
         return st
 
-    def _keep_history(self, st: dict) -> None:
+    def _keep_history(self, st: Session) -> None:
         """Hand the undo history to the writer thread (off the click's path; the newest wins)."""
         with self._history_cv:
-            self._history[st["name"]] = (st["ann"]["version"], list(st["undo"]), list(st["redo"]))
+            self._history[st.name] = (st.ann["version"], list(st.undo), list(st.redo))
             self._history_cv.notify()
 
     def _history_writer(self) -> None:
@@ -564,77 +203,77 @@ class Tool:
         with self._history_cv:
             self._history_cv.wait_for(lambda: not self._history and not self._history_busy, timeout)
 
-    def _save(self, st: dict, ann: dict) -> bool:
+    def _save(self, st: Session, ann: S.Annotation) -> bool:
         try:
-            st["ann"] = self.project.save(ann, user=st.get("user") or self.user)
+            st.ann = self.project.save(ann, user=st.user or self.user)
             return True
         except ConflictError as e:
-            st["msg"] = f"⚠ {e}"
+            st.msg = f"⚠ {e}"
         except (S.SchemaError, StoreError) as e:
-            st["msg"] = f"⚠ not saved: {e}"
+            st.msg = f"⚠ not saved: {e}"
         return False
 
-    def undo(self, st: dict, redo: bool = False) -> dict:
-        src, dst = ("redo", "undo") if redo else ("undo", "redo")
-        if st.get("ann") is None or not st[src]:
-            st["msg"] = f"nothing to {'redo' if redo else 'undo'}"
+    def undo(self, st: Session, redo: bool = False) -> Session:
+        src, dst = (st.redo, st.undo) if redo else (st.undo, st.redo)
+        if st.ann is None or not src:
+            st.msg = f"nothing to {'redo' if redo else 'undo'}"
             return st
-        target = copy.deepcopy(st[src][-1])
-        current = st["ann"]
+        target = copy.deepcopy(src[-1])
+        current = st.ann
         target["version"] = current["version"]
         if self._save(st, target):
-            st[src].pop()
-            st[dst].append(current)
-            st["sel"], st["pending"] = None, None
+            src.pop()
+            dst.append(current)
+            st.sel, st.pending = None, None
             self._keep_history(st)
-            st["msg"] = f"{'redone' if redo else 'undone'} (version {st['ann']['version']})"
+            st.msg = f"{'redone' if redo else 'undone'} (version {st.ann['version']})"
         return st
 
-    def save_now(self, st: dict) -> dict:
-        if st.get("ann") is None:
+    def save_now(self, st: Session) -> Session:
+        if st.ann is None:
             return st
-        if self._save(st, copy.deepcopy(st["ann"])):
+        if self._save(st, copy.deepcopy(st.ann)):
             self._keep_history(st)
-            st["msg"] = f"saved (version {st['ann']['version']})"
+            st.msg = f"saved (version {st.ann['version']})"
         return st
 
     # --- the page's actions, in order ------------------------------------------------------
-    def apply(self, st: dict, actions) -> dict:
+    def apply(self, st: Session, actions) -> Session:
         """Apply a batch of the page's actions in order. Each has a sequence number `seq`; one
         already applied is skipped (a batch sent again after a lost answer). A malformed action
         is reported in the message and skipped."""
         for a in actions if isinstance(actions, list) else []:
             seq = a.get("seq") if isinstance(a, dict) else None
-            if isinstance(seq, int) and seq <= st.get("ack", 0):
+            if isinstance(seq, int) and seq <= st.ack:
                 continue
             try:
                 st = self.apply_one(st, a)
             except (ValueError, TypeError, KeyError, AttributeError) as e:
-                st["msg"] = f"⚠ ignored a malformed request ({type(e).__name__}: {e})"
+                st.msg = f"⚠ ignored a malformed request ({type(e).__name__}: {e})"
             if isinstance(seq, int):
-                st["ack"] = seq
+                st.ack = seq
         return st
 
-    def apply_one(self, st: dict, a: dict) -> dict:
+    def apply_one(self, st: Session, a: dict) -> Session:
         kind = a["kind"]
         img = a.get("image")
-        if kind in ("click", "box", "field") and img is not None and img != st.get("name"):
-            st["msg"] = f"a {kind} made on {img} was not applied: {st.get('name')} is open now"
+        if kind in ("click", "box", "field") and img is not None and img != st.name:
+            st.msg = f"a {kind} made on {img} was not applied: {st.name} is open now"
             return st
         if kind == "click":
             return self.click(st, _finite(a["x"]), _finite(a["y"]), zoom=_finite(a.get("z", 1.0)))
         if kind == "box":
             p0 = [_finite(a["p0"][0]), _finite(a["p0"][1])]
             p1 = [_finite(a["p1"][0]), _finite(a["p1"][1])]
-            st["pending"] = None
+            st.pending = None
             return self.add_box(st, p0, p1)
         if kind == "mode":
             if a["mode"] not in MODES:
                 raise ValueError(f"unknown mode {a['mode']!r}")
-            if a["mode"] in ("depth", "offset") and st.get("mode") not in ("depth", "offset"):
-                st["mode_before"] = st.get("mode")
-            st["mode"], st["pending"] = a["mode"], None
-            st["msg"] = ""
+            if a["mode"] in ("depth", "offset") and st.mode not in ("depth", "offset"):
+                st.mode_before = st.mode
+            st.mode, st.pending = a["mode"], None
+            st.msg = ""
             return st
         if kind == "field":
             return self.set_field(st, a["field"], a.get("text"))
@@ -646,13 +285,13 @@ class Tool:
             name = a["name"]
             if name not in self.project.images():
                 raise ValueError(f"no photo {name!r} in the project")
-            return self.open(name, st.get("user"), st)
+            return self.open(name, st.user, st)
         if kind == "filter":
             if a["value"] not in FILTERS:
                 raise ValueError(f"unknown filter {a['value']!r}")
-            st["filter"] = a["value"]
+            st.filter = a["value"]
             n = len(self.listed(st))
-            st["msg"] = f"list: {a['value']} ({n} photo(s))"
+            st.msg = f"list: {a['value']} ({n} photo(s))"
             return st
         if kind == "act":
             fn = {"undo": self.undo, "redo": lambda s: self.undo(s, redo=True), "delete": self.delete,
@@ -666,19 +305,19 @@ class Tool:
             return fn(st)
         raise ValueError(f"unknown kind {kind!r}")
 
-    def cancel(self, st: dict) -> dict:
-        st["pending"] = None
-        st["msg"] = "box cancelled"
+    def cancel(self, st: Session) -> Session:
+        st.pending = None
+        st.msg = "box cancelled"
         return st
 
     # --- clicks (photo pixels: x right, y down, pixel centres at integers) -------------------
-    def click(self, st: dict, x: float, y: float, zoom: float = 1.0) -> dict:
+    def click(self, st: Session, x: float, y: float, zoom: float = 1.0) -> Session:
         """A click at photo pixel (x, y) in the current mode. `zoom`: how far the labeller had
         zoomed in (a closer look picks more precisely)."""
-        if st.get("ann") is None:
+        if st.ann is None:
             return st
         pt = [round(float(x), 2), round(float(y), 2)]
-        mode = st["mode"]
+        mode = st.mode
         if mode == "corners":
             return self.act(st, lambda a: self._corner(st, a, pt))
         if mode == "shelves":
@@ -687,53 +326,52 @@ class Tool:
                 return f"shelf {len(a['shelves'])} marked"
             return self.act(st, add_shelf)
         if mode == "boxes":
-            if st.get("pending") is None:
-                st["pending"] = pt
-                st["msg"] = "now click the opposite corner of the box's front face"
+            if st.pending is None:
+                st.pending = pt
+                st.msg = "now click the opposite corner of the box's front face"
                 return st
-            p0, st["pending"] = st["pending"], None
+            p0, st.pending = st.pending, None
             return self.add_box(st, p0, pt)
         if mode == "select":
-            st["sel"] = self.pick(st, pt, zoom)
-            st["msg"] = f"selected {st['sel'][0]} {st['sel'][1]}" if st["sel"] else "nothing here"
+            st.sel = self.pick(st, pt, zoom)
+            st.msg = f"selected {st.sel[0]} {st.sel[1]}" if st.sel else "nothing here"
             return st
         if mode in ("move", "resize"):
-            if not st.get("sel"):
-                st["msg"] = "select something first (mode 4)"
+            if not st.sel:
+                st.msg = "select something first (mode 4)"
                 return st
             return self.act(st, lambda a: self._move(st, a, pt, resize=mode == "resize"))
         if mode in ("depth", "offset"):
             return self._depth_click(st, pt, mode)
         return st
 
-    def add_box(self, st: dict, p0, p1) -> dict:
+    def add_box(self, st: Session, p0, p1) -> Session:
         def add(a):
             b = {"id": _next_id(a["boxes"]), "p0": list(p0), "p1": list(p1), "source": "manual"}
             a["boxes"].append(b)
-            st["sel"] = ["box", b["id"]]
+            st.sel = ["box", b["id"]]
             return f"box {b['id']} added"
         return self.act(st, add)
 
-    def _selected_box(self, st: dict):
-        sel = st.get("sel")
-        if not sel or sel[0] != "box" or st.get("ann") is None:
+    def _selected_box(self, st: Session) -> S.Box | None:
+        if not st.sel or st.sel[0] != "box" or st.ann is None:
             return None
-        return next((b for b in st["ann"]["boxes"] if b["id"] == sel[1]), None)
+        return next((b for b in st.ann["boxes"] if b["id"] == st.sel[1]), None)
 
-    def _depth_click(self, st: dict, pt, mode: str) -> dict:
+    def _depth_click(self, st: Session, pt, mode: str) -> Session:
         """A click on the selected box's top-back edge (depth) or on the board where its front
         stands (front offset), through the camera recovered from the rack plane."""
         b = self._selected_box(st)
         if b is None:
-            st["msg"] = "select a box first (mode 4; a new box is selected)"
+            st.msg = "select a box first (mode 4; a new box is selected)"
             return st
-        scene = self._scene(st["ann"])
+        scene = self.scene(st.ann)
         mb = next((m for m in scene.boxes if m.id == b["id"]), None) if scene is not None else None
         if mb is None or mb.shelf is None:
-            st["msg"] = "mark the rack, its shelves and the box's shelf first"
+            st.msg = "mark the rack, its shelves and the box's shelf first"
             return st
-        cam = G.camera_from_plane(scene.plane, st["ann"]["image_size"])
-        back = st.pop("mode_before", None) or "boxes"
+        cam = G.camera_from_plane(scene.plane, st.ann["image_size"])
+        back, st.mode_before = st.mode_before or "boxes", None
         if mode == "depth":
             s = G.depth_from_click(cam, mb, pt, scene.depth)
             val = round(float(np.clip(s - mb.front_offset, 0.01, max(scene.depth - mb.front_offset, 0.01))), 3)
@@ -741,11 +379,11 @@ class Tool:
         else:
             o = G.offset_from_click(cam, scene.shelf_v[mb.shelf], pt)
             if o is None:
-                st["msg"] = "⚠ that click is not on the top of the box's board: click where the box's front stands on it"
+                st.msg = "⚠ that click is not on the top of the box's board: click where the box's front stands on it"
                 return st
             val = round(float(np.clip(o, 0.0, max(scene.depth - 0.01, 0.0))), 3)
             field, what = "front_offset", "front offset"
-        st["mode"] = back
+        st.mode = back
         note = "" if cam.focal_from_photo else " (the view is nearly frontal: a typical phone lens is assumed; check it)"
 
         def upd(a):
@@ -755,7 +393,7 @@ class Tool:
             return f"box {b['id']}: {what} {val:g} m from the click{note}"
         return self.act(st, upd)
 
-    def _corner(self, st, a, pt):
+    def _corner(self, st: Session, a, pt):
         c = a["rack"]["corners"]
         if a["rack"]["width"] is None:
             p = S.preset(self.project.settings, self.project.settings.get("default_preset"))
@@ -765,15 +403,15 @@ class Tool:
         if len(c) < 4:
             c.append(pt)
             if len(c) == 4:
-                st["mode"] = "shelves"
+                st.mode = "shelves"
                 return "4 corners set: now click each shelf board's front edge"
             return f"corner {len(c)} of 4"
         k = int(np.argmin([np.hypot(q[0] - pt[0], q[1] - pt[1]) for q in c]))
         c[k] = pt
         return f"corner {k + 1} moved"
 
-    def _move(self, st, a, pt, resize=False):
-        kind, key = st["sel"]
+    def _move(self, st: Session, a, pt, resize=False):
+        kind, key = st.sel
         if kind == "corner" and key < len(a["rack"]["corners"]):
             a["rack"]["corners"][key] = pt
             return f"corner {key + 1} moved"
@@ -781,7 +419,7 @@ class Tool:
             for s in a["shelves"]:
                 if s["id"] == key:
                     s["point"] = pt
-                    return f"shelf moved"
+                    return "shelf moved"
         if kind in ("box", "proposal"):
             items = a["boxes"] if kind == "box" else a["proposals"]
             for b in items:
@@ -799,22 +437,22 @@ class Tool:
                     return f"{kind} {key} moved"
         return "the selected item is gone"
 
-    def pick(self, st: dict, pt, zoom: float = 1.0) -> list | None:
+    def pick(self, st: Session, pt, zoom: float = 1.0) -> list | None:
         """The item under a click: a corner, then the smallest box or proposal containing it,
         then the nearest shelf line (within a 50th of the photo, less when zoomed in)."""
-        a = st["ann"]
+        a = st.ann
         W, H = a["image_size"]
         tol = max(W, H) / 50 / max(1.0, float(zoom or 1.0))
         for k, q in enumerate(a["rack"]["corners"]):
             if np.hypot(q[0] - pt[0], q[1] - pt[1]) <= tol:
                 return ["corner", k]
-        scene = self._scene(a)
+        scene = self.scene(a)
         best = None
         for kind, items in (("box", a["boxes"]), ("proposal", a.get("proposals", []))):
             for b in items:
-                poly = self._box_poly(scene, b)
+                poly = G.box_polygon(scene, b)
                 if _inside(poly, pt):
-                    area = abs(_poly_area(poly))
+                    area = abs(G.polygon_area(poly))
                     if best is None or area < best[0]:
                         best = (area, [kind, b["id"]])
         if best:
@@ -826,14 +464,13 @@ class Tool:
                     return ["shelf", sid]
         return None
 
-    def delete(self, st: dict) -> dict:
-        sel = st.get("sel")
-        if not sel:
-            st["msg"] = "nothing selected"
+    def delete(self, st: Session) -> Session:
+        if not st.sel:
+            st.msg = "nothing selected"
             return st
-        if sel[0] == "proposal":
+        if st.sel[0] == "proposal":
             return self.reject(st)
-        kind, key = sel
+        kind, key = st.sel
 
         def rm(a):
             if kind == "corner":
@@ -844,19 +481,19 @@ class Tool:
             elif kind == "box":
                 a["boxes"] = [b for b in a["boxes"] if b["id"] != key]
             return f"{kind} {key} deleted"
-        st["sel"] = None
+        st.sel = None
         if kind == "corner":
-            st["mode"] = "corners"
+            st.mode = "corners"
         return self.act(st, rm)
 
-    def set_box_field(self, st: dict, field: str, value) -> dict:
-        sel = st.get("sel")
+    def set_box_field(self, st: Session, field: str, value) -> Session:
+        sel = st.sel
         if not sel or sel[0] not in ("box", "proposal"):
             if value is not None:
-                st["msg"] = "select a box first"
+                st.msg = "select a box first"
             return st
         if value is not None and (not np.isfinite(value) or value < 0 or (field == "depth" and value == 0)):
-            st["msg"] = f"⚠ {field.replace('_', ' ')} must be a positive number of metres"
+            st.msg = f"⚠ {field.replace('_', ' ')} must be a positive number of metres"
             return st
 
         def upd(a):
@@ -869,7 +506,7 @@ class Tool:
                     return f"{sel[0]} {sel[1]}: {field.replace('_', ' ')} {value} m"
         return self.act(st, upd)
 
-    def set_rack(self, st: dict, preset_name=None, width=None, height=None, depth=None) -> dict:
+    def set_rack(self, st: Session, preset_name=None, width=None, height=None, depth=None) -> Session:
         def upd(a):
             r = a["rack"]
             before_rack = dict(r)
@@ -889,17 +526,17 @@ class Tool:
             return f"rack size {r['width']:g} × {r['height']:g} × {r['depth']:g} m" if r != before_rack else ""
         return self.act(st, upd)
 
-    def set_status(self, st: dict, status: str) -> dict:
+    def set_status(self, st: Session, status: str) -> Session:
         """Set the photo's status; `done` and `approved` are refused (one line saying what to
         fix) while done_problems() finds anything."""
         if status not in S.STATUSES:
-            st["msg"] = f"unknown status {status!r}"
+            st.msg = f"unknown status {status!r}"
             return st
-        if status in DONE_STATUSES and st.get("ann") is not None:
-            probs = self.done_problems(st["ann"])
+        if status in DONE_STATUSES and st.ann is not None:
+            probs = self.done_problems(st.ann)
             if probs:
                 more = f" (and {len(probs) - 1} more, see the summary)" if len(probs) > 1 else ""
-                st["msg"] = f"⚠ not marked {status}: {probs[0]}{more}; your work is saved"
+                st.msg = f"⚠ not marked {status}: {probs[0]}{more}; your work is saved"
                 return st
 
         def upd(a):
@@ -907,8 +544,7 @@ class Tool:
             return f"status: {status}"
         return self.act(st, upd)
 
-
-    def done_problems(self, a: dict) -> list[str]:
+    def done_problems(self, a: S.Annotation) -> list[str]:
         """What stops this annotation from being `done`: missing corners, rack size or shelves,
         a rack size nobody confirmed (the default preset the first corner applied), waiting
         model proposals, and every geometry warning (annotate.geometry)."""
@@ -929,13 +565,11 @@ class Tool:
         if len(a["shelves"]) > R:
             out.append(f"{len(a['shelves'])} shelves marked but the project has R={R} channels")
         if len(r["corners"]) == 4 and r["width"] and r["height"] and r["depth"]:
-            try:
-                out += G.build_scene(a, self.project.settings).warnings
-            except (G.GeometryError, ValueError) as e:
-                out.append(str(e))
+            d = self._derive(a)
+            out += d.scene.warnings if d.scene is not None else [d.error]
         return out
 
-    def confirm_size(self, st: dict) -> dict:
+    def confirm_size(self, st: Session) -> Session:
         def upd(a):
             r = a["rack"]
             if r["width"] is None:
@@ -944,10 +578,10 @@ class Tool:
             return f"rack size {r['width']:g} × {r['height']:g} × {r['depth']:g} m confirmed"
         return self.act(st, upd)
 
-    def toggle_on_board(self, st: dict) -> dict:
+    def toggle_on_board(self, st: Session) -> Session:
         b = self._selected_box(st)
         if b is None:
-            st["msg"] = "select a box first (mode 4)"
+            st.msg = "select a box first (mode 4)"
             return st
 
         def upd(a):
@@ -960,7 +594,7 @@ class Tool:
                     return f"box {b['id']} stands on its board"
         return self.act(st, upd)
 
-    def set_field(self, st: dict, field: str, text) -> dict:
+    def set_field(self, st: Session, field: str, text) -> Session:
         """A number typed into a field, applied exactly as typed (`text` is the field's text)."""
         text = "" if text is None else str(text).strip()
         if text == "":
@@ -969,14 +603,14 @@ class Tool:
             try:
                 value = float(text)
             except ValueError:
-                st["msg"] = f"⚠ {field.replace('_', ' ')}: {text!r} is not a number"
+                st.msg = f"⚠ {field.replace('_', ' ')}: {text!r} is not a number"
                 return st
             if not math.isfinite(value):
-                st["msg"] = f"⚠ {field.replace('_', ' ')}: {text!r} is not a finite number"
+                st.msg = f"⚠ {field.replace('_', ' ')}: {text!r} is not a finite number"
                 return st
         if field in ("width", "height", "depth"):
             if value is None:
-                st["msg"] = f"⚠ rack {field} cannot be empty"
+                st.msg = f"⚠ rack {field} cannot be empty"
                 return st
             return self.set_rack(st, **{field: value})
         if field in ("box_depth", "box_offset"):
@@ -992,10 +626,10 @@ class Tool:
                     self._preds.popitem(last=False)
             return self._preds[name]
 
-    def refresh_proposals(self, ann: dict) -> str:
+    def refresh_proposals(self, ann: S.Annotation) -> str:
         """Recompute the model's box proposals for the current corners and shelves (skipping
         those that overlap a box already there or one the labeller rejected)."""
-        scene = self._scene(ann)
+        scene = self.scene(ann)
         if scene is None:
             ann["proposals"] = []
             return ""
@@ -1023,10 +657,10 @@ class Tool:
         ann["proposals"] = out
         return f"model proposes {len(out)} box(es): select to accept (a) or reject (r)"
 
-    def accept(self, st: dict, all_: bool = False) -> dict:
-        sel = st.get("sel")
+    def accept(self, st: Session, all_: bool = False) -> Session:
+        sel = st.sel
         if not all_ and (not sel or sel[0] != "proposal"):
-            st["msg"] = "select a proposal first (mode 4)"
+            st.msg = "select a proposal first (mode 4)"
             return st
 
         def upd(a):
@@ -1036,17 +670,17 @@ class Tool:
                 a["boxes"].append(b)
             a["proposals"] = [p for p in a.get("proposals", []) if p not in take]
             return f"accepted {len(take)} proposal(s)"
-        st["sel"] = None
+        st.sel = None
         return self.act(st, upd)
 
-    def reject(self, st: dict) -> dict:
-        sel = st.get("sel")
+    def reject(self, st: Session) -> Session:
+        sel = st.sel
         if not sel or sel[0] != "proposal":
-            st["msg"] = "select a proposal first (mode 4)"
+            st.msg = "select a proposal first (mode 4)"
             return st
 
         def upd(a):
-            scene = self._scene(a)
+            scene = self.scene(a)
             for p in a.get("proposals", []):
                 if p["id"] == sel[1]:
                     if scene is not None:
@@ -1055,184 +689,57 @@ class Tool:
                             a.setdefault("rejected", []).append(
                                 [mb.shelf, round(mb.u0, 4), round(mb.u1, 4), round(mb.v0, 4), round(mb.v1, 4)])
                     a["proposals"] = [q for q in a["proposals"] if q["id"] != sel[1]]
-                    return f"proposal rejected"
-        st["sel"] = None
+                    return "proposal rejected"
+        st.sel = None
         return self.act(st, upd)
 
-    # --- geometry and drawing --------------------------------------------------------------
-    def _scene(self, ann: dict) -> G.Scene | None:
-        try:
-            return G.build_scene(ann, self.project.settings)
-        except (G.GeometryError, ValueError):
-            return None
-
-    def _box_poly(self, scene, b) -> np.ndarray:
-        if scene is not None:
-            return G.box_outline(scene.plane, G.metric_box(scene.plane, b, scene.shelf_v or [-1e9], scene.depth, scene.depth))
-        (x0, y0), (x1, y1) = b["p0"], b["p1"]
-        return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], float)
-
-    def layouts(self, ann: dict):
-        """(scene, top, front) of an annotation; the last few are kept (a click's answer needs
-        them for the summary and the preview)."""
-        key = json.dumps([_content(ann), self.project.settings], sort_keys=True, default=str)
+    # --- the geometry of an annotation, built once ---------------------------------------------
+    def _derive(self, ann: S.Annotation) -> _Derived:
+        """The scene of `ann`'s rack, shelves and boxes under the project settings: built the
+        first time they are seen and kept for the last few (an event's edit, outlines, texts and
+        preview all use the same one; status, proposals and versions do not change it)."""
+        key = json.dumps([ann["rack"], ann["shelves"], ann["boxes"], self.project.settings],
+                         sort_keys=True, default=str)
         with self._lock:
-            hit = self._layouts.get(key)
+            hit = self._derived.get(key)
             if hit is not None:
-                self._layouts.move_to_end(key)
+                self._derived.move_to_end(key)
                 return hit
-        scene = self._scene(ann)
-        out = (scene, None, None)
-        if scene is not None and scene.shelf_v:
-            st = self.project.settings
-            try:
-                top, front = scene.layouts(st["R"], L.Grid(st["D"], st["extent"]))
-                out = (scene, top, front)
-            except G.GeometryError:
-                pass
+        try:
+            d = _Derived(G.build_scene(ann, self.project.settings))
+        except (G.GeometryError, ValueError) as e:
+            d = _Derived(None, str(e))
         with self._lock:
-            self._layouts[key] = out
-            while len(self._layouts) > 4:
-                self._layouts.popitem(last=False)
-        return out
+            self._derived[key] = d
+            while len(self._derived) > 8:
+                self._derived.popitem(last=False)
+        return d
 
-    def overlay(self, st: dict) -> list[dict]:
-        """Everything drawn over the photo, as shapes in photo pixels for the page to draw: the
-        rack outline and corners, shelf lines, boxes (red: on no shelf), proposals, imported
-        boxes, the half-drawn box's first corner. Outline widths are screen pixels."""
-        a = st.get("ann")
-        if a is None:
-            return []
-        out: list[dict] = []
+    def scene(self, ann: S.Annotation) -> G.Scene | None:
+        """The annotation's metric scene, or None while it does not define a rack."""
+        return self._derive(ann).scene
 
-        def poly(pts, c, w=1.5, closed=True):
-            out.append({"t": "poly", "pts": [[round(float(x), 2), round(float(y), 2)] for x, y in np.asarray(pts).reshape(-1, 2)],
-                        "c": _hex(c), "w": w, "closed": closed})
+    def layouts(self, ann: S.Annotation):
+        """(scene, top, front) of an annotation; top and front are None without a shelf or when
+        there are more shelves than the project's R."""
+        d = self._derive(ann)
+        if d.layouts is None:
+            out = (d.scene, None, None)
+            if d.scene is not None and d.scene.shelf_v:
+                cfg = self.project.settings
+                try:
+                    top, front = d.scene.layouts(cfg["R"], L.Grid(cfg["D"], cfg["extent"]))
+                    out = (d.scene, top, front)
+                except G.GeometryError:
+                    pass
+            d.layouts = out
+        return d.layouts
 
-        sel = st.get("sel") or [None, None]
-        corners = a["rack"]["corners"]
-        scene = self._scene(a)
-        if len(corners) == 4:
-            poly(G.order_corners(corners), C_RACK, 2)
-        for k, q in enumerate(corners):
-            out.append({"t": "dot", "x": q[0], "y": q[1], "r": 6 if sel == ["corner", k] else 4,
-                        "c": _hex(C_SEL if sel == ["corner", k] else C_RACK)})
-        if scene is not None:
-            for k, (sid, v) in enumerate(zip(scene.shelf_ids, scene.shelf_v)):
-                seg = G.shelf_line(scene.plane, v)
-                chosen = sel == ["shelf", sid]
-                poly(seg, C_SEL if chosen else C_SHELF, 3 if chosen else 1.5, closed=False)
-                out.append({"t": "text", "x": round(float(seg[0][0]) + 4, 1), "y": round(float(seg[0][1]) - 4, 1),
-                            "s": f"S{k + 1}", "c": _hex(C_SHELF)})
-            imp = read_imported(self.project, a) if a.get("imported") else {}
-            if "front" in imp and scene.shelf_v:
-                grid = L.Grid(imp["front"].shape[-1], self.project.settings["extent"])
-                for p in G.front_box_rects(imp["front"], imp.get("top"), grid, scene.shelf_v, scene.width, scene.depth):
-                    poly(G.rect_outline(scene.plane, p.u0, p.u1, p.v0, p.v1), C_IMPORT, 1)
-        else:
-            for s in a["shelves"]:
-                out.append({"t": "cross", "x": s["point"][0], "y": s["point"][1], "c": _hex(C_SHELF)})
-        metric = {m.id: m for m in scene.boxes} if scene is not None and scene.shelf_v else {}
-        for kind, items, col in (("proposal", a.get("proposals", []), C_PROP), ("box", a["boxes"], C_BOX)):
-            for b in items:
-                polyg = self._box_poly(scene, b)
-                colour = col
-                if kind == "box" and b["id"] in metric and metric[b["id"]].shelf is None:
-                    colour = C_FLOAT
-                chosen = sel == [kind, b["id"]]
-                poly(polyg, C_SEL if chosen else colour, 3 if chosen else 1.5)
-                if kind == "proposal":
-                    out.append({"t": "text", "x": float(polyg[3][0]), "y": float(polyg[3][1]), "s": "?", "c": _hex(C_PROP)})
-        if st.get("pending"):
-            out.append({"t": "cross", "x": st["pending"][0], "y": st["pending"][1], "c": _hex(C_PEND), "r": 8})
-        return out
-
-    def render_preview(self, st: dict, tile: int = 150) -> np.ndarray | None:
-        """Every shelf's top (upper row) and front (lower row) layout, colourised, lowest shelf
-        on the left; imported layouts (read-only) in two more rows when the image has them."""
-        import cv2
-
-        a = st.get("ann")
-        if a is None:
-            return None
-        _, top, front = self.layouts(a)
-        rows = []
-        if top is not None:
-            rows += [("top", top), ("front", front)]
-        imp = read_imported(self.project, a) if a.get("imported") else {}
-        rows += [(f"imported {v} (read-only)", imp[v]) for v in L.VIEWS if v in imp]
-        if not rows:
-            return None
-        R = max(s.shape[0] for _, s in rows)
-        lo, hi = content_window([s for _, s in rows])
-        pad, head = 4, 16
-        out = np.full((len(rows) * (tile + head + pad) + pad, R * (tile + pad) + pad, 3), 245, np.uint8)
-        for r, (label, stack) in enumerate(rows):
-            yb = pad + r * (tile + head + pad)
-            for i in range(stack.shape[0]):
-                xb = pad + i * (tile + pad)
-                img = cv2.resize(colorize(stack[i, lo:hi, lo:hi]), (tile, tile), interpolation=cv2.INTER_NEAREST)
-                out[yb + head:yb + head + tile, xb:xb + tile] = img
-                cv2.putText(out, f"S{i + 1} {label}", (xb, yb + head - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.38,
-                            (30, 30, 30), 1, cv2.LINE_AA)
-        return out
-
-    def summary(self, st: dict) -> str:
-        a = st.get("ann")
-        if a is None:
-            return ""
-        scene, top, front = self.layouts(a)
-        n_c = len(a["rack"]["corners"])
-        r = a["rack"]
-        lines = [f"**Rack** {n_c}/4 corners · {r['width']} × {r['height']} × {r['depth']} m"
-                 + (f" ({r['preset']})" if r.get("preset") else "")]
-        if scene is not None:
-            for i, (v, c) in enumerate(zip(scene.shelf_v, scene.clear)):
-                nb = sum(b.shelf == i for b in scene.boxes)
-                px = ""
-                if top is not None and i < top.shape[0]:
-                    px = (f" · box px top {int((top[i] == L.BOX).sum())}, front {int((front[i] == L.BOX).sum())}")
-                lines.append(f"- **S{i + 1}** board {v:.2f} m, clear {c:.2f} m, {nb} box(es){px}")
-            lines += [f"- ⚠ {w}" for w in scene.warnings]
-        else:
-            lines.append(f"- {len(a['shelves'])} shelf click(s), {len(a['boxes'])} box(es)")
-        R = self.project.settings["R"]
-        if len(a["shelves"]) > R:
-            lines.append(f"- ⚠ {len(a['shelves'])} shelves marked but the project has R={R} channels: "
-                         f"delete {len(a['shelves']) - R} (the export refuses this image)")
-        if a.get("proposals"):
-            lines.append(f"- {len(a['proposals'])} model proposal(s) waiting (green)")
-        return "\n".join(lines)
-
-    def header(self, st: dict) -> str:
-        stats = self.project.statuses()
-        done = sum(v in DONE_STATUSES for v in stats.values())
-        bad = sum(v == "unreadable" for v in stats.values())
-        names, n = list(stats), len(stats)
-        name = st.get("name")
-        k = names.index(name) + 1 if name in names else 0
-        status = st["ann"]["status"] if st.get("ann") else stats.get(name, "—")
-        unread = f" · {bad} unreadable (skipped)" if bad else ""
-        return (f"**{done} of {n} done**{unread} · image {k}/{n}: `{name}` · status **{status}** · "
-                f"mode **{st.get('mode')}**")
-
-    def selection(self, st: dict) -> tuple[str, float | None, float | None]:
-        sel = st.get("sel")
-        a = st.get("ann")
-        if not sel or a is None:
-            return "nothing selected", None, None
-        kind, key = sel
-        if kind in ("box", "proposal"):
-            for b in a["boxes"] if kind == "box" else a.get("proposals", []):
-                if b["id"] == key:
-                    scene = self._scene(a)
-                    txt = f"{kind} {key} ({b.get('source', 'manual')})"
-                    if scene is not None:
-                        mb = G.metric_box(scene.plane, b, scene.shelf_v, scene.depth, scene.depth)
-                        where = f"shelf S{mb.shelf + 1}" if mb.shelf is not None else "no shelf"
-                        txt += f": x {mb.u0 - scene.width / 2:+.2f}…{mb.u1 - scene.width / 2:+.2f} m, height {mb.v1 - mb.v0:.2f} m, on {where}"
-                    return txt, b.get("depth"), b.get("front_offset", 0.0)
-        return f"{kind} {key + 1 if kind == 'corner' else key}", None, None
+    def frame(self, st: Session) -> D.Frame:
+        """What the page shows for this session, for annotate.draw."""
+        if st.ann is None:
+            return D.Frame(st, self.project)
+        return D.Frame(st, self.project, *self.layouts(st.ann))
 
 
 def _finite(v) -> float:
@@ -1256,17 +763,11 @@ def _inside(poly, pt) -> bool:
     return cv2.pointPolygonTest(np.asarray(poly, np.float32), (float(pt[0]), float(pt[1])), False) >= 0
 
 
-def _poly_area(poly) -> float:
-    x, y = np.asarray(poly)[:, 0], np.asarray(poly)[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
-
-
 def _seg_dist(seg, pt) -> float:
     a, b, p = np.asarray(seg[0], float), np.asarray(seg[1], float), np.asarray(pt, float)
     d = b - a
     t = np.clip(np.dot(p - a, d) / max(np.dot(d, d), 1e-12), 0, 1)
     return float(np.linalg.norm(a + t * d - p))
-
 
 
 # --- the gradio UI ------------------------------------------------------------------------------
@@ -1277,38 +778,9 @@ DELETE_CACHE = (60, 300)
 CONCURRENCY = dict(concurrency_limit=1, concurrency_id="annotate")
 
 
-def _md_html(text: str) -> str:
-    """The little markdown the tool's texts use (**bold**, `code`, '- ' list lines) as HTML,
-    everything else escaped; drawn by the page (no markdown renderer on every click)."""
-    import re
-
-    out, items = [], []
-    for line in (text or "").split("\n"):
-        h = html.escape(line)
-        h = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", h)
-        h = re.sub(r"`(.+?)`", r"<code>\1</code>", h)
-        if h.startswith("- "):
-            items.append(f"<li>{h[2:]}</li>")
-            continue
-        if items:
-            out.append("<ul>" + "".join(items) + "</ul>")
-            items = []
-        if h:
-            out.append(f"<p>{h}</p>")
-    if items:
-        out.append("<ul>" + "".join(items) + "</ul>")
-    return "".join(out)
-
-
-def _pre(text: str, **attrs) -> str:
-    a = "".join(f' {k.replace("_", "-")}="{html.escape(str(v))}"' for k, v in attrs.items())
-    return f"<pre{a}>{html.escape(text)}</pre>"
-
-
 def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir: str | None = None):
     import time
 
-    import cv2
     import gradio as gr
 
     tool = Tool(project, predictor, user, tmp_dir=tmp_dir)
@@ -1320,11 +792,11 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
         with gr.Row():
             filter_dd = gr.Dropdown(choices=list(FILTERS), value="all", label="list", elem_id="filter", scale=1)
             image_dd = gr.Dropdown(choices=project.images(), label="photo (status)", elem_id="image-select", scale=3)
-            btn_prev = gr.Button("◀ prev (p)", elem_id="btn-prev", size="sm", scale=0)
-            btn_next = gr.Button("next ▶ (n)", elem_id="btn-next", size="sm", scale=0)
-            btn_todo = gr.Button("next unfinished (u)", elem_id="btn-next-todo", size="sm", scale=0)
+            gr.Button("◀ prev (p)", elem_id="btn-prev", size="sm", scale=0)
+            gr.Button("next ▶ (n)", elem_id="btn-next", size="sm", scale=0)
+            gr.Button("next unfinished (u)", elem_id="btn-next-todo", size="sm", scale=0)
             status_dd = gr.Dropdown(choices=list(S.STATUSES), label="annotation status", elem_id="status", scale=2)
-            btn_done = gr.Button("mark done (d)", elem_id="btn-done", size="sm", scale=0)
+            gr.Button("mark done (d)", elem_id="btn-done", size="sm", scale=0)
         with gr.Row(elem_classes="mode-row"):
             for i, m in enumerate(MODES):
                 gr.Button(f"{i + 1} {m}", elem_id=f"mode-{m}", size="sm")
@@ -1384,32 +856,27 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
 
         outputs = [state, header, image_dd, status_dd, preset_dd, view_data, photo_data]
 
-        def preview_url(st):
-            pv = tool.render_preview(st)
-            if pv is None:
-                return None
-            ok, buf = cv2.imencode(".png", np.ascontiguousarray(pv[:, :, ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-            return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
-
-        def render(st, t0=None):
-            """Every output; one unchanged since this session's last answer is not sent again."""
-            sel_txt, bd, bo = tool.selection(st)
-            a = st.get("ann") or {}
+        def render(st: Session, t0=None):
+            """Every output, drawn from one frame (one scene); an output unchanged since this
+            session's last answer is not sent again."""
+            f = tool.frame(st)
+            sel_txt, bd, bo = D.selection(f)
+            a = st.ann or {}
             rack = a.get("rack") or {}
-            stats = project.statuses()
-            choices = [(f"{n} · {stats.get(n, '?')}", n) for n in tool.listed(st)]
-            name = st.get("name")
-            photo_key = f"{name}:{project.image_path(name).stat().st_mtime_ns}" if st.get("ann") is not None else ""
-            view = {"ack": st.get("ack", 0), "name": name, "image_size": a.get("image_size"), "mode": st.get("mode"),
-                    "overlay": tool.overlay(st), "sel": st.get("sel"),
+            stats = f.statuses
+            choices = [(f"{n} · {stats.get(n, '?')}", n) for n in tool.listed(st, stats)]
+            name = st.name
+            photo_key = f"{name}:{project.image_path(name).stat().st_mtime_ns}" if st.ann is not None else ""
+            view = {"ack": st.ack, "name": name, "image_size": a.get("image_size"), "mode": st.mode,
+                    "overlay": D.overlay(f), "sel": st.sel,
                     "fields": {"width": rack.get("width"), "height": rack.get("height"), "depth": rack.get("depth"),
                                "box_depth": bd, "box_offset": bo},
-                    "text": {"message": _md_html(st.get("msg", "")), "summary": _md_html(tool.summary(st)),
-                             "selection": _md_html(sel_txt),
-                             "mode-help": _md_html(f"**{st.get('mode')}**: {MODE_HELP.get(st.get('mode'), '')}")}}
-            vals = {"header": tool.header(st), "image_dd": (tuple(choices), name), "status": a.get("status"),
+                    "text": {"message": D.md_html(st.msg), "summary": D.md_html(D.summary(f)),
+                             "selection": D.md_html(sel_txt),
+                             "mode-help": D.md_html(f"**{st.mode}**: {MODE_HELP.get(st.mode, '')}")}}
+            vals = {"header": D.header(f), "image_dd": (tuple(choices), name), "status": a.get("status"),
                     "preset": rack.get("preset"), "photo": photo_key}
-            last = st.setdefault("_sent", {})
+            last = st.sent
             out = [st]
             for k in ("header", "image_dd", "status", "preset"):
                 if last.get(k, object()) == vals[k]:
@@ -1418,25 +885,24 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
                 last[k] = vals[k]
                 out.append(gr.update(choices=list(vals[k][0]), value=vals[k][1]) if k == "image_dd" else vals[k])
             view["ms"] = None if t0 is None else round((time.perf_counter() - t0) * 1000, 1)
-            out.append(_pre(json.dumps(view)))
+            out.append(D.pre(json.dumps(view)))
             if last.get("photo") == photo_key:
                 out.append(gr.skip())
             else:
                 last["photo"] = photo_key
-                out.append(_pre(tool.photo_b64(name) if photo_key else "", data_key=photo_key))
+                out.append(D.pre(tool.photo_b64(name) if photo_key else "", data_key=photo_key))
             return out
 
-        def on_preview(st):
+        def on_preview(st: Session | None):
             """The layouts preview, right after each answer (so the click's outline is on screen
             first): sent only when it changed."""
             if st is None:
                 return gr.skip()
-            url = preview_url(st) or ""
-            last = st.setdefault("_sent", {})
-            if last.get("preview") == url:
+            url = D.preview_url(tool.frame(st)) or ""
+            if st.sent.get("preview") == url:
                 return gr.skip()
-            last["preview"] = url
-            return _pre(url)
+            st.sent["preview"] = url
+            return D.pre(url)
 
         def ensure(st, request=None):
             if st is not None:
@@ -1455,7 +921,7 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
                 actions = json.loads(text or "[]")
             except json.JSONDecodeError:
                 actions = []
-                st["msg"] = "⚠ ignored a malformed request (not JSON)"
+                st.msg = "⚠ ignored a malformed request (not JSON)"
             return render(tool.apply(st, actions), t0)
 
         def on_upload(st, files, request: gr.Request):
@@ -1472,9 +938,9 @@ def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir
                 finally:
                     with contextlib.suppress(OSError):   # gradio's copy of the upload: done with it
                         os.unlink(path)
-            if added and st.get("name") is None:
-                st = tool.open(added[0], st.get("user"), st)
-            st["msg"] = (f"added {', '.join(added)}" if added else "") + (("; ⚠ " + "; ⚠ ".join(errs)) if errs else "")
+            if added and st.name is None:
+                st = tool.open(added[0], st.user, st)
+            st.msg = (f"added {', '.join(added)}" if added else "") + (("; ⚠ " + "; ⚠ ".join(errs)) if errs else "")
             return render(st)
 
         demo.load(on_load, None, outputs, **CONCURRENCY).then(on_preview, [state], [preview_data],
@@ -1501,7 +967,7 @@ def launch_kwargs(host: str = "127.0.0.1", port: int = 7860, auth=None) -> dict:
 
     theme = gr.themes.Soft(font=["ui-sans-serif", "system-ui", "sans-serif"],
                            font_mono=["ui-monospace", "monospace"])
-    return dict(server_name=host, server_port=port, auth=auth, theme=theme, css=CSS, head=_head(),
+    return dict(server_name=host, server_port=port, auth=auth, theme=theme, css=CSS, head=head(),
                 ssr_mode=False, max_file_size=MAX_UPLOAD_BYTES, show_error=True, quiet=True, footer_links=[])
 
 

@@ -10,7 +10,7 @@ fails. Either way a failed run leaves nothing half-written.
 """
 from __future__ import annotations
 
-import contextlib
+import math
 import os
 import shutil
 import tempfile
@@ -20,12 +20,12 @@ from pathlib import Path
 import numpy as np
 
 from racklay import layout as L
-from racklay.atomic import atomic_save_npy, encode_png
+from racklay.atomic import encode_png
 from racklay.data import DataError, RackLayRoot, make_splits
 
 from . import geometry as G
 from . import schema as S
-from .store import ANN_DIR, IMPORT_DIR, Project, StoreError, photo_info
+from .store import Project, StoreError, photo_info
 
 
 def parse_counts(text: str, what: str = "--split") -> dict[str, float]:
@@ -37,6 +37,8 @@ def parse_counts(text: str, what: str = "--split") -> dict[str, float]:
             if not eq or not name.strip():
                 raise ValueError
             out[name.strip()] = float(val)
+            if not math.isfinite(out[name.strip()]):
+                raise ValueError
         except ValueError:
             raise ValueError(f"{what}: cannot read {part!r} (expected name=value, e.g. train=0.8)") from None
         if out[name.strip()] < 0:
@@ -56,24 +58,19 @@ def check_fractions(fractions: dict[str, float], what: str = "--split-fractions"
 
 def split_ids(ids: list[str], counts: dict[str, float] | None = None,
               fractions: dict[str, float] | None = None, seed: int = 0) -> dict[str, list[str]]:
-    """Reproducible splits by exact counts or by fractions (racklay.data.make_splits; the
-    fractions must sum to 1)."""
-    if fractions is not None:
-        check_fractions(fractions)
+    """Reproducible splits by exact counts or by fractions (default train=0.8,test=0.2): the
+    command line's values checked with messages naming its flags, then cut by
+    racklay.data.make_splits (the one shuffle-and-cut of the toolkit)."""
     if counts is not None:
-        need = int(sum(counts.values()))
         if any(c != int(c) for c in counts.values()):
             raise ValueError(f"--split: counts must be whole numbers, got {counts}")
+        need = int(sum(counts.values()))
         if need > len(ids):
             raise ValueError(f"--split asks for {need} images but {len(ids)} are exported")
-        order = list(ids)
-        np.random.default_rng(seed).shuffle(order)
-        out, start = {}, 0
-        for name, n in counts.items():
-            out[name] = sorted(order[start:start + int(n)])
-            start += int(n)
-        return out
-    return make_splits(ids, fractions or {"train": 0.8, "test": 0.2}, seed)
+        return make_splits(ids, counts={k: int(v) for k, v in counts.items()}, seed=seed)
+    fractions = fractions or {"train": 0.8, "test": 0.2}
+    check_fractions(fractions)
+    return make_splits(ids, fractions, seed)
 
 
 def annotation_layouts(project: Project, ann: dict) -> tuple[np.ndarray, np.ndarray, G.Scene]:
@@ -97,8 +94,8 @@ def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict
             "status": ann["status"], "rack": {k: ann["rack"][k] for k in ("width", "height", "depth", "preset")},
             "shelf_heights_m": [round(v, 4) for v in scene.shelf_v],
             "clear_heights_m": [round(v, 4) for v in scene.clear],
-            "boxes": [{"id": b.id, "shelf": b.shelf, "x0": round(b.u0 - scene.width / 2, 4),
-                       "x1": round(b.u1 - scene.width / 2, 4), "z0": round(b.z0, 4),
+            "boxes": [{"id": b.id, "shelf": b.shelf, "x0": round(L.u_to_x(b.u0, scene.width), 4),
+                       "x1": round(L.u_to_x(b.u1, scene.width), 4), "z0": round(b.z0, 4),
                        "height": round(b.v1 - b.v0, 4), "depth": round(b.depth, 4),
                        "front_offset": round(b.front_offset, 4)} for b in scene.boxes],
             "grid": {"D": project.settings["D"], "extent": project.settings["extent"]},
@@ -131,14 +128,12 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
     chosen, other_status, unannotated = [], {}, 0
     skipped: list[tuple[str, str]] = []
     warnings: list[str] = []
-    photos = project.images()
-    ann_dir = project.root / ANN_DIR
-    for name in photos:
-        p = project.annotation_path(name)
-        if not p.exists():
+    for name in project.images():
+        ann = project.read_annotation(name)  # a bad file stops the export, naming itself
+        if ann is None:
             unannotated += 1
             continue
-        ann = S.load_annotation(p)  # a bad file stops the export, naming itself
+        p = project.annotation_path(name)
         if ann["status"] not in only_status:
             other_status[ann["status"]] = other_status.get(ann["status"], 0) + 1
             continue
@@ -187,12 +182,9 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         raise
     # said, never silent: what was left out and why (annotations whose photo left the project
     # cannot be exported, but they are listed)
-    orphans = []
-    if ann_dir.is_dir():
-        have = set(photos)
-        orphans = sorted(str(q) for q in ann_dir.glob("*.json") if q.stem not in have)
     return {"out": str(out), "images": len(chosen), "splits": {k: len(v) for k, v in splits.items()},
-            "left_out": {"other_status": other_status, "unannotated": unannotated, "no_photo": orphans},
+            "left_out": {"other_status": other_status, "unannotated": unannotated,
+                         "no_photo": project.orphan_annotations()},
             "skipped": skipped, "warnings": warnings}
 
 
@@ -256,55 +248,23 @@ def import_dataset(root: str | os.PathLike | ImportPlan, project: Project, split
     ds, R, D = plan.ds, plan.R, plan.D
     st = project.settings
     # R and D must match the project's (a project without annotations adopts the dataset's)
-    if (st["R"], st["D"]) != (R, D) and any((project.root / ANN_DIR).glob("*.json")):
+    if (st["R"], st["D"]) != (R, D) and project.has_annotations():
         raise ValueError(f"{ds.root}: layouts are R={R}, D={D} but the project uses R={st['R']}, D={st['D']}")
-    for sid in plan.ids:
-        name = plan.name(sid)
+    names = [plan.name(sid) for sid in plan.ids]
+    for name in names:
         if project.image_path(name).exists() or project.annotation_path(name).exists():
             raise StoreError(f"{project.root / name}: already in the project (imported before?)")
-    written: list[Path] = []
-    new_dirs = [d for d in (project.root / ANN_DIR / ".locks", project.root / ANN_DIR, project.root / IMPORT_DIR)
-                if not d.exists()]
-    try:
+    with project.all_or_nothing(names):  # a failed write removes what was written
         if (st["R"], st["D"]) != (R, D):  # an empty project adopts the dataset's R and D
             project.save_settings(dict(st, R=R, D=D))
-        for sid in plan.ids:
-            name = plan.name(sid)
+        for sid, name in zip(plan.ids, names):
             imp = {"dataset": str(ds.root.resolve()), "id": sid, "top": None, "front": None}
             for view in plan.views:
-                arr = ds.read_layouts(view, sid, R=R, D=D)
-                rel = f"{IMPORT_DIR}/{name}.{view}.npy"
-                atomic_save_npy(project.project_file(rel), L.encode(arr))
-                written.append(project.project_file(rel))
-                imp[view] = rel
+                imp[view] = project.save_imported(name, view, ds.read_layouts(view, sid, R=R, D=D))
             image = ds.read_image(sid)
             project.add_image(name, encode_png(image))
-            written.append(project.image_path(name))
             ann = S.new_annotation(name, image.shape[1], image.shape[0])
             ann["status"] = "needs review"
             ann["imported"] = imp
-            written.append(project.root / ANN_DIR / ".locks" / f"{name}.lock")  # (a new name: ours)
             project.save(ann, user="annotate import")
-            written.append(project.annotation_path(name))
-    except BaseException:
-        for p in written:
-            p.unlink(missing_ok=True)
-        for d in new_dirs:
-            with contextlib.suppress(OSError):
-                d.rmdir()  # only if still empty
-        if project.settings is not st:
-            project.restore_settings(st)
-        raise
-    return [plan.name(sid) for sid in plan.ids]
-
-
-def read_imported(project: Project, ann: dict) -> dict[str, np.ndarray]:
-    """Class-id stacks of an annotation's imported layouts ({} when none)."""
-    from racklay.data import read_layout_file
-
-    imp = ann.get("imported") or {}
-    out = {}
-    for view in L.VIEWS:
-        if imp.get(view):
-            out[view] = read_layout_file(project.project_file(imp[view]))
-    return out
+    return names

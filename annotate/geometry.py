@@ -11,7 +11,7 @@ homography is exact for a plane.
 * Box: two opposite corners of the box's (or stack's) front face -> a metric x-range and
   z-range on the plane -> the shelf it stands on (the highest board at or below its bottom, with
   a snap tolerance; its bottom is put on that board unless the box says on_board: false) -> a
-  racklay.layout.Box in that shelf's frame: x_shelf = u - W/2, and a box with front offset o and
+  racklay.layout.Box in that shelf's frame: x_shelf = u - W/2 (racklay.layout.u_to_x), and a box with front offset o and
   depth d spans y in [-depth/2 + o, -depth/2 + o + d]. Its top may rise above the next board.
 * Depth by clicking: the camera is recovered from the rack-plane homography (square pixels,
   principal point at the photo's centre, focal length from the homography when the view is
@@ -51,7 +51,9 @@ def order_corners(pts) -> np.ndarray:
     return np.roll(p, -start, axis=0)
 
 
-def _area(q: np.ndarray) -> float:
+def polygon_area(q) -> float:
+    """Signed area of a polygon given as (n, 2) points (the shoelace formula)."""
+    q = np.asarray(q, dtype=np.float64)
     x, y = q[:, 0], q[:, 1]
     return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
 
@@ -73,7 +75,7 @@ class RackPlane:
         if not (width and width > 0 and height and height > 0):
             raise GeometryError(f"rack width and height must be positive metres, got {width} x {height}")
         q = order_corners(corners)
-        if abs(_area(q)) < 25.0:
+        if abs(polygon_area(q)) < 25.0:
             raise GeometryError("the 4 rack corners are (nearly) on one line: click the corners of the rack's front face")
         dst = np.array([[0, height], [width, height], [width, 0], [0, 0]], dtype=np.float64)
         H = cv2.getPerspectiveTransform(q.astype(np.float32), dst.astype(np.float32)).astype(np.float64)
@@ -138,7 +140,7 @@ class Scene:
             if b.shelf != i:
                 continue
             y0 = -self.depth / 2 + b.front_offset
-            out.append(L.Box(cx=(b.u0 + b.u1) / 2 - self.width / 2, cy=y0 + b.depth / 2,
+            out.append(L.Box(cx=L.u_to_x((b.u0 + b.u1) / 2, self.width), cy=y0 + b.depth / 2,
                              sx=b.u1 - b.u0, sy=b.depth, sz=b.v1 - b.v0, z0=b.z0))
         return out
 
@@ -317,6 +319,16 @@ def box_outline(plane: RackPlane, b: MetricBox) -> np.ndarray:
     return plane.to_image([[b.u0, b.v0], [b.u1, b.v0], [b.u1, b.v1], [b.u0, b.v1]])
 
 
+def box_polygon(scene: Scene | None, b: dict) -> np.ndarray:
+    """(4, 2) pixel polygon of a box annotation as the tool outlines and picks it: its metric
+    front face mapped back to the photo when there is a scene (the box's own depth ignored),
+    else the clicked rectangle."""
+    if scene is not None:
+        return box_outline(scene.plane, metric_box(scene.plane, b, scene.shelf_v or [-1e9], scene.depth, scene.depth))
+    (x0, y0), (x1, y1) = b["p0"], b["p1"]
+    return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], float)
+
+
 def shelf_line(plane: RackPlane, v: float) -> np.ndarray:
     """(2, 2) pixel end points of the board edge at height v."""
     return plane.to_image([[0.0, v], [plane.width, v]])
@@ -368,7 +380,7 @@ def front_box_rects(front: np.ndarray, top: np.ndarray | None, grid: L.Grid, she
                     off = float(np.clip(ya + rack_depth / 2, 0.0, rack_depth))
                     depth = float(np.clip(yb - ya, grid.res, rack_depth - off)) if rack_depth - off > 0 else None
             score = float(probs_box[i][lab == k].mean()) if probs_box is not None else None
-            u0, u1 = np.clip([xa + width / 2, xb + width / 2], 0.0, width)
+            u0, u1 = np.clip(L.x_to_u(np.array([xa, xb]), width), 0.0, width)
             v0, v1 = v + max(za, 0.0), v + zb
             if tops is not None:
                 v1 = min(v1, tops[i])

@@ -5,7 +5,9 @@ line naming the file and the field, and is never overwritten by the tool.
 Everything the labeller clicks is stored in *image pixels* (corners, shelf-edge points, box
 rectangles), so moving a rack corner later re-maps every shelf and box through the new
 homography. Metric values (shelf heights, box ranges) are derived by `annotate.geometry`, never
-stored as the source of truth. The format is documented in docs/annotation-format.md.
+stored as the source of truth. The format is documented in docs/annotation-format.md and
+written down as types here (`Annotation`, `Settings` and their parts, TypedDicts); the
+validators below are the one place that checks a file against them.
 """
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ import math
 import os
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 SCHEMA_VERSION = 1
 SETTINGS_VERSION = 1
@@ -33,6 +35,98 @@ DEFAULT_PRESETS = [
 
 class SchemaError(ValueError):
     """An annotation or settings file that breaks the schema; the message names file and field."""
+
+
+# --- the formats, as types: what validate_annotation / validate_settings accept ------------------
+# (required fields in the first class, optional ones in the `total=False` class built on it; the
+# validators take their field lists from these, so the two cannot drift apart)
+Point = list  # [x, y] in photo pixels (x right, y down)
+
+
+class _RackFields(TypedDict):
+    corners: list[Point]        # 0-4 clicked corners of the rack's front face, any order
+    width: float | None         # metres (null until a preset or a value is set)
+    height: float | None
+    depth: float | None
+
+
+class Rack(_RackFields, total=False):
+    preset: str | None
+    size_confirmed: bool        # absent = confirmed (files from before it existed)
+
+
+class Shelf(TypedDict):
+    id: int
+    point: Point                # one click on the board's front edge
+
+
+class _BoxFields(TypedDict):
+    id: int
+    p0: Point                   # two opposite corners of the box's front face
+    p1: Point
+
+
+class Box(_BoxFields, total=False):
+    depth: float | None         # metres; absent = project default_depth or the rack depth
+    front_offset: float | None  # metres from the rack's front face (absent = 0)
+    source: str                 # BOX_SOURCES
+    score: float | None         # a model proposal's mean box probability
+    on_board: bool              # false: rests on something (its bottom is where it was clicked)
+
+
+class _ImportedFields(TypedDict):
+    top: str | None             # paths inside the project of read-only imported layouts
+    front: str | None
+
+
+class Imported(_ImportedFields, total=False):
+    dataset: str
+    id: str
+
+
+class _AnnotationFields(TypedDict):
+    schema_version: int         # SCHEMA_VERSION
+    image: str                  # the photo's plain file name
+    image_size: list[int]       # [width, height] in pixels
+    version: int                # save counter, for the conflict check
+    status: str                 # STATUSES
+    rack: Rack
+    shelves: list[Shelf]
+    boxes: list[Box]
+
+
+class Annotation(_AnnotationFields, total=False):
+    """One annotations/NAME.json (docs/annotation-format.md)."""
+
+    proposals: list[Box]        # model proposals waiting to be accepted or rejected
+    rejected: list[list[float]]  # [shelf, u0, u1, v0, v1] on the rack plane, metres
+    imported: Imported | None
+    updated_by: str | None
+    updated_at: str
+
+
+class Preset(TypedDict):
+    name: str
+    width: float
+    height: float
+    depth: float
+
+
+class _SettingsFields(TypedDict):
+    schema_version: int         # SETTINGS_VERSION
+    R: int
+    D: int
+    extent: float
+    presets: list[Preset]
+
+
+class Settings(_SettingsFields, total=False):
+    """project.json (docs/annotation-format.md)."""
+
+    default_depth: float | None
+    default_preset: str | None
+    box_snap: float
+    version: int
 
 
 # --- small validators ------------------------------------------------------------------------
@@ -80,14 +174,14 @@ def _point(v, source, field) -> list[float]:
     return [_num(v[0], source, f"{field}[0]"), _num(v[1], source, f"{field}[1]")]
 
 
-def _obj(v, source, field, required: dict, optional: dict = ()) -> dict:
+def _obj(v, source, field, kind: type) -> dict:
+    """v is an object with the fields of the TypedDict `kind`: every required one, no other."""
     if not isinstance(v, dict):
         _fail(source, field, f"expected an object, got {type(v).__name__}")
-    allowed = set(required) | set(optional)
-    extra = sorted(set(v) - allowed)
+    extra = sorted(set(v) - kind.__required_keys__ - kind.__optional_keys__)
     if extra:
         _fail(source, f"{field}.{extra[0]}" if field else extra[0], "unknown field")
-    for k in required:
+    for k in sorted(kind.__required_keys__):
         if k not in v:
             _fail(source, f"{field}.{k}" if field else k, "missing")
     return v
@@ -104,7 +198,7 @@ def check_image_name(name: str, source: str = "image name", field: str = "image"
 
 
 # --- annotation -------------------------------------------------------------------------------
-def new_annotation(image: str, width: int, height: int) -> dict:
+def new_annotation(image: str, width: int, height: int) -> Annotation:
     """A fresh annotation for an image of width x height pixels."""
     return {
         "schema_version": SCHEMA_VERSION,
@@ -122,14 +216,8 @@ def new_annotation(image: str, width: int, height: int) -> dict:
     }
 
 
-_ANN_FIELDS = {"schema_version", "image", "image_size", "version", "status", "rack", "shelves", "boxes"}
-_ANN_OPTIONAL = {"proposals", "rejected", "imported", "updated_by", "updated_at"}
-_BOX_FIELDS = {"id", "p0", "p1"}
-_BOX_OPTIONAL = {"depth", "front_offset", "source", "score", "on_board"}
-
-
-def _validate_box(b, source, field) -> dict:
-    _obj(b, source, field, _BOX_FIELDS, _BOX_OPTIONAL)
+def _validate_box(b, source, field) -> Box:
+    _obj(b, source, field, Box)
     _int(b["id"], source, f"{field}.id", lo=0)
     _point(b["p0"], source, f"{field}.p0")
     _point(b["p1"], source, f"{field}.p1")
@@ -146,9 +234,9 @@ def _validate_box(b, source, field) -> dict:
     return b
 
 
-def validate_annotation(d: Any, source: str = "annotation") -> dict:
+def validate_annotation(d: Any, source: str = "annotation") -> Annotation:
     """Check an annotation dict against the schema; return it unchanged or raise SchemaError."""
-    _obj(d, source, "", _ANN_FIELDS, _ANN_OPTIONAL)
+    _obj(d, source, "", Annotation)
     sv = d["schema_version"]
     if sv != SCHEMA_VERSION:
         _fail(source, "schema_version", f"this tool reads version {SCHEMA_VERSION}, the file has {sv!r}")
@@ -160,7 +248,7 @@ def validate_annotation(d: Any, source: str = "annotation") -> dict:
     _int(sz[1], source, "image_size[1]", lo=1)
     _int(d["version"], source, "version", lo=0)
     _str(d["status"], source, "status", STATUSES)
-    rack = _obj(d["rack"], source, "rack", {"corners", "width", "height", "depth"}, {"preset", "size_confirmed"})
+    rack = _obj(d["rack"], source, "rack", Rack)
     if not isinstance(rack["corners"], list) or len(rack["corners"]) > 4:
         _fail(source, "rack.corners", "expected a list of at most 4 [x, y] points")
     for i, p in enumerate(rack["corners"]):
@@ -175,7 +263,7 @@ def validate_annotation(d: Any, source: str = "annotation") -> dict:
     if not isinstance(d["shelves"], list):
         _fail(source, "shelves", "expected a list")
     for i, s in enumerate(d["shelves"]):
-        _obj(s, source, f"shelves[{i}]", {"id", "point"})
+        _obj(s, source, f"shelves[{i}]", Shelf)
         _int(s["id"], source, f"shelves[{i}].id", lo=0)
         _point(s["point"], source, f"shelves[{i}].point")
     for key in ("boxes", "proposals"):
@@ -197,7 +285,7 @@ def validate_annotation(d: Any, source: str = "annotation") -> dict:
             _num(v, source, f"rejected[{i}][{j}]")
     imp = d.get("imported")
     if imp is not None:
-        _obj(imp, source, "imported", {"top", "front"}, {"dataset", "id"})
+        _obj(imp, source, "imported", Imported)
         for k in ("top", "front"):
             if imp[k] is not None:
                 p = _str(imp[k], source, f"imported.{k}")
@@ -215,7 +303,7 @@ PHOTO_MARGIN = 0.05
 MIN_BOX_PX = 1.0
 
 
-def photo_problems(ann: dict, width: int, height: int, name: str | None = None) -> list[str]:
+def photo_problems(ann: Annotation, width: int, height: int, name: str | None = None) -> list[str]:
     """Every way a (schema-valid) annotation does not fit its photo of width x height pixels
     (named `name`): a different image name or image_size, rack corners, shelf points or box
     corners outside the photo (beyond PHOTO_MARGIN), coinciding rack corners, boxes without area.
@@ -262,13 +350,13 @@ def _read_json(path: Path):
         raise SchemaError(f"{path}: not UTF-8 text") from None
 
 
-def load_annotation(path: str | os.PathLike) -> dict:
+def load_annotation(path: str | os.PathLike) -> Annotation:
     """Read and validate an annotation file. Raises SchemaError naming the file."""
     return validate_annotation(_read_json(Path(path)), str(path))
 
 
 # --- project settings -------------------------------------------------------------------------
-def default_settings() -> dict:
+def default_settings() -> Settings:
     return {
         "schema_version": SETTINGS_VERSION,
         "R": 4,
@@ -281,9 +369,8 @@ def default_settings() -> dict:
     }
 
 
-def validate_settings(d: Any, source: str = "project settings") -> dict:
-    _obj(d, source, "", {"schema_version", "R", "D", "extent", "presets"},
-         {"default_depth", "default_preset", "box_snap", "version"})
+def validate_settings(d: Any, source: str = "project settings") -> Settings:
+    _obj(d, source, "", Settings)
     if "version" in d:
         _int(d["version"], source, "version", lo=0)
     if d["schema_version"] != SETTINGS_VERSION:
@@ -301,7 +388,7 @@ def validate_settings(d: Any, source: str = "project settings") -> dict:
         _fail(source, "presets", "expected a list")
     names = []
     for i, p in enumerate(d["presets"]):
-        _obj(p, source, f"presets[{i}]", {"name", "width", "height", "depth"})
+        _obj(p, source, f"presets[{i}]", Preset)
         names.append(_str(p["name"], source, f"presets[{i}].name"))
         for k in ("width", "height", "depth"):
             _num(p[k], source, f"presets[{i}].{k}", lo=0, hi=100, lo_open=True)
@@ -312,12 +399,12 @@ def validate_settings(d: Any, source: str = "project settings") -> dict:
     return d
 
 
-def load_settings(path: str | os.PathLike) -> dict:
+def load_settings(path: str | os.PathLike) -> Settings:
     """Read and validate a project settings file. Raises SchemaError naming the file."""
     return validate_settings(_read_json(Path(path)), str(path))
 
 
-def preset(settings: dict, name: str | None) -> dict | None:
+def preset(settings: Settings, name: str | None) -> Preset | None:
     for p in settings["presets"]:
         if p["name"] == name:
             return p

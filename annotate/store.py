@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from racklay.atomic import atomic_write_bytes, atomic_write_json
+from racklay import layout as L
+from racklay.atomic import atomic_save_npy, atomic_write_bytes, atomic_write_json
 
 from . import schema as S
 
@@ -34,6 +35,7 @@ IMAGE_EXTS = (".jpg", ".jpeg", ".png")
 SETTINGS_FILE = "project.json"
 ANN_DIR = "annotations"
 IMPORT_DIR = "imported"
+LOCK_DIR = ".locks"
 HISTORY_DIR = ".history"
 #: undo (and redo) steps kept on disk per image
 HISTORY_STEPS = 50
@@ -132,24 +134,87 @@ class Project:
     # --- annotations ---
     def load(self, name: str) -> dict:
         """The image's annotation (a fresh one if none was saved). SchemaError if the file is bad."""
+        ann = self.read_annotation(name)
+        if ann is None:
+            w, h = self.image_size(name)
+            return S.new_annotation(name, w, h)
+        if ann["image"] != name:
+            raise S.SchemaError(f"{self.annotation_path(name)}: field 'image': says {ann['image']!r}, expected {name!r}")
+        return ann
+
+    def read_annotation(self, name: str) -> S.Annotation | None:
+        """The annotation saved for photo `name`, validated (SchemaError naming the file), or None
+        when none was saved. Unlike load(), a file that names another photo is returned as it is
+        (`annotate export` reports that with the photo's other problems)."""
         p = self.annotation_path(name)
-        if p.exists():
-            ann = S.load_annotation(p)
-            if ann["image"] != name:
-                raise S.SchemaError(f"{p}: field 'image': says {ann['image']!r}, expected {name!r}")
-            return ann
-        w, h = self.image_size(name)
-        return S.new_annotation(name, w, h)
+        return S.load_annotation(p) if p.exists() else None
+
+    def has_annotations(self) -> bool:
+        """Whether any annotation file is in the project."""
+        return any((self.root / ANN_DIR).glob("*.json"))
+
+    def orphan_annotations(self) -> list[str]:
+        """The annotation files whose photo is no longer in the project (paths, sorted)."""
+        ann_dir = self.root / ANN_DIR
+        if not ann_dir.is_dir():
+            return []
+        have = set(self.images())
+        return sorted(str(q) for q in ann_dir.glob("*.json") if q.stem not in have)
+
+    # --- layouts brought in by `annotate import` (read-only in the tool) ---
+    def save_imported(self, name: str, view: str, classes: np.ndarray) -> str:
+        """Write class-id layouts (R, D, D) of photo `name` as imported/NAME.VIEW.npy (RackLay file
+        values, atomic); returns the path relative to the project, as the annotation stores it."""
+        if view not in L.VIEWS:
+            raise StoreError(f"{name}: unknown layout view {view!r} (views: {', '.join(L.VIEWS)})")
+        rel = f"{IMPORT_DIR}/{name}.{view}.npy"
+        atomic_save_npy(self.project_file(rel), L.encode(classes))
+        return rel
+
+    def read_imported(self, ann: S.Annotation) -> dict[str, np.ndarray]:
+        """Class-id stacks of an annotation's imported layouts by view ({} when none)."""
+        from racklay.data import read_layout_file
+
+        imp = ann.get("imported") or {}
+        return {view: read_layout_file(self.project_file(imp[view])) for view in L.VIEWS if imp.get(view)}
+
+    @contextlib.contextmanager
+    def all_or_nothing(self, names: list[str]):
+        """For `annotate import`: if the block fails, whatever it wrote for the new photos `names`
+        is removed again (the photo, its annotation, lock file and imported layouts), so are the
+        project's folders that did not exist before it, and project.json is put back. The names
+        must be new to the project (nothing of theirs is kept)."""
+        folders = [self.root / ANN_DIR / LOCK_DIR, self.root / ANN_DIR, self.root / IMPORT_DIR]
+        new_folders = [d for d in folders if not d.exists()]
+        settings = self.settings
+        try:
+            yield
+        except BaseException:
+            for name in names:
+                files = [self.image_path(name), self.annotation_path(name), self._lock_path(name)]
+                files += [self.project_file(f"{IMPORT_DIR}/{name}.{view}.npy") for view in L.VIEWS]
+                for f in files:
+                    f.unlink(missing_ok=True)
+            for d in new_folders:
+                with contextlib.suppress(OSError):
+                    d.rmdir()  # only if still empty
+            if self.settings is not settings:
+                self.restore_settings(settings)
+            raise
 
     def disk_version(self, name: str) -> int:
         p = self.annotation_path(name)
         return S.load_annotation(p)["version"] if p.exists() else 0
 
+    def _lock_path(self, name: str) -> Path:
+        S.check_image_name(name, str(self.root))
+        return self._inside(self.root / ANN_DIR / LOCK_DIR / f"{name}.lock")
+
     @contextlib.contextmanager
     def _lock(self, name: str):
-        lock_dir = self.root / ANN_DIR / ".locks"
-        lock_dir.mkdir(parents=True, exist_ok=True)
-        with open(self._inside(lock_dir / f"{name}.lock"), "a+") as f:
+        path = self._lock_path(name)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a+") as f:
             fcntl.flock(f, fcntl.LOCK_EX)
             try:
                 yield

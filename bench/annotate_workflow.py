@@ -47,6 +47,7 @@ def main() -> int:
     import cv2
     from playwright.sync_api import sync_playwright
 
+    from annotate import draw as D
     from annotate.app import Tool, build_app, launch_kwargs
     from annotate.browser import SETTLED_JS, click_image, launch, missing_browser, wait_ready
     from annotate.store import Project
@@ -135,10 +136,12 @@ def main() -> int:
     print(f"machine time for the whole photo ({AIM_S:g} s aiming a click): {total:.1f} s")
     tool = Tool(project)
     st = tool.open("shelf.jpg")
-    parts = {"overlay (outlines)": lambda: tool.overlay(st), "layouts preview": lambda: tool.render_preview(st),
-             "summary text": lambda: tool.summary(st), "header + list statuses": lambda: tool.header(st),
+    f = tool.frame(st)   # the scene and layouts, built once and shared by the drawing below
+    parts = {"frame (scene and layouts, cached)": lambda: tool.frame(st),
+             "overlay (outlines)": lambda: D.overlay(f), "layouts preview": lambda: D.preview(f),
+             "summary text": lambda: D.summary(f), "header + list statuses": lambda: D.header(tool.frame(st)),
              "save (atomic, version-checked)": lambda: project.save(dict(project.load("shelf.jpg"))),
-             "undo history save": lambda: project.save_history("shelf.jpg", 0, st["undo"], st["redo"])}
+             "undo history save": lambda: project.save_history("shelf.jpg", 0, st.undo, st.redo)}
     for name, fn in parts.items():
         t = time.perf_counter()
         for _ in range(10):

@@ -383,17 +383,34 @@ def parse_split_entry(line: str) -> str:
     return stem if dot and ("." + ext.lower()) in IMAGE_EXTS + (".npy",) else name
 
 
-def make_splits(ids: Sequence[str], fractions: dict[str, float], seed: int = 0) -> dict[str, list[str]]:
-    """Shuffle ids reproducibly and cut them into named splits by fraction (sums to <= 1)."""
-    total = sum(fractions.values())
-    if total > 1 + 1e-9 or any(f < 0 for f in fractions.values()):
-        raise ValueError(f"split fractions must be >= 0 and sum to <= 1, got {fractions}")
+def make_splits(ids: Sequence[str], fractions: dict[str, float] | None = None, seed: int = 0, *,
+                counts: dict[str, int] | None = None) -> dict[str, list[str]]:
+    """Shuffle ids reproducibly (numpy's default_rng(seed)) and cut them into named splits, in
+    the order given, each sorted: by `fractions` (>= 0, summing to <= 1; when they sum to 1 the
+    last split takes the rest) or by exact `counts` (whole numbers >= 0, at most len(ids) in all).
+    The same ids and seed give the same shuffle either way."""
+    if (fractions is None) == (counts is None):
+        raise ValueError("make_splits: give either split fractions or split counts")
+    if counts is not None:
+        if any(int(c) != c or c < 0 for c in counts.values()):
+            raise ValueError(f"split counts must be whole numbers >= 0, got {counts}")
+        if sum(counts.values()) > len(ids):
+            raise ValueError(f"split counts ask for {int(sum(counts.values()))} ids but there are {len(ids)}")
+        sizes = {name: int(c) for name, c in counts.items()}
+    else:
+        total = sum(fractions.values())
+        if total > 1 + 1e-9 or any(f < 0 for f in fractions.values()):
+            raise ValueError(f"split fractions must be >= 0 and sum to <= 1, got {fractions}")
+        names = list(fractions)
+        sizes, given = {}, 0
+        for i, name in enumerate(names):
+            last = i == len(names) - 1 and total >= 1 - 1e-9
+            sizes[name] = len(ids) - given if last else round(fractions[name] * len(ids))
+            given += sizes[name]
     order = list(ids)
     np.random.default_rng(seed).shuffle(order)
     out, start = {}, 0
-    names = list(fractions)
-    for i, name in enumerate(names):
-        n = round(fractions[name] * len(order)) if i < len(names) - 1 or total < 1 - 1e-9 else len(order) - start
+    for name, n in sizes.items():
         out[name] = sorted(order[start:start + n])
         start += n
     return out

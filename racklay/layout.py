@@ -18,6 +18,10 @@ Shelf-centric frame, per shelf i: origin at the centre of the shelf board's top 
 x along the rack's length (to the camera's right), y along its depth (away from the camera),
 z up.
 
+Rack plane (the annotation tool's, annotate.geometry): u along the rack's front face from its
+left edge (0 .. W), v up from its bottom. A shelf spans the rack's width, so x = u - W/2 and
+u = x + W/2 (`u_to_x`, `x_to_u`: the one place this shift is written).
+
 Top view T_i: column c <-> x, row r <-> y. Column centres are x = (c + 0.5 - D/2) * res, so x
 grows to the right and x = 0 is the centre line of the map. Rows run the other way: the far side
 (back of the shelf, +y) is at the top of the map, y = (D/2 - r - 0.5) * res. The shelf rectangle
@@ -124,6 +128,17 @@ class Grid:
     def m_to_px(self, metres) -> int:
         """A metric length as a whole number of pixels (rounded, at least 1)."""
         return max(1, int(round(float(metres) / self.res)))
+
+
+def u_to_x(u, width: float):
+    """Rack-plane u (metres from the rack's left edge, 0 .. width) -> shelf-frame x (metres from
+    the shelf's centre line): x = u - width/2. Scalars or numpy arrays."""
+    return u - width / 2
+
+
+def x_to_u(x, width: float):
+    """Shelf-frame x -> rack-plane u: u = x + width/2 (the inverse of u_to_x)."""
+    return x + width / 2
 
 
 def _span_mask(centres: np.ndarray, lo: float, hi: float) -> np.ndarray:

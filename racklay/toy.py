@@ -54,8 +54,8 @@ def schematic_image(length, heights, shelves, size=(280, 470), rng=None) -> np.n
         base = z - 0.05 * scale
         for b in boxes:
             a, c = b.x_range()
-            p0 = (int(x0 + (a + length / 2) * scale), int(base - (b.z0 + b.sz) * scale))
-            p1 = (int(x0 + (c + length / 2) * scale), int(base - b.z0 * scale))
+            p0 = (int(x0 + L.x_to_u(a, length) * scale), int(base - (b.z0 + b.sz) * scale))
+            p1 = (int(x0 + L.x_to_u(c, length) * scale), int(base - b.z0 * scale))
             col = tuple(int(v) for v in rng.integers([150, 100, 50], [200, 140, 80]))
             cv2.rectangle(img, p0, p1, col, -1)
             cv2.rectangle(img, p0, p1, (60, 40, 20), 1)

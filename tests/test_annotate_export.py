@@ -6,13 +6,12 @@ import numpy as np
 import pytest
 
 from annotate.cli import main as annotate_main
-from annotate.dataset import read_imported, split_ids
+from annotate.dataset import split_ids
 from annotate.store import Project
 from racklay import layout as L
 from racklay.atomic import encode_png
 from racklay.data import RackLayRoot, check_dataset
-
-from test_annotate_geometry import Camera, clicks, true_layouts, iou
+from test_annotate_geometry import Camera, clicks, iou, true_layouts
 
 
 def make_project(tmp_path, n=5, statuses=None):
@@ -87,19 +86,19 @@ def test_import_round_trip(tmp_path, capsys):
     assert (p2.settings["R"], p2.settings["D"]) == (4, 256)
     ann = p2.load("ds_000000.png")
     assert ann["status"] == "needs review"
-    lay = read_imported(p2, ann)
+    lay = p2.read_imported(ann)
     np.testing.assert_array_equal(lay["front"], RackLayRoot(out).read_layouts("front", "000000"))
     # the tool shows the imported layouts read-only beside the photo, and over it once the
     # rack and shelves are marked
+    from annotate import draw as D
     from annotate.app import Tool
     tool = Tool(p2)
     st = tool.open("ds_000000.png")
-    pv = tool.render_preview(st)
+    pv = D.preview(tool.frame(st))
     assert pv is not None and pv.shape[0] > 2 * 150
     src = proj.load("p0.png")
     st = tool.act(st, lambda a: a.update(rack=src["rack"], shelves=src["shelves"]))
-    from annotate.app import C_IMPORT, _hex
-    assert any(sh["c"] == _hex(C_IMPORT) for sh in tool.overlay(st))  # imported boxes outlined
+    assert any(sh["c"] == D.hex_colour(D.C_IMPORT) for sh in D.overlay(tool.frame(st)))  # imported boxes outlined
     assert proj.load("p0.png")["boxes"]  # (source project untouched)
     assert annotate_main(["import", str(out), str(rev)]) == 2
     assert "already in the project" in capsys.readouterr().err

@@ -1,6 +1,5 @@
 """annotate.store and annotate.schema: atomic saves, restore after a kill, version conflicts,
 strict validation that never overwrites a bad file, confinement and upload checks."""
-import io
 import json
 import os
 import signal
@@ -8,7 +7,6 @@ import subprocess
 import sys
 import textwrap
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -119,7 +117,8 @@ def test_uploads_checked(proj):
     with pytest.raises(StoreError, match="already in the project"):
         proj.add_image("a.png", _png())
     # a decompression bomb: a tiny PNG declaring 20000 x 20000 pixels is refused from its header
-    import zlib, struct
+    import struct
+    import zlib
     def chunk(t, d):
         return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xffffffff)
     raw = zlib.compress(b"\0" * (20000 + 1) * 64)  # only 64 rows of data: the header is what counts
@@ -183,3 +182,53 @@ def test_settings_save_with_lock_and_version_check(proj):
     os.close(fd)
     t.join(30)
     assert S.load_settings(proj.root / "project.json")["R"] == 2 and c.settings["version"] == 2
+
+
+def test_only_the_store_touches_project_files():
+    """docs/annotation-format.md: only annotate/store.py reads or writes a project's files
+    (annotations, locks, history, imported layouts, project.json); export and import go through
+    it. A guard on the source: no other annotate module names those files or folders (as store
+    constants or as path strings), parses them or writes with racklay.atomic."""
+    import ast
+    from pathlib import Path
+
+    import annotate
+
+    names = {"ANN_DIR", "IMPORT_DIR", "LOCK_DIR", "HISTORY_DIR", "SETTINGS_FILE", "load_annotation", "load_settings",
+             "atomic_write_json", "atomic_write_bytes", "atomic_save_npy", "_read_json"}
+    folders = ("annotations", "imported", ".locks", ".history", "project.json")
+    exact = set(folders) - {"imported"}   # also the annotation's field name
+    for path in sorted(Path(annotate.__file__).parent.rglob("*.py")):
+        if path.name in ("store.py", "schema.py", "auth.py"):   # schema: the parsers; auth: the login file
+            continue
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Name, ast.Attribute, ast.alias)):
+                name = node.id if isinstance(node, ast.Name) else node.attr if isinstance(node, ast.Attribute) else node.name
+                found |= {name} & names
+            elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+                if node.value in exact or node.value.startswith(tuple(f + "/" for f in folders)):
+                    found.add(node.value)
+        assert not found, f"{path.name} touches project files itself: {sorted(found)}"
+
+
+def test_format_types_match_the_validator_and_the_docs():
+    """annotate.schema's TypedDicts are the format: the validator takes its field lists from
+    them, the documented example validates, and every field of the types is documented."""
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "annotation-format.md").read_text()
+    example = json.loads(re.search(r"```json\n(.*?)```", doc, re.S).group(1))
+    assert S.validate_annotation(example, "docs example") is example
+    fresh = S.new_annotation("a.png", 640, 480)
+    assert S.Annotation.__required_keys__ <= set(fresh) <= S.Annotation.__required_keys__ | S.Annotation.__optional_keys__
+    documented = {w for span in re.findall(r"`([^`]*)`", doc) for w in re.findall(r"\w+", span)}
+    for kind in (S.Annotation, S.Rack, S.Shelf, S.Box, S.Imported, S.Settings, S.Preset):
+        for k in kind.__required_keys__ | kind.__optional_keys__:
+            assert k in documented, f"{kind.__name__}.{k} is not documented"
+    with pytest.raises(S.SchemaError, match=r"field 'rack\.colour': unknown field"):
+        S.validate_annotation(dict(example, rack=dict(example["rack"], colour="red")), "x")
+    missing = {k: v for k, v in example.items() if k not in ("image", "boxes")}
+    with pytest.raises(S.SchemaError, match=r"field 'boxes': missing"):   # the first missing, alphabetically
+        S.validate_annotation(missing, "x")

@@ -1,18 +1,17 @@
 """The annotation tool's server logic (annotate.app.Tool) without a browser: the click workflow,
 editing, undo/redo, conflicts between two labellers, invalid files, and model-assisted
 proposals with a stand-in predictor that follows racklay.predict.Predictor's contract."""
-import json
 import os
 
 import numpy as np
 import pytest
 
+from annotate import draw as D
 from annotate import geometry as G
 from annotate.app import Tool, build_app
 from annotate.store import Project
 from racklay import layout as L
 from racklay.atomic import encode_png
-
 from test_annotate_geometry import BOARDS, BOXES, GRID, Camera, clicks, iou, true_layouts
 
 CAM = Camera([-1.2, -2.4, 1.6], [1.0, 0.0, 0.9])
@@ -35,10 +34,10 @@ def disp(tool, st, pt):
 def label_by_clicks(tool, st, ann):
     for c in ann["rack"]["corners"]:
         st = tool.click(st, *disp(tool, st, c))
-    assert st["mode"] == "shelves"
+    assert st.mode == "shelves"
     for s in ann["shelves"]:
         st = tool.click(st, *disp(tool, st, s["point"]))
-    st["mode"] = "boxes"
+    st.mode = "boxes"
     for b in ann["boxes"]:
         st = tool.click(st, *disp(tool, st, b["p0"]))
         st = tool.click(st, *disp(tool, st, b["p1"]))
@@ -50,8 +49,8 @@ def test_click_workflow_matches_ground_truth(proj):
     st = tool.open("r.png")
     truth = clicks(CAM)
     st = label_by_clicks(tool, st, truth)
-    for b, t in zip(st["ann"]["boxes"], truth["boxes"]):  # depth / offset are typed per box
-        st["sel"] = ["box", b["id"]]
+    for b, t in zip(st.ann["boxes"], truth["boxes"]):  # depth / offset are typed per box
+        st.sel = ["box", b["id"]]
         st = tool.set_box_field(st, "depth", t["depth"])
         st = tool.set_box_field(st, "front_offset", t["front_offset"])
         if t.get("on_board") is False:  # the box resting on something: the labeller says so (f)
@@ -63,29 +62,29 @@ def test_click_workflow_matches_ground_truth(proj):
     for i in range(3):
         assert iou(top[i] == L.BOX, ttop[i] == L.BOX) >= 0.9
         assert iou(front[i] == L.BOX, tfront[i] == L.BOX) >= 0.9
-    pv = tool.render_preview(st)
-    assert pv.ndim == 3
-    shapes = tool.overlay(st)   # drawn over the photo by the page: rack, 3 shelf lines, every box
+    f = tool.frame(st)
+    assert D.preview(f).ndim == 3
+    shapes = D.overlay(f)   # drawn over the photo by the page: rack, 3 shelf lines, every box
     assert sum(s["t"] == "poly" for s in shapes) == 1 + 3 + len(BOXES)
-    assert "S3" in tool.summary(st) and "0 of 1 done" in tool.header(st)
+    assert "S3" in D.summary(f) and "0 of 1 done" in D.header(f)
 
 
 def test_select_move_resize_delete_undo_redo(proj):
     tool = Tool(proj)
     st = label_by_clicks(tool, tool.open("r.png"), clicks(CAM))
-    b0 = dict(st["ann"]["boxes"][0])
+    b0 = dict(st.ann["boxes"][0])
     centre = [(b0["p0"][0] + b0["p1"][0]) / 2, (b0["p0"][1] + b0["p1"][1]) / 2]
-    st["mode"] = "select"
+    st.mode = "select"
     st = tool.click(st, *disp(tool, st, centre))
-    assert st["sel"] == ["box", 0]
-    st["mode"] = "move"
+    assert st.sel == ["box", 0]
+    st.mode = "move"
     st = tool.click(st, *disp(tool, st, [centre[0] + 10, centre[1]]))
-    moved = st["ann"]["boxes"][0]
+    moved = st.ann["boxes"][0]
     assert moved["p0"][0] == pytest.approx(b0["p0"][0] + 10, abs=0.05)
-    st["mode"] = "resize"
+    st.mode = "resize"
     st = tool.click(st, *disp(tool, st, [moved["p1"][0] + 7, moved["p1"][1]]))
-    assert st["ann"]["boxes"][0]["p1"][0] == pytest.approx(moved["p1"][0] + 7, abs=0.05)
-    n = len(st["ann"]["boxes"])
+    assert st.ann["boxes"][0]["p1"][0] == pytest.approx(moved["p1"][0] + 7, abs=0.05)
+    n = len(st.ann["boxes"])
     st = tool.delete(st)
     assert len(proj.load("r.png")["boxes"]) == n - 1
     st = tool.undo(st)
@@ -94,9 +93,9 @@ def test_select_move_resize_delete_undo_redo(proj):
     st = tool.undo(st, redo=True)
     assert len(proj.load("r.png")["boxes"]) == n - 1
     # a shelf line and a corner can be picked too
-    st["mode"] = "select"
-    st = tool.click(st, *disp(tool, st, st["ann"]["rack"]["corners"][0]))
-    assert st["sel"] == ["corner", 0]
+    st.mode = "select"
+    st = tool.click(st, *disp(tool, st, st.ann["rack"]["corners"][0]))
+    assert st.sel == ["corner", 0]
 
 
 def test_two_labellers_conflict_is_refused_with_message(proj):
@@ -104,7 +103,7 @@ def test_two_labellers_conflict_is_refused_with_message(proj):
     sa, sb = ana.open("r.png"), ben.open("r.png")
     sa = ana.click(sa, 100, 100)
     sb = ben.click(sb, 300, 300)
-    assert "⚠" in sb["msg"] and "ana changed this image meanwhile" in sb["msg"]
+    assert "⚠" in sb.msg and "ana changed this image meanwhile" in sb.msg
     assert proj.load("r.png")["rack"]["corners"] == [[100, 100]]
     sb = ben.open("r.png")  # reloading shows ana's work, and ben can go on
     sb = ben.click(sb, 300, 300)
@@ -117,7 +116,7 @@ def test_invalid_file_is_shown_not_overwritten(proj):
     p.write_text("{broken")
     tool = Tool(proj)
     st = tool.open("r.png")
-    assert "not valid JSON" in st["msg"] and st["ann"] is None
+    assert "not valid JSON" in st.msg and st.ann is None
     st = tool.click(st, 10, 10)
     assert p.read_text() == "{broken"
 
@@ -142,33 +141,33 @@ def test_model_proposals_accept_edit_reject(proj):
     truth = clicks(CAM)
     truth["boxes"] = []
     st = label_by_clicks(tool, tool.open("r.png"), truth)
-    props = st["ann"]["proposals"]
+    props = st.ann["proposals"]
     assert len(props) == len(BOXES) and pred.calls == 1  # predicted once, cached
     # each proposal, mapped back through the geometry, is the true box
-    scene = G.build_scene(st["ann"], proj.settings)
+    scene = G.build_scene(st.ann, proj.settings)
     got = sorted((G.metric_box(scene.plane, p, scene.shelf_v, 0.6, 0.6).shelf, p["depth"]) for p in props)
     want = sorted((s, d) for s, *_, d in BOXES)
     assert [g[0] for g in got] == [w[0] for w in want]
     np.testing.assert_allclose([g[1] for g in got], [w[1] for w in want], atol=2 * GRID.res)
     # select one proposal by clicking inside it, accept it
     p = props[0]
-    st["mode"] = "select"
+    st.mode = "select"
     st = tool.click(st, *disp(tool, st, [(p["p0"][0] + p["p1"][0]) / 2, (p["p0"][1] + p["p1"][1]) / 2]))
-    assert st["sel"] == ["proposal", p["id"]]
+    assert st.sel == ["proposal", p["id"]]
     st = tool.accept(st)
-    assert len(st["ann"]["boxes"]) == 1 and st["ann"]["boxes"][0]["source"] == "model"
-    assert len(st["ann"]["proposals"]) == len(BOXES) - 1
+    assert len(st.ann["boxes"]) == 1 and st.ann["boxes"][0]["source"] == "model"
+    assert len(st.ann["proposals"]) == len(BOXES) - 1
     # reject the next one: it is remembered and not proposed again when a shelf moves
-    q = st["ann"]["proposals"][0]
-    st["sel"] = ["proposal", q["id"]]
+    q = st.ann["proposals"][0]
+    st.sel = ["proposal", q["id"]]
     st = tool.reject(st)
-    assert len(st["ann"]["rejected"]) == 1
-    shelf = st["ann"]["shelves"][0]
-    st["sel"], st["mode"] = ["shelf", shelf["id"]], "move"
+    assert len(st.ann["rejected"]) == 1
+    shelf = st.ann["shelves"][0]
+    st.sel, st.mode = ["shelf", shelf["id"]], "move"
     st = tool.click(st, *disp(tool, st, [shelf["point"][0] + 0.4, shelf["point"][1]]))
-    assert len(st["ann"]["proposals"]) == len(BOXES) - 2
+    assert len(st.ann["proposals"]) == len(BOXES) - 2
     st = tool.accept(st, all_=True)
-    assert len(st["ann"]["boxes"]) == len(BOXES) - 1 and not st["ann"]["proposals"]
+    assert len(st.ann["boxes"]) == len(BOXES) - 1 and not st.ann["proposals"]
     assert pred.calls == 1
 
 
@@ -183,8 +182,8 @@ def test_real_predictor_contract(proj):
     predictor = Predictor.from_model(RackLayNet(cfg).eval(), cfg)
     tool = Tool(proj, predictor=predictor)
     st = label_by_clicks(tool, tool.open("r.png"), dict(clicks(CAM), boxes=[]))
-    assert isinstance(st["ann"]["proposals"], list)
-    assert "⚠" not in st["msg"]
+    assert isinstance(st.ann["proposals"], list)
+    assert "⚠" not in st.msg
 
 
 def test_build_app_smoke(proj):
@@ -207,14 +206,14 @@ def test_missing_browser_fails_in_ci_and_skips_elsewhere(monkeypatch):
 def test_rack_size_and_preset(proj):
     tool = Tool(proj)
     st = tool.click(tool.open("r.png"), 10, 10)  # first corner applies the default preset
-    assert st["ann"]["rack"]["preset"] == proj.settings["default_preset"]
-    v = st["ann"]["version"]
-    st = tool.set_rack(st, width=st["ann"]["rack"]["width"])  # unchanged value (a blur): no save
-    assert st["ann"]["version"] == v and st["ann"]["rack"]["preset"]
+    assert st.ann["rack"]["preset"] == proj.settings["default_preset"]
+    v = st.ann["version"]
+    st = tool.set_rack(st, width=st.ann["rack"]["width"])  # unchanged value (a blur): no save
+    assert st.ann["version"] == v and st.ann["rack"]["preset"]
     st = tool.set_rack(st, depth=0.45)
     assert proj.load("r.png")["rack"]["depth"] == 0.45 and proj.load("r.png")["rack"]["preset"] is None
     st = tool.set_rack(st, width=-1)
-    assert "⚠" in st["msg"] and proj.load("r.png")["rack"]["width"] > 0
+    assert "⚠" in st.msg and proj.load("r.png")["rack"]["width"] > 0
     st = tool.set_rack(st, preset_name="longspan 2.4 × 2.4 × 0.8 m")
     assert proj.load("r.png")["rack"]["depth"] == 0.8
 
@@ -312,18 +311,18 @@ def test_done_refused_while_warnings_or_unconfirmed_preset(proj):
     tool = Tool(proj)
     st = label_by_clicks(tool, tool.open("r.png"), clicks(CAM))   # the first corner applied the default preset
     st = tool.set_status(st, "done")
-    assert st["msg"].startswith("⚠ not marked done: the rack size 2 × 2 × 0.6 m is the default preset, not confirmed")
-    assert "\n" not in st["msg"]
+    assert st.msg.startswith("⚠ not marked done: the rack size 2 × 2 × 0.6 m is the default preset, not confirmed")
+    assert "\n" not in st.msg
     saved = proj.load("r.png")
     assert saved["status"] == "in progress" and len(saved["boxes"]) == len(BOXES)   # work in progress kept
     st = tool.confirm_size(st)
     st = tool.add_box(st, *CAM.project([[0.3, 0, 0.02], [0.6, 0, 0.08]]).tolist())   # below every shelf: a warning
     st = tool.set_status(st, "done")
-    assert "not marked done: box" in st["msg"] and "below every marked shelf" in st["msg"]
+    assert "not marked done: box" in st.msg and "below every marked shelf" in st.msg
     assert proj.load("r.png")["status"] == "in progress"
     st = tool.delete(st)                           # the new box is selected: delete it
     st = tool.set_status(st, "done")
-    assert proj.load("r.png")["status"] == "done", st["msg"]
+    assert proj.load("r.png")["status"] == "done", st.msg
 
 
 def test_reload_reopens_last_photo_with_undo_history(proj):
@@ -337,7 +336,7 @@ def test_reload_reopens_last_photo_with_undo_history(proj):
     tool.flush_history()
     again = Tool(Project(proj.root))
     st2 = again.open(again.project.resume_image())
-    assert st2["name"] == "s.png" and len(st2["undo"]) == 2
+    assert st2.name == "s.png" and len(st2.undo) == 2
     st2 = again.undo(st2)
     assert proj.load("s.png")["rack"]["corners"] == [[10, 10]]
     st2 = again.undo(st2, redo=True)
@@ -347,7 +346,7 @@ def test_reload_reopens_last_photo_with_undo_history(proj):
     ann = proj.load("s.png")
     ann["rack"]["corners"].append([300, 400])
     proj.save(ann)
-    assert Tool(Project(proj.root)).open("s.png")["undo"] == []
+    assert Tool(Project(proj.root)).open("s.png").undo == []
 
 
 def test_photo_list_filter_and_next_unfinished(proj):
@@ -363,13 +362,13 @@ def test_photo_list_filter_and_next_unfinished(proj):
     st = tool.apply(st, [{"seq": 1, "kind": "filter", "value": "unfinished"}])
     assert tool.listed(st) == ["r.png", "t.png"]
     st = tool.apply(st, [{"seq": 2, "kind": "act", "name": "next_unfinished"}])
-    assert st["name"] == "t.png"
+    assert st.name == "t.png"
     st = tool.step(st, +1, unfinished=True)
-    assert st["name"] == "r.png"               # s.png is done, u.png unreadable
+    assert st.name == "r.png"               # s.png is done, u.png unreadable
     st = tool.apply(st, [{"seq": 3, "kind": "filter", "value": "all"}, {"seq": 4, "kind": "act", "name": "prev"}])
-    assert st["name"] == "t.png" and st["ack"] == 4   # u.png skipped
+    assert st.name == "t.png" and st.ack == 4   # u.png skipped
     bad = tool.open("u.png")
-    assert bad["ann"] is None and "u.png" in bad["msg"] and "\n" not in bad["msg"]
+    assert bad.ann is None and "u.png" in bad.msg and "\n" not in bad.msg
 
 
 def test_actions_applied_once_in_order_and_bad_ones_refused(proj):
@@ -384,29 +383,27 @@ def test_actions_applied_once_in_order_and_bad_ones_refused(proj):
     assert proj.load("r.png")["rack"]["corners"] == [[10, 10], [600, 12]]
     v = proj.load("r.png")["version"]
     st = tool.apply(st, [{"seq": 3, "kind": "click", "x": 1e9, "y": 5, "image": "r.png"}])
-    assert st["msg"].startswith("⚠ not saved: ") and "outside the 640x480 photo" in st["msg"] and "\n" not in st["msg"]
+    assert st.msg.startswith("⚠ not saved: ") and "outside the 640x480 photo" in st.msg and "\n" not in st.msg
     st = tool.apply(st, [{"seq": 4, "kind": "click", "x": float("nan"), "y": 5}, {"seq": 5, "kind": "warp"}])
-    assert "malformed" in st["msg"] and proj.load("r.png")["version"] == v
+    assert "malformed" in st.msg and proj.load("r.png")["version"] == v
     st = tool.apply(st, [{"seq": 6, "kind": "click", "x": 5, "y": 5, "image": "other.png"}])
-    assert "not applied" in st["msg"] and proj.load("r.png")["version"] == v
+    assert "not applied" in st.msg and proj.load("r.png")["version"] == v
 
 
 def test_typed_field_text_stored_exactly(proj):
     tool = Tool(proj)
     st = tool.click(tool.open("r.png"), 10, 10)
     for f, text, want in (("width", "0.74", 0.74), ("height", "1.83", 1.83), ("depth", " 0.39 ", 0.39)):
-        st = tool.apply(st, [{"seq": st["ack"] + 1, "kind": "field", "field": f, "text": text}])
+        st = tool.apply(st, [{"seq": st.ack + 1, "kind": "field", "field": f, "text": text}])
         assert proj.load("r.png")["rack"][f] == want
-    st = tool.apply(st, [{"seq": st["ack"] + 1, "kind": "field", "field": "width", "text": "2,74"}])
-    assert "not a number" in st["msg"] and proj.load("r.png")["rack"]["width"] == 0.74
+    st = tool.apply(st, [{"seq": st.ack + 1, "kind": "field", "field": "width", "text": "2,74"}])
+    assert "not a number" in st.msg and proj.load("r.png")["rack"]["width"] == 0.74
     assert proj.load("r.png")["rack"]["size_confirmed"] is True
 
 
 def test_box_depth_and_offset_by_clicking(proj):
     """Mode 7: a click on the selected box's top-back edge sets its depth; mode 8: a click on the
     board where its front stands sets its front offset (camera from the rack plane)."""
-    from test_annotate_geometry import BOARDS
-
     tool = Tool(proj)
     truth = clicks(CAM)
     st = label_by_clicks(tool, tool.open("r.png"), dict(truth, boxes=[]))
@@ -414,13 +411,56 @@ def test_box_depth_and_offset_by_clicking(proj):
     s, x0, x1, z0, z1, o, d = 1, 0.20, 0.90, 0.0, 0.50, 0.0, 0.50   # BOXES[3]
     zb = BOARDS[s]
     p = CAM.project([[x0, o, zb + z0], [x1, o, zb + z1]])
-    st["mode"] = "boxes"
+    st.mode = "boxes"
     st = tool.click(st, *p[0])
     st = tool.click(st, *p[1])
     st = tool.apply(st, [{"seq": 1, "kind": "mode", "mode": "depth"}])
     st = tool.click(st, *CAM.project([[(x0 + x1) / 2, o + d, zb + z1]])[0])
     box = proj.load("r.png")["boxes"][0]
-    assert box["depth"] == pytest.approx(d, abs=0.02) and st["mode"] == "boxes"
+    assert box["depth"] == pytest.approx(d, abs=0.02) and st.mode == "boxes"
     st = tool.apply(st, [{"seq": 2, "kind": "mode", "mode": "offset"}])
     st = tool.click(st, *CAM.project([[x0 + 0.1, 0.07, zb]])[0])
     assert proj.load("r.png")["boxes"][0]["front_offset"] == pytest.approx(0.07, abs=0.01)
+
+
+def test_scene_built_at_most_once_per_event(proj, monkeypatch):
+    """An event from the page (a batch of actions through the app's handler, the answer drawn,
+    then the preview) builds the annotation's scene at most once, and not at all when the rack,
+    shelves and boxes did not change (a mode key, a selection, a status); it was 1-4 times."""
+    import json
+    from types import SimpleNamespace
+
+    real, calls = G.build_scene, []
+    monkeypatch.setattr(G, "build_scene", lambda *a, **k: calls.append(1) or real(*a, **k))
+    demo = build_app(proj)
+    fns = {f.name: f.fn for f in demo.fns.values()}
+    req = SimpleNamespace(username=None)
+    st = fns["on_load"](req)[0]
+    seq = 0
+
+    def builds(*actions):
+        nonlocal st, seq
+        calls.clear()
+        batch = []
+        for a in actions:
+            seq += 1
+            batch.append(dict(a, seq=seq))
+        st = fns["on_actions"](st, json.dumps(batch), req)[0]
+        fns["on_preview"](st)
+        return len(calls)
+
+    truth = clicks(CAM)
+    click = [{"kind": "click", "x": x, "y": y, "image": "r.png"} for x, y in
+             truth["rack"]["corners"] + [s["point"] for s in truth["shelves"]]]
+    assert [builds(c) for c in click] == [1] * len(click)   # every click changes the geometry
+    b = truth["boxes"][0]
+    assert builds({"kind": "mode", "mode": "boxes"}) == 0
+    assert builds({"kind": "click", "x": b["p0"][0], "y": b["p0"][1], "image": "r.png"}) == 0  # half a box
+    assert builds({"kind": "click", "x": b["p1"][0], "y": b["p1"][1], "image": "r.png"}) == 1
+    centre = [(b["p0"][0] + b["p1"][0]) / 2, (b["p0"][1] + b["p1"][1]) / 2]
+    assert builds({"kind": "mode", "mode": "select"}, {"kind": "click", "x": centre[0], "y": centre[1]}) == 0
+    assert st.sel == ["box", 0]
+    assert builds({"kind": "mode", "mode": "move"}, {"kind": "click", "x": centre[0] + 5, "y": centre[1]}) == 1
+    assert builds({"kind": "status", "value": "needs review"}) == 0
+    assert builds({"kind": "act", "name": "undo"}) == 0        # back to a geometry seen a moment ago
+    assert proj.load("r.png")["status"] == "in progress" and len(proj.load("r.png")["boxes"]) == 1

@@ -53,6 +53,23 @@ def test_make_splits_reproducible_and_disjoint():
     assert not set(a["train"]) & set(a["test"])
 
 
+def test_make_splits_by_counts_cuts_the_same_shuffle():
+    """Exact counts (annotate export --split) cut the same shuffle as fractions; what is not
+    asked for is left out; impossible counts are refused."""
+    ids = [f"{i:06d}" for i in range(100)]
+    by_frac = make_splits(ids, {"train": 0.8, "val": 0.1, "test": 0.1}, seed=3)
+    assert make_splits(ids, counts={"train": 80, "val": 10, "test": 10}, seed=3) == by_frac
+    part = make_splits(ids, counts={"a": 7, "b": 3}, seed=5)
+    assert [len(part["a"]), len(part["b"])] == [7, 3] and not set(part["a"]) & set(part["b"])
+    assert part == make_splits(ids, {"a": 0.07, "b": 0.03}, seed=5)
+    with pytest.raises(ValueError, match="ask for 101 ids but there are 100"):
+        make_splits(ids, counts={"train": 101})
+    with pytest.raises(ValueError, match="whole numbers"):
+        make_splits(ids, counts={"train": 2.5})
+    with pytest.raises(ValueError, match="either"):
+        make_splits(ids, {"train": 1.0}, counts={"train": 1})
+
+
 def _problems(root):
     rep = check_dataset(root)
     assert not rep.ok

@@ -24,6 +24,17 @@ def test_metres_pixel_round_trip(size, extent):
     assert g.x_to_col(0.0) == size / 2 and g.y_to_row(0.0) == size / 2
 
 
+def test_rack_plane_shelf_frame_shift():
+    """u from the rack's left edge <-> x from the shelf's centre line: the left edge is x = -W/2,
+    the middle x = 0, the right edge x = +W/2; arrays work and the two are inverses."""
+    W = 2.7
+    assert L.u_to_x(0.0, W) == -1.35 and L.u_to_x(1.35, W) == 0.0 and L.u_to_x(W, W) == 1.35
+    u = np.array([0.0, 0.4, 2.7])
+    np.testing.assert_allclose(L.u_to_x(u, W), [-1.35, -0.95, 1.35])
+    np.testing.assert_allclose(L.x_to_u(L.u_to_x(u, W), W), u, atol=1e-15)
+    assert L.x_to_u(-1.35, W) == 0.0
+
+
 def test_bad_grid_rejected():
     with pytest.raises(ValueError):
         L.Grid(511)

@@ -39,10 +39,9 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from racklay.cli import CLIError
-
     from annotate.app import serve
     from annotate.auth import Authenticator
+    from racklay.cli import CLIError
 
     if args.auth is not None:
         raise CLIError("--auth USER:PASSWORD is no longer accepted: it puts the password on the command line "
