@@ -31,6 +31,7 @@ demo: setup
 	$(VENV)/bin/racklay demo
 
 test: setup browser
+	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q
 
 clean-venv:

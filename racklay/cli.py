@@ -3,8 +3,8 @@ and exposes `register(subparsers)`; add new ones to COMMANDS."""
 from __future__ import annotations
 
 import argparse
-import os
 import importlib
+import os
 import sys
 
 #: sub-command modules, in the order `racklay --help` lists them

@@ -36,7 +36,7 @@ every T_i and F_i (x -> -x; reverse the columns). Rows are unchanged. `hflip_lay
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Iterable, Sequence
 
 import numpy as np

@@ -28,7 +28,7 @@ so a user's local torchvision weight file loads with `load_imagenet_weights`.
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import torch

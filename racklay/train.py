@@ -31,20 +31,29 @@ import csv
 import io
 import math
 import os
-import shutil
 import random
+import shutil
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .layout import CLASS_NAMES, VIEWS
 from .augment import PRESETS as AUGMENT_PRESETS
-from .model import (DECODERS, Discriminators, ModelConfig, RackLayNet, load_imagenet_weights,
-                    load_lite0_weights, lsgan_discriminator_loss, lsgan_generator_loss, one_hot_layouts)
+from .layout import CLASS_NAMES
+from .model import (
+    DECODERS,
+    Discriminators,
+    ModelConfig,
+    RackLayNet,
+    load_imagenet_weights,
+    load_lite0_weights,
+    lsgan_discriminator_loss,
+    lsgan_generator_loss,
+    one_hot_layouts,
+)
 from .precision import AMP_MODES, resolve_amp
 
 # fields a resumed run must share with the run it continues (others, e.g. epochs or

@@ -138,6 +138,7 @@ def test_annotate_in_browser(server, tmp_path):
                                    "return p && !p.hidden && p.src.startsWith('data:image/png'); }", timeout=15000)
             src = page.locator("#rl-preview").get_attribute("src")
             import base64
+
             import cv2
             pv = cv2.imdecode(np.frombuffer(base64.b64decode(src.split(",", 1)[1]), np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
             assert (np.abs(pv.astype(int) - PALETTE[2]).sum(axis=2) == 0).sum() > 200  # box colour present

@@ -11,8 +11,7 @@ from annotate.store import Project
 from racklay import layout as L
 from racklay.atomic import encode_png
 from racklay.data import RackLayRoot, check_dataset
-
-from test_annotate_geometry import Camera, clicks, true_layouts, iou
+from test_annotate_geometry import Camera, clicks, iou, true_layouts
 
 
 def make_project(tmp_path, n=5, statuses=None):

@@ -5,9 +5,9 @@ racklay.layout's rasterisation of the true scene."""
 import numpy as np
 import pytest
 
-from racklay import layout as L
 from annotate import geometry as G
 from annotate import schema as S
+from racklay import layout as L
 
 W, H, DEPTH = 2.0, 2.0, 0.6
 BOARDS = [0.10, 0.75, 1.40]  # board top heights, bottom-up

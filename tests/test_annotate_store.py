@@ -1,6 +1,5 @@
 """annotate.store and annotate.schema: atomic saves, restore after a kill, version conflicts,
 strict validation that never overwrites a bad file, confinement and upload checks."""
-import io
 import json
 import os
 import signal
@@ -8,7 +7,6 @@ import subprocess
 import sys
 import textwrap
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -119,7 +117,8 @@ def test_uploads_checked(proj):
     with pytest.raises(StoreError, match="already in the project"):
         proj.add_image("a.png", _png())
     # a decompression bomb: a tiny PNG declaring 20000 x 20000 pixels is refused from its header
-    import zlib, struct
+    import struct
+    import zlib
     def chunk(t, d):
         return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xffffffff)
     raw = zlib.compress(b"\0" * (20000 + 1) * 64)  # only 64 rows of data: the header is what counts

@@ -1,7 +1,6 @@
 """The annotation tool's server logic (annotate.app.Tool) without a browser: the click workflow,
 editing, undo/redo, conflicts between two labellers, invalid files, and model-assisted
 proposals with a stand-in predictor that follows racklay.predict.Predictor's contract."""
-import json
 import os
 
 import numpy as np
@@ -12,7 +11,6 @@ from annotate.app import Tool, build_app
 from annotate.store import Project
 from racklay import layout as L
 from racklay.atomic import encode_png
-
 from test_annotate_geometry import BOARDS, BOXES, GRID, Camera, clicks, iou, true_layouts
 
 CAM = Camera([-1.2, -2.4, 1.6], [1.0, 0.0, 0.9])
@@ -405,8 +403,6 @@ def test_typed_field_text_stored_exactly(proj):
 def test_box_depth_and_offset_by_clicking(proj):
     """Mode 7: a click on the selected box's top-back edge sets its depth; mode 8: a click on the
     board where its front stands sets its front offset (camera from the rack plane)."""
-    from test_annotate_geometry import BOARDS
-
     tool = Tool(proj)
     truth = clicks(CAM)
     st = label_by_clicks(tool, tool.open("r.png"), dict(truth, boxes=[]))

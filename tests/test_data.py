@@ -1,4 +1,3 @@
-import json
 import shutil
 
 import numpy as np
@@ -7,8 +6,8 @@ import torch
 
 from racklay import layout as L
 from racklay.data import DataError, RackLayRoot, check_dataset, make_splits, parse_split_entry
-from racklay.toy import build_toy_dataset
 from racklay.torchdata import RackLayDataset
+from racklay.toy import build_toy_dataset
 
 
 @pytest.fixture(scope="module")

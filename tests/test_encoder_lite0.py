@@ -10,8 +10,14 @@ import pytest
 import torch
 
 from racklay.data import read_image
-from racklay.model import (EfficientNetLite0Encoder, ModelConfig, RackLayNet, build_model, lite0_weights_path,
-                           load_lite0_weights)
+from racklay.model import (
+    EfficientNetLite0Encoder,
+    ModelConfig,
+    RackLayNet,
+    build_model,
+    lite0_weights_path,
+    load_lite0_weights,
+)
 from racklay.torchdata import image_to_tensor, prepare_image
 
 PHOTOS = Path(__file__).resolve().parents[1] / "datasets" / "real-photos"

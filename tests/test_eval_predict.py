@@ -12,8 +12,8 @@ import torch
 from racklay import layout as L
 from racklay.cli import main as racklay_main
 from racklay.data import RackLayRoot, read_image
-from racklay.toy import build_toy_dataset
 from racklay.predict import Predictor
+from racklay.toy import build_toy_dataset
 
 IMG, S, R = 64, 32, 4
 

@@ -6,9 +6,17 @@ import pytest
 import torch
 
 from racklay.checkpoint import load_checkpoint, load_model, save_checkpoint
-from racklay.model import (Discriminators, ModelConfig, RackLayNet, ResNet18Encoder, build_model,
-                           load_imagenet_weights, lsgan_discriminator_loss, lsgan_generator_loss,
-                           one_hot_layouts)
+from racklay.model import (
+    Discriminators,
+    ModelConfig,
+    RackLayNet,
+    ResNet18Encoder,
+    build_model,
+    load_imagenet_weights,
+    lsgan_discriminator_loss,
+    lsgan_generator_loss,
+    one_hot_layouts,
+)
 
 IMG, LAY, R = 64, 32, 3
 

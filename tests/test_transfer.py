@@ -2,8 +2,6 @@
 their error messages. Tiny sizes throughout (image 64, layout 32) on toy datasets."""
 from __future__ import annotations
 
-import json
-import shutil
 import types
 from pathlib import Path
 
@@ -156,7 +154,6 @@ def tiny_data(tmp_path_factory):
 def killed_then_resumed_compare(tiny_data, monkeypatch_module):
     """A compare killed in its second training run, then started again with the same settings."""
     import racklay.train as rt
-
     from transfer.compare import CompareConfig, compare
 
     cfg = CompareConfig(real=str(tiny_data / "real"), out=str(tiny_data / "cmp"), synthetic=str(tiny_data / "syn"),

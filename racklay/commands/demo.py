@@ -2,9 +2,9 @@
 `--toy` keeps the quick schematic demo of the data/metrics layer (seconds, no training)."""
 from __future__ import annotations
 
-from racklay.cli import at_least
-
 from pathlib import Path
+
+from racklay.cli import at_least
 
 
 def register(sub) -> None:

@@ -111,7 +111,6 @@ def register(sub) -> None:
 
 
 def config_from_args(args):
-    from pathlib import Path
 
     from racklay.train import TrainConfig
 

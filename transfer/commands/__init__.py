@@ -1,10 +1,10 @@
 """`transfer` sub-commands. Shared argparse options for the training-based commands."""
 from __future__ import annotations
 
+import argparse
+
 from racklay.cli import at_least, positive_float
 from racklay.commands.train import image_size_arg
-
-import argparse
 
 
 def add_model_args(p: argparse.ArgumentParser, from_checkpoint: bool = False) -> None:
