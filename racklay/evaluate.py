@@ -98,13 +98,11 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
 
 def eval_report(result: dict, weights, data, split, cfg=None, native: bool = False) -> dict:
     """The JSON `racklay eval --json` writes: run description + the metrics dict."""
-    from .predict import config_to_dict
-
     views = [v for v in L.VIEWS if v in result]
     return {
         "weights": str(weights), "data": str(Path(data)), "split": split,
         "images": max((result[v]["images"] for v in views), default=0),
         "resolution": "dataset" if native else "model",
-        "model": config_to_dict(cfg) if cfg is not None else None,
+        "model": cfg.to_dict() if cfg is not None else None,
         "metrics": result,
     }

@@ -555,8 +555,8 @@ def train(cfg: TrainConfig, transform=None) -> Path:
                  "best_epoch": -1, "bad_epochs": 0, "elapsed_s": 0.0, "finished": False, "stop_reason": "",
                  "epoch_sums": None}   # the interrupted epoch's running loss sums (restored on resume)
         if resume_ck is not None:
-            from .checkpoint import _load_strict
-            _load_strict(model, {k: v.to(device) for k, v in resume_ck.section("model").items()}, last_path, "model")
+            from .checkpoint import load_state_strict
+            load_state_strict(model, {k: v.to(device) for k, v in resume_ck.section("model").items()}, last_path, "model")
             if disc is not None:
                 resume_ck.load_discriminators(disc)
             for name, opt in optimizers.items():

@@ -198,6 +198,30 @@ def test_onnx_parity_and_backend(ckpt, onnx_file, toy, capsys):
             np.testing.assert_allclose(a["probs"][v], b["probs"][v], atol=1e-4)
 
 
+def test_onnx_metadata_is_the_checkpoint_config_and_read_strictly(ckpt, onnx_file, tmp_path):
+    """The ONNX file stores `ModelConfig.to_dict` (the checkpoint serialiser) and reads it back
+    equal; a key this version does not know (a newer exporter) is refused with one line naming
+    the file and the key, not silently dropped."""
+    import onnx
+
+    from racklay.checkpoint import load_model
+    from racklay.model import ModelConfig
+    from racklay.onnx import ONNX_CONFIG_KEY
+
+    _, cfg, _ = load_model(ckpt)
+    assert Predictor(onnx_file).cfg == cfg
+    proto = onnx.load(str(onnx_file))
+    (entry,) = [p for p in proto.metadata_props if p.key == ONNX_CONFIG_KEY]
+    assert json.loads(entry.value) == cfg.to_dict()
+    assert ModelConfig.from_dict(json.loads(entry.value)) == cfg
+    entry.value = json.dumps({**cfg.to_dict(), "from_the_future": 1})
+    newer = tmp_path / "newer.onnx"
+    onnx.save(proto, str(newer))
+    with pytest.raises(ValueError, match=r"newer.onnx: .*from_the_future.*re-export") as e:
+        Predictor(newer)
+    assert "\n" not in str(e.value)
+
+
 def test_predict_cli_onnx_matches_torch(ckpt, onnx_file, toy, tmp_path):
     img = RackLayRoot(toy).image_path(RackLayRoot(toy).ids()[0])
     outs = {}

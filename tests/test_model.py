@@ -2,6 +2,8 @@
 discriminator, safetensors round trips, the torchvision-compatible ImageNet loader."""
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 
@@ -97,6 +99,11 @@ def test_model_config_validation():
     with pytest.raises(ValueError, match="multiple of 32"):
         ModelConfig(image_size=100)
     assert ModelConfig.from_dict(ModelConfig(R=2).to_dict()) == ModelConfig(R=2)
+    wide = ModelConfig(image_size=(64, 96), views=("front",))
+    assert json.loads(json.dumps(wide.to_dict())) == wide.to_dict()   # JSON-able as it is
+    assert ModelConfig.from_dict(json.loads(json.dumps(wide.to_dict()))) == wide
+    with pytest.raises(ValueError, match="unknown model config keys: \\['nope'\\]"):
+        ModelConfig.from_dict({**wide.to_dict(), "nope": 1})
     # a config written before the encoder was a choice (older checkpoints) is a ResNet-18 one
     old = {k: v for k, v in ModelConfig(R=2, encoder="resnet18").to_dict().items() if k not in ("encoder", "letterbox")}
     assert ModelConfig.from_dict(old).encoder == "resnet18"
