@@ -19,6 +19,9 @@ def add_demo_args(p) -> None:
     p.add_argument("--amp", choices=("auto", "none", "bf16"), default=d.amp,
                    help=f"training precision (default {d.amp}: bf16 only where the CPU computes it natively, "
                         "fp32 elsewhere; emulated bf16 is many times slower)")
+    p.add_argument("--photos", default=d.photos, metavar="DIR",
+                   help="real photos to predict in step 1 (default: the 21 shipped with the package, "
+                        "copies of datasets/real-photos/)")
     p.add_argument("--quick", action="store_true", help="a smoke run of about a minute (not meaningful numbers)")
     p.add_argument("--toy", action="store_true",
                    help="instead: the schematic demo of the data/metrics layer (seconds, no training; "
@@ -54,7 +57,7 @@ def run(args) -> int:
 
         return toy_demo("outputs/demo" if args.out == DemoConfig.out else args.out, n=args.n, seed=args.seed)
     kw = dict(out=args.out, seed=args.seed, weights=args.weights, n_real=args.n_real, amp=args.amp,
-              max_minutes=args.max_minutes)
+              max_minutes=args.max_minutes, photos=args.photos)
     if args.quick:
         kw.update(QUICK)
     run_demo(DemoConfig(**kw))
