@@ -265,3 +265,31 @@ def test_golden_run_metrics_unchanged(tmp_path, toy):
     for g, w in zip(got, want):
         for k in w:
             assert g[k] == pytest.approx(w[k], rel=1e-3, abs=1e-6), (g["epoch"], k)
+
+
+def test_train_flags_cover_trainconfig_and_take_help_defaults_from_it(capsys, monkeypatch):
+    """One flag per TrainConfig field, shared by racklay train and the transfer commands; help
+    texts show the dataclass defaults (change one there and --help follows)."""
+    import dataclasses
+
+    from racklay.cli import main as racklay_main
+    from racklay.commands.train import FLAGS
+    from transfer.cli import main as transfer_main
+
+    assert sorted(f[0] for f in FLAGS) == sorted(f.name for f in dataclasses.fields(TrainConfig))
+    monkeypatch.setattr("shutil.get_terminal_size", lambda *a, **k: os.terminal_size((400, 40)))
+    with pytest.raises(SystemExit):
+        racklay_main(["train", "--help"])
+    out = capsys.readouterr().out
+    assert f"epochs (default {TrainConfig.epochs})" in out and "(default 1,5,5)" in out
+    monkeypatch.setattr(TrainConfig.__dataclass_fields__["epochs"], "default", 77)
+    for argv, main in ((["train", "--help"], racklay_main), (["pretrain", "--help"], transfer_main)):
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert "epochs (default 77)" in capsys.readouterr().out
+    # the same validation in both command lines
+    for argv, main in ((["train", "--data", "x", "--epochs", "0"], racklay_main),
+                       (["pretrain", "--synthetic", "x", "--epochs", "0"], transfer_main)):
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert "argument --epochs: must be >= 1, got 0" in capsys.readouterr().err
