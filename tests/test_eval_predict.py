@@ -9,20 +9,18 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import make_toy
 from racklay import layout as L
 from racklay.cli import main as racklay_main
 from racklay.data import RackLayRoot, read_image
 from racklay.predict import Predictor
-from racklay.toy import build_toy_dataset
 
 IMG, S, R = 64, 32, 4
 
 
 @pytest.fixture(scope="module")
 def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy")
-    build_toy_dataset(root, n=10, seed=3, R=R, D=128)
-    return root
+    return make_toy(tmp_path_factory, n=10, seed=3, R=R, D=128)
 
 
 @pytest.fixture(scope="module")

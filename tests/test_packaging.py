@@ -1,9 +1,7 @@
 """Data the code needs at run time ships inside the packages (importlib.resources), in one home."""
 from __future__ import annotations
 
-from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[1]
+from conftest import REAL_PHOTOS, REPO
 
 
 def test_recipes_are_package_data():
@@ -22,7 +20,7 @@ def test_demo_photos_are_identical_copies_of_datasets_real_photos():
     same photos, same bytes, same attribution file."""
     from transfer.demo import PHOTOS
 
-    home = REPO / "datasets" / "real-photos"
+    home = REAL_PHOTOS
     want = sorted(p.name for p in home.iterdir() if p.suffix == ".jpg") + ["SOURCES.tsv"]
     got = sorted(p.name for p in PHOTOS.iterdir() if p.name != "README.md")
     assert sorted(got) == sorted(want), "copy datasets/real-photos/*.jpg and SOURCES.tsv to transfer/photos/"

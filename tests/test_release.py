@@ -5,18 +5,15 @@ from __future__ import annotations
 import json
 import re
 import shutil
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import REAL_PHOTOS, REPO, run_module
 from racklay import release
 from racklay.checkpoint import load_model
 
-REPO = Path(__file__).resolve().parents[1]
-PHOTO = REPO / "datasets" / "real-photos" / "19_mock_white_shelf_3lvl.jpg"
+PHOTO = REAL_PHOTOS / "19_mock_white_shelf_3lvl.jpg"
 
 
 def test_shipped_weights_are_intact_small_and_load():
@@ -42,8 +39,7 @@ def test_corrupt_shipped_weights_are_refused(tmp_path, monkeypatch):
 
 def test_predict_without_weights_uses_the_shipped_model_and_finds_the_shelves(tmp_path):
     out = tmp_path / "pred"
-    r = subprocess.run([sys.executable, "-m", "racklay", "predict", str(PHOTO), "--out", str(out), "--no-png"],
-                       capture_output=True, text=True, cwd=REPO)
+    r = run_module("racklay", "predict", PHOTO, "--out", out, "--no-png", cwd=REPO)
     assert r.returncode == 0, r.stderr
     assert "shipped model" in r.stderr
     from racklay.data import RackLayRoot
@@ -66,7 +62,7 @@ def test_quick_demo_runs_end_to_end_from_the_shipped_model(tmp_path, capsys):
     out = tmp_path / "demo"
     assert transfer_main(["demo", "--quick", "--out", str(out)]) == 0
     log = capsys.readouterr().out
-    photos = sorted(p.stem for p in (REPO / "datasets" / "real-photos").iterdir() if p.suffix == ".jpg")
+    photos = sorted(p.stem for p in REAL_PHOTOS.iterdir() if p.suffix == ".jpg")
     figs = out / "real-photo-predictions"
     assert sorted(p.stem for p in figs.glob("*.png") if p.stem != "contact_sheet") == photos
     assert (figs / "contact_sheet.png").is_file() and (figs / "SOURCES.tsv").is_file()

@@ -2,7 +2,6 @@
 torchrun (DDP, gloo), fine-tuning checks and config handling. Tiny sizes (64 px in, 32 px out)."""
 from __future__ import annotations
 
-import csv
 import os
 import shutil
 import signal
@@ -14,27 +13,22 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import ENV, make_toy, metrics_rows, run_module
 from racklay.checkpoint import load_checkpoint, load_model, save_checkpoint
 from racklay.data import RackLayRoot
 from racklay.model import ModelConfig, RackLayNet
-from racklay.toy import build_toy_dataset
 from racklay.train import TrainConfig, epoch_batches, train
 
 VENV_BIN = Path(sys.executable).parent
-ENV = {**os.environ, "MALLOC_MMAP_THRESHOLD_": "4294967296", "MALLOC_TRIM_THRESHOLD_": "4294967296"}
 TINY = dict(image_size=64, layout_size=32, R=4, batch_size=4, progress=False, threads=1, warmup_steps=2)
 
 
 @pytest.fixture(scope="module")
 def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy") / "toy"
-    build_toy_dataset(root, n=24, seed=0, R=4, D=64)
-    return root
+    return make_toy(tmp_path_factory, n=24, seed=0, R=4, D=64)
 
 
-def _rows(run: Path) -> list[dict]:
-    with open(run / "metrics.csv") as f:
-        return list(csv.DictReader(f))
+_rows = metrics_rows
 
 
 @pytest.mark.slow
@@ -68,10 +62,9 @@ def test_overfit_a_handful_of_samples(tmp_path, toy):
 
 
 def _cli(*args, env=None, torchrun=False):
-    if torchrun:
-        cmd = [str(VENV_BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "racklay", *args]
-    else:
-        cmd = [sys.executable, "-m", "racklay", *args]
+    if not torchrun:
+        return run_module("racklay", *args, env=env)
+    cmd = [str(VENV_BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "racklay", *args]
     return subprocess.run(cmd, env=env or ENV, capture_output=True, text=True, timeout=300)
 
 
