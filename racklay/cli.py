@@ -14,6 +14,7 @@ COMMANDS = [                       # in workflow order: data, model, use, check
     "racklay.commands.show",
     "racklay.commands.train",
     "racklay.commands.eval",
+    "racklay.commands.calibrate",
     "racklay.commands.predict",
     "racklay.commands.export",
     "racklay.commands.analyze",

@@ -27,6 +27,7 @@ so a user's local torchvision weight file loads with `load_imagenet_weights`.
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -60,6 +61,10 @@ class ModelConfig:
     extent: float = DEFAULT_EXTENT_M    # metres covered by the layout grid (for consumers)
     encoder: str = "efficientnet-lite0"  # "efficientnet-lite0" (ImageNet weights ship) | "resnet18" (the paper's)
     letterbox: bool = False             # photos of another aspect are padded, not stretched, to the input
+    #: per-view additive biases on the (background, shelf, box) logits before the argmax that turns
+    #: scores into classes, fitted on a validation split by `racklay calibrate` (racklay/calibrate.py);
+    #: None: plain argmax. Probabilities (and so average precision) are not changed by it.
+    decision_bias: dict | None = None
 
     def __post_init__(self):
         self.views = tuple(self.views)
@@ -82,6 +87,8 @@ class ModelConfig:
             raise ValueError(f"image_size must be a positive multiple of 32 (S or (H, W)), got {self.image_size}")
         if self.layout_size < 8:
             raise ValueError(f"layout_size must be >= 8, got {self.layout_size}")
+        if self.decision_bias is not None:
+            self.decision_bias = check_decision_bias(self.decision_bias, self.views)
 
     @property
     def input_hw(self) -> tuple[int, int]:
@@ -126,6 +133,22 @@ def _tuples(v):
     if isinstance(v, list):
         return tuple(_tuples(x) for x in v)
     return v
+
+
+def check_decision_bias(bias, views) -> dict:
+    """{view: (b_background, b_shelf, b_box)} with finite floats and only the model's views."""
+    if not isinstance(bias, dict) or not bias:
+        raise ValueError(f"decision_bias must be a non-empty {{view: [3 numbers]}} mapping, got {bias!r}")
+    out = {}
+    for v, b in bias.items():
+        if v not in views:
+            raise ValueError(f"decision_bias names view {v!r}, which the model does not predict ({'/'.join(views)})")
+        vals = tuple(float(x) for x in b) if isinstance(b, (list, tuple)) else ()
+        if len(vals) != NUM_CLASSES or not all(math.isfinite(x) for x in vals):
+            raise ValueError(f"decision_bias[{v!r}] must be {NUM_CLASSES} finite numbers "
+                             f"(background, shelf, box), got {b!r}")
+        out[v] = vals
+    return out
 
 
 # ----------------------------------------------------------------------------- encoder

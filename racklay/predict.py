@@ -58,6 +58,17 @@ def softmax_classes(logits: np.ndarray, axis: int = -3) -> np.ndarray:
     return z
 
 
+def decide(logits: np.ndarray, bias=None, axis: int = 2) -> np.ndarray:
+    """Classes (uint8) from (..., 3, S, S) logits: the argmax over the class axis, after adding
+    the per-class `bias` (background, shelf, box) when the model carries one (`racklay calibrate`)."""
+    z = np.asarray(logits, dtype=np.float32)
+    if bias is not None:
+        shape = [1] * z.ndim
+        shape[axis] = len(bias)
+        z = z + np.asarray(bias, dtype=np.float32).reshape(shape)
+    return z.argmax(axis=axis).astype(np.uint8)
+
+
 def as_rgb_uint8(image: np.ndarray, source: str = "image") -> np.ndarray:
     """Accept (H, W) grey, (H, W, 3) RGB or (H, W, 4) RGBA uint8; return (H, W, 3) RGB uint8."""
     a = np.asarray(image)
@@ -171,8 +182,9 @@ class Predictor:
 
     def predict_batch(self, x) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """(classes {view: (N, R, S, S) uint8}, probs {view: (N, R, 3, S, S) float32})."""
-        probs = {v: softmax_classes(z, axis=2) for v, z in self.logits(x).items()}
-        classes = {v: p.argmax(axis=2).astype(np.uint8) for v, p in probs.items()}
+        logits = self.logits(x)
+        probs = {v: softmax_classes(z, axis=2) for v, z in logits.items()}
+        classes = {v: decide(z, (self.cfg.decision_bias or {}).get(v)) for v, z in logits.items()}
         return classes, probs
 
     def prepare(self, image: np.ndarray, source: str = "image"):

@@ -102,6 +102,9 @@ def test_model_config_validation():
     wide = ModelConfig(image_size=(64, 96), views=("front",))
     assert json.loads(json.dumps(wide.to_dict())) == wide.to_dict()   # JSON-able as it is
     assert ModelConfig.from_dict(json.loads(json.dumps(wide.to_dict()))) == wide
+    # a dict field (racklay calibrate's decision_bias) round-trips through JSON too
+    cal = ModelConfig(decision_bias={"top": (0.0, 0.5, 1.25)})
+    assert ModelConfig.from_dict(json.loads(json.dumps(cal.to_dict()))) == cal
     with pytest.raises(ValueError, match="unknown model config keys: \\['nope'\\]"):
         ModelConfig.from_dict({**wide.to_dict(), "nope": 1})
     # a config written before the encoder was a choice (older checkpoints) is a ResNet-18 one
