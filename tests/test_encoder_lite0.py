@@ -25,6 +25,7 @@ PHOTOS = REAL_PHOTOS
 PLAUSIBLE = {478, 519, 453, 454, 582, 553, 860, 788, 624, 561}
 
 
+@pytest.mark.slow
 def test_pretrained_classifier_ranks_rack_classes_on_real_photos():
     enc = EfficientNetLite0Encoder(with_classifier=True)
     load_lite0_weights(enc)

@@ -150,6 +150,7 @@ def test_predict_folder_outputs_and_bad_files(toy, ckpt, tmp_path, capsys):
     assert "Paper protocol" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_predictor_any_size_and_bad_weights(ckpt, tmp_path):
     from racklay.predict import Predictor
 

@@ -112,6 +112,7 @@ def test_model_config_validation():
     assert ModelConfig.from_dict(old).encoder == "resnet18"
 
 
+@pytest.mark.slow
 def test_checkpoint_round_trip_is_exact(tmp_path):
     cfg = ModelConfig(R=2, image_size=IMG, layout_size=LAY, decoder="paper", disc=True)
     net, disc = RackLayNet(cfg), Discriminators(cfg)

@@ -37,6 +37,7 @@ def test_corrupt_shipped_weights_are_refused(tmp_path, monkeypatch):
         release.release_weights()
 
 
+@pytest.mark.slow
 def test_predict_without_weights_uses_the_shipped_model_and_finds_the_shelves(tmp_path):
     out = tmp_path / "pred"
     r = run_module("racklay", "predict", PHOTO, "--out", out, "--no-png", cwd=REPO)

@@ -185,6 +185,7 @@ def monkeypatch_module():
     mp.undo()
 
 
+@pytest.mark.slow
 def test_compare_writes_table2_rows_and_files(killed_then_resumed_compare):
     out = Path(killed_then_resumed_compare["cfg"].out)
     md = (out / "table.md").read_text()
@@ -246,6 +247,7 @@ def _real_loss(weights, root) -> float:
     return float(sum(layout_loss(out[v], batch[v], w) for v in cfg.views))
 
 
+@pytest.mark.slow
 def test_finetune_loads_pretrain_checkpoint_and_improves(killed_then_resumed_compare, tiny_data, tmp_path, capsys):
     from transfer.cli import main
 
