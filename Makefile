@@ -28,9 +28,10 @@ browser:
 	  else echo "chromium missing: sudo apt-get install -y chromium (browser tests will be skipped)"; fi; }
 
 demo: setup
-	$(VENV)/bin/racklay demo
+	$(VENV)/bin/transfer demo
 
 test: setup browser
+	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q
 
 clean-venv:

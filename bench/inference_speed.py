@@ -59,7 +59,7 @@ def build_runners(decoder: str, size: int, bf16: bool, onnx: bool, threads: int 
     if onnx and not encoder_only:
         import onnxruntime as ort
 
-        from racklay.export import export_onnx_bytes
+        from racklay.onnx import export_onnx_bytes
 
         opts = ort.SessionOptions()
         opts.log_severity_level = 3

@@ -27,8 +27,6 @@ Prints Markdown tables; docs/reasoning.md records the numbers.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
 import sys
 import tempfile

@@ -31,9 +31,15 @@ CLASS_WEIGHTS = (1.0, 5.0, 5.0)
 def make_step(decoder: str, size: int, batch: int, disc: bool, bf16: bool, lr: float = 1e-4):
     import torch
 
+    from racklay.model import (
+        Discriminators,
+        ModelConfig,
+        RackLayNet,
+        lsgan_discriminator_loss,
+        lsgan_generator_loss,
+        one_hot_layouts,
+    )
     from racklay.train import layout_loss
-    from racklay.model import (Discriminators, ModelConfig, RackLayNet, lsgan_discriminator_loss,
-                               lsgan_generator_loss, one_hot_layouts)
 
     torch.manual_seed(0)
     cfg = ModelConfig(image_size=size, layout_size=size, views=("top", "front"), decoder=decoder, disc=disc,

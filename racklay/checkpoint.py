@@ -124,10 +124,12 @@ class Checkpoint:
         sd = self.section("disc")
         if not sd:
             raise ValueError(f"{self.path}: checkpoint has no discriminator weights")
-        _load_strict(disc, sd, self.path, "discriminator")
+        load_state_strict(disc, sd, self.path, "discriminator")
 
 
-def _load_strict(module: torch.nn.Module, sd: dict, path, what: str) -> None:
+def load_state_strict(module: torch.nn.Module, sd: dict, path, what: str) -> None:
+    """Load `sd` into `module`, refusing (one line naming `path` and `what`) any missing,
+    unexpected or wrongly shaped tensor."""
     own = module.state_dict()
     missing = [k for k in own if k not in sd]
     extra = [k for k in sd if k not in own]
@@ -177,9 +179,9 @@ def load_model(path: str | os.PathLike, map_location: str | torch.device = "cpu"
     """-> (RackLayNet in eval mode, ModelConfig, meta dict)."""
     ck = load_checkpoint(path, map_location)
     model = RackLayNet(ck.cfg)
-    _load_strict(model, ck.section("model"), ck.path, "model")
+    load_state_strict(model, ck.section("model"), ck.path, "model")
     model.to(map_location).eval()
     return model, ck.cfg, ck.meta
 
 
-__all__ = ["save_checkpoint", "load_checkpoint", "load_model", "Checkpoint", "content_hash"]
+__all__ = ["save_checkpoint", "load_checkpoint", "load_model", "load_state_strict", "Checkpoint", "content_hash"]

@@ -3,13 +3,12 @@ and exposes `register(subparsers)`; add new ones to COMMANDS."""
 from __future__ import annotations
 
 import argparse
-import os
 import importlib
+import os
 import sys
 
 #: sub-command modules, in the order `racklay --help` lists them
 COMMANDS = [                       # in workflow order: data, model, use, check
-    "racklay.commands.demo",
     "racklay.commands.synth",
     "racklay.commands.check_data",
     "racklay.commands.show",
@@ -33,7 +32,7 @@ def build_parser(prog: str = "racklay", description: str | None = None, commands
         description=description or (
             "RackLay toolkit: estimate per-shelf top- and front-view layouts of warehouse racks "
             "from one photo; generate, check, score and show RackLay-format datasets.\n\n"
-            "New here? `racklay demo` runs the whole pipeline on built-in data (~9 min on 2 CPU "
+            "New here? `transfer demo` runs the whole pipeline on built-in data (~9 min on 2 CPU "
             "cores). Every command has --help; the guides are in docs/ (README.md lists them). "
             "Transfer (pretrain / fine-tune / compare) is the `transfer` command; the labelling "
             "tool is `annotate`."),

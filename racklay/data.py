@@ -138,7 +138,7 @@ def _read_header(f, source: str) -> ImageInfo:
     except Image.DecompressionBombError:
         raise DataError(f"{source}: refused before decoding: its header declares over "
                         f"{2 * Image.MAX_IMAGE_PIXELS / 1e6:.0f} Mpx (a possible decompression bomb)") from None
-    except Exception as e:  # noqa: BLE001 - PIL raises many types for junk
+    except Exception:  # noqa: BLE001 - PIL raises many types for junk
         raise DataError(f"{source}: not a readable image (corrupt, truncated or not an image)") from None
 
 

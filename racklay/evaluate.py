@@ -98,13 +98,60 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
 
 def eval_report(result: dict, weights, data, split, cfg=None, native: bool = False) -> dict:
     """The JSON `racklay eval --json` writes: run description + the metrics dict."""
-    from .predict import config_to_dict
-
     views = [v for v in L.VIEWS if v in result]
     return {
         "weights": str(weights), "data": str(Path(data)), "split": split,
         "images": max((result[v]["images"] for v in views), default=0),
         "resolution": "dataset" if native else "model",
-        "model": config_to_dict(cfg) if cfg is not None else None,
+        "model": cfg.to_dict() if cfg is not None else None,
         "metrics": result,
     }
+
+
+def score_folders(pred_root, gt_root, split=None) -> tuple[dict, int]:
+    """(metrics dict, images scored) for the predicted layouts in `pred_root` (a RackLay-format
+    folder) against the ground-truth dataset `gt_root`: every id of `split`, or every predicted id.
+    Every image scored needs a prediction in every view scored; anything missing is a ValueError
+    naming the file (never a silently smaller denominator)."""
+    from .data import RackLayRoot
+    from .metrics import LayoutMetrics
+
+    for root, what in ((pred_root, "predictions"), (gt_root, "ground-truth dataset")):
+        if not os.path.isdir(root):
+            raise ValueError(f"{root}: {what} folder not found")
+    pred, gt = RackLayRoot(pred_root), RackLayRoot(gt_root)
+    views = [v for v in pred.views() if v in gt.views()]
+    if not views:
+        raise ValueError(f"no common view: {pred.root} has {list(pred.views()) or 'no layouts'}, "
+                         f"{gt.root} has {list(gt.views()) or 'no layouts'}")
+    predicted = {view: set(pred.layout_ids(view)) for view in views}
+    if split:
+        ids = sorted(gt.resolve(split))
+        if not ids:
+            raise ValueError(f"{gt.root}: split {split!r} is empty")
+    else:
+        ids = sorted(set().union(*predicted.values()))
+        if not ids:
+            raise ValueError(f"{pred.root}: no predicted layouts to score")
+    for view in views:
+        missing = [i for i in ids if i not in predicted[view]]
+        if missing:
+            first = pred.layout_path(view, missing[0])
+            more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+            raise ValueError(f"{first}: prediction missing{more}; "
+                             f"{len(ids)} image(s) to score in view {view}")
+    # the shape most ground-truth files have: a file that differs is the one named, whether it is a
+    # ground-truth file or a prediction
+    ref = gt.layout_shape(ids, views)
+    R, D = ref if ref else (None, None)
+    m = LayoutMetrics()
+    for view in views:
+        for sid in ids:
+            gpath = gt.layout_path(view, sid)
+            if not gpath.exists():
+                raise ValueError(f"{gpath}: ground truth missing for predicted {view} layout {sid}")
+            g = gt.read_layouts(view, sid, R=R, D=D)
+            p = pred.read_layouts(view, sid, R=g.shape[0], D=g.shape[1])
+            m.update(view, p, g)
+    n = len(ids)
+    return m.result(), n

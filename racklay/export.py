@@ -1,71 +1,15 @@
-"""ONNX export of a RackLay model, checked against torch with onnxruntime.
-
-The exported graph takes `image` (N, 3, H, W) float32, ImageNet-normalised (dynamic batch) and
-returns one logits output per view, named after the view: (N, R, 3, S, S). The model config is
-stored in the file's metadata (`racklay_model_config`, JSON), so `Predictor("model.onnx")` needs
-nothing else. Export uses the TorchScript-based exporter (`dynamo=False`): on this model it is
-fast and deterministic; the dynamo exporter is tried only when that one is unavailable.
+"""`racklay export`'s engine: write a RackLay model as ONNX (`racklay.onnx`, where the graph and
+its metadata are described) and check the file against torch with onnxruntime (`parity`).
 """
 from __future__ import annotations
 
-import io
-import json
 import os
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 
-from .predict import ONNX_CONFIG_KEY, config_to_dict
-
-DEFAULT_OPSET = 17
-
-
-def _tuple_outputs(model, views):
-    """The model with forward returning a tuple of logits in view order (ONNX has no dicts)."""
-    import torch
-
-    class TupleOutputs(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.model = model
-
-        def forward(self, image):
-            out = self.model(image)
-            return tuple(out[v] for v in views)
-
-    return TupleOutputs().eval()
-
-
-def export_onnx_bytes(model, cfg, opset: int = DEFAULT_OPSET, batch: int = 1) -> bytes:
-    """Serialised ONNX model (with the config in its metadata) for `model` built from `cfg`."""
-    import onnx
-    import torch
-
-    views = tuple(cfg.views)
-    h, w = cfg.input_hw
-    wrapped = _tuple_outputs(model, views)
-    x = torch.zeros(batch, 3, h, w)
-    buf = io.BytesIO()
-    kw = dict(input_names=["image"], output_names=list(views), opset_version=opset,
-              dynamic_axes={"image": {0: "batch"}, **{v: {0: "batch"} for v in views}})
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # TracerWarnings about shape checks that are constant here
-        try:
-            torch.onnx.export(wrapped, (x,), buf, dynamo=False, **kw)
-        except TypeError:  # a torch without the legacy exporter switch
-            prog = torch.onnx.export(wrapped, (x,), dynamo=True, input_names=["image"],
-                                     output_names=list(views), opset_version=opset,
-                                     dynamic_shapes={"image": {0: torch.export.Dim("batch")}})
-            prog.save(buf)
-    proto = onnx.load_from_string(buf.getvalue())
-    entry = proto.metadata_props.add()
-    entry.key = ONNX_CONFIG_KEY
-    entry.value = json.dumps(config_to_dict(cfg))
-    proto.producer_name = "racklay"
-    onnx.checker.check_model(proto)
-    return proto.SerializeToString()
+from .onnx import DEFAULT_OPSET, export_onnx_bytes, onnx_session
 
 
 def export_onnx(model, cfg, out: str | os.PathLike, opset: int = DEFAULT_OPSET) -> Path:
@@ -83,9 +27,9 @@ def parity(model, onnx_model, cfg, batch: int = 2, seed: int = 0, image: np.ndar
     The input is `image` (RGB uint8, any size) if given, else a seeded random normalised batch."""
     import torch
 
-    from .predict import Predictor, _onnx_session
+    from .predict import Predictor
 
-    sess, _ = _onnx_session(onnx_model, source=str(onnx_model) if not isinstance(onnx_model, bytes) else "onnx")
+    sess, _ = onnx_session(onnx_model, source=str(onnx_model) if not isinstance(onnx_model, bytes) else "onnx")
     ref = Predictor.from_model(model, cfg)
     if image is not None:
         x = ref.prepare(image)

@@ -256,7 +256,7 @@ def render_figure(result, image: np.ndarray | None = None, out: str | os.PathLik
         ax0.set_title("photo", fontsize=9)
     ax = fig.add_subplot(1, 2 if image is not None else 1, 2 if image is not None else 1, projection="3d")
     # one collection for every face, so matplotlib depth-sorts faces across parts
-    quads, faces, edges, widths = [], [], [], []
+    quads, faces, edges = [], [], []
     for part in parts:
         p, _, ix = _cuboid(part.lo, part.hi)
         rgba = COLORS[part.kind]

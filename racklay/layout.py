@@ -40,7 +40,7 @@ every T_i and F_i (x -> -x; reverse the columns). Rows are unchanged. `hflip_lay
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -197,6 +197,13 @@ class Shelf:
                 raise ValueError(f"shelf {name} must be positive metres, got {getattr(self, name)}")
 
 
+def half_extents(sx: float, sy: float, yaw: float) -> tuple[float, float]:
+    """Half extents along x and y of an sx x sy footprint rotated by `yaw` radians (its
+    axis-aligned bounding box, as `Box.x_range` / `y_range` see it)."""
+    c, s = abs(np.cos(yaw)), abs(np.sin(yaw))
+    return c * sx / 2 + s * sy / 2, s * sx / 2 + c * sy / 2
+
+
 @dataclass(frozen=True)
 class Box:
     """A box (or box stack) standing on a shelf, in the shelf frame: footprint centre (cx, cy),
@@ -213,11 +220,11 @@ class Box:
 
     def x_range(self) -> tuple[float, float]:
         """Extent of the rotated footprint along x (what the front view sees)."""
-        ex = abs(np.cos(self.yaw)) * self.sx / 2 + abs(np.sin(self.yaw)) * self.sy / 2
+        ex, _ = half_extents(self.sx, self.sy, self.yaw)
         return self.cx - ex, self.cx + ex
 
     def y_range(self) -> tuple[float, float]:
-        ey = abs(np.sin(self.yaw)) * self.sx / 2 + abs(np.cos(self.yaw)) * self.sy / 2
+        _, ey = half_extents(self.sx, self.sy, self.yaw)
         return self.cy - ey, self.cy + ey
 
     def corners_xy(self) -> np.ndarray:

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import torch
@@ -101,21 +101,38 @@ class ModelConfig:
         return "RackLay-" + ("D" if len(self.views) == 2 else "S") + ("-disc" if self.disc else "")
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        d["views"] = list(self.views)
-        if not isinstance(self.image_size, int):
-            d["image_size"] = list(self.image_size)
-        return d
+        """The config as a JSON-able dict: every dataclass field, tuples as lists. The one
+        serialiser of a model config (checkpoint headers, ONNX metadata, eval reports)."""
+        return _jsonable(asdict(self))
 
     @classmethod
     def from_dict(cls, d: dict) -> "ModelConfig":
+        """Inverse of `to_dict` (lists back to tuples). Strict: a key this version does not know
+        (a file written by a newer toolkit) is a ValueError naming it. Keys added since a file was
+        written take their defaults, except `encoder`: files from before it existed are ResNet-18."""
         names = {f.name for f in fields(cls)}
         unknown = set(d) - names
         if unknown:
-            raise ValueError(f"unknown model config keys: {sorted(unknown)}")
-        d = dict(d)
+            raise ValueError(f"unknown model config keys: {sorted(unknown)} (written by a newer racklay?)")
+        d = {k: _tuples(v) for k, v in d.items()}
         d.setdefault("encoder", LEGACY_ENCODER)
         return cls(**d)
+
+
+def _jsonable(v):
+    if isinstance(v, dict):
+        return {k: _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    return v
+
+
+def _tuples(v):
+    if isinstance(v, dict):
+        return {k: _tuples(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return tuple(_tuples(x) for x in v)
+    return v
 
 
 def check_decision_bias(bias, views) -> dict:

@@ -13,15 +13,15 @@ training. `predict_folder` is the engine behind `racklay predict`.
 """
 from __future__ import annotations
 
-import json
 import os
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 
 from . import layout as L
+from .onnx import export_onnx_bytes, onnx_session
 from .precision import native_bf16  # noqa: F401  (resolve_precision uses it; tests patch it here)
 
 BACKENDS = ("torch", "onnx")
@@ -47,8 +47,6 @@ def resolve_precision(precision: str, backend: str = "torch") -> str:
     if precision != "auto":
         return precision
     return "bf16" if backend == "torch" and native_bf16() else "fp32"
-#: metadata key under which `racklay export` stores the model config in the ONNX file
-ONNX_CONFIG_KEY = "racklay_model_config"
 
 
 def softmax_classes(logits: np.ndarray, axis: int = -3) -> np.ndarray:
@@ -69,25 +67,6 @@ def decide(logits: np.ndarray, bias=None, axis: int = 2) -> np.ndarray:
         shape[axis] = len(bias)
         z = z + np.asarray(bias, dtype=np.float32).reshape(shape)
     return z.argmax(axis=axis).astype(np.uint8)
-
-
-def config_to_dict(cfg) -> dict:
-    """A model config (dataclass) as a JSON-able dict (tuples become lists)."""
-    d = asdict(cfg) if is_dataclass(cfg) else dict(cfg)
-    return json.loads(json.dumps(d, default=list))
-
-
-def config_from_dict(d: dict):
-    """Rebuild a `racklay.model.ModelConfig` from `config_to_dict` output, ignoring unknown keys
-    (a file written by a newer version) and restoring tuples."""
-    import dataclasses
-
-    from .model import LEGACY_ENCODER, ModelConfig
-
-    names = {f.name for f in dataclasses.fields(ModelConfig)}
-    kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in names}
-    kw.setdefault("encoder", LEGACY_ENCODER)
-    return ModelConfig(**kw)
 
 
 def as_rgb_uint8(image: np.ndarray, source: str = "image") -> np.ndarray:
@@ -130,7 +109,7 @@ class Predictor:
         self.model = None
         self.session = None
         if backend == "onnx" and self.weights.suffix.lower() == ".onnx":
-            self.session, self.cfg = _onnx_session(self.weights, threads=threads)
+            self.session, self.cfg = onnx_session(self.weights, threads=threads)
             self.meta = {}
         else:
             from .checkpoint import load_model
@@ -138,10 +117,8 @@ class Predictor:
             model, self.cfg, self.meta = load_model(self.weights, map_location="cpu")
             self._set_model(model)
             if backend == "onnx":
-                from .export import export_onnx_bytes
-
                 data = export_onnx_bytes(self.model, self.cfg)
-                self.session, _ = _onnx_session(data, threads=threads, source=str(self.weights))
+                self.session, _ = onnx_session(data, threads=threads, source=str(self.weights))
         if threads and backend == "torch":
             import torch
 
@@ -225,32 +202,6 @@ class Predictor:
         out["probs"] = {v: probs[v][0] for v in self.views}
         out["grid"] = self.grid
         return out
-
-
-def _onnx_session(model, threads: int | None = None, source: str | None = None):
-    """An onnxruntime session and the model config stored in the file's metadata."""
-    import onnxruntime as ort
-
-    src = source or str(model)
-    opts = ort.SessionOptions()
-    if threads:
-        opts.intra_op_num_threads = int(threads)
-    opts.log_severity_level = 3
-    try:
-        payload = model if isinstance(model, (bytes, bytearray)) else str(model)
-        if not isinstance(model, (bytes, bytearray)) and not Path(model).is_file():
-            raise FileNotFoundError(f"{src}: ONNX file not found")
-        sess = ort.InferenceSession(payload, sess_options=opts, providers=["CPUExecutionProvider"])
-    except FileNotFoundError:
-        raise
-    except Exception as e:  # onnxruntime raises its own exception types
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise ValueError(f"{src}: not a loadable ONNX model ({msg})") from None
-    meta = sess.get_modelmeta().custom_metadata_map
-    if ONNX_CONFIG_KEY not in meta:
-        raise ValueError(f"{src}: ONNX file has no RackLay model config (export it with `racklay export`)")
-    cfg = config_from_dict(json.loads(meta[ONNX_CONFIG_KEY]))
-    return sess, cfg
 
 
 # --- folders of photos -------------------------------------------------------------------

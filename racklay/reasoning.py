@@ -224,7 +224,7 @@ def clean_mask(mask: np.ndarray, grid: L.Grid, open_m: float) -> np.ndarray:
     """Morphological opening with a square kernel of `open_m` metres (no-op at <= 1 pixel)."""
     import cv2
 
-    k = int(round(open_m / grid.res)) if open_m > 0 else 0
+    k = grid.m_to_px(open_m)
     m = mask.astype(np.uint8)
     if k > 1:
         m = cv2.morphologyEx(m, cv2.MORPH_OPEN, np.ones((k, k), np.uint8))

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import hashlib
 import os
+from importlib import resources
 from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
 RELEASE_NAME = "racklay-lite0-release-v1.safetensors"
 RELEASE_SHA256 = "7dc54fae1ab0b07b41cb81eba1c6611f7ac7ea97ce5fe58098624fcc38c04e81"
-WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+WEIGHTS_DIR = Path(str(resources.files("racklay") / "weights"))   # package data
 
 _verified: set[str] = set()
 

@@ -31,8 +31,8 @@ import csv
 import io
 import math
 import os
-import shutil
 import random
+import shutil
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -41,10 +41,19 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .layout import CLASS_NAMES, VIEWS
 from .augment import PRESETS as AUGMENT_PRESETS
-from .model import (DECODERS, Discriminators, ModelConfig, RackLayNet, load_imagenet_weights,
-                    load_lite0_weights, lsgan_discriminator_loss, lsgan_generator_loss, one_hot_layouts)
+from .layout import CLASS_NAMES
+from .model import (
+    DECODERS,
+    Discriminators,
+    ModelConfig,
+    RackLayNet,
+    load_imagenet_weights,
+    load_lite0_weights,
+    lsgan_discriminator_loss,
+    lsgan_generator_loss,
+    one_hot_layouts,
+)
 from .precision import AMP_MODES, resolve_amp
 
 # fields a resumed run must share with the run it continues (others, e.g. epochs or
@@ -477,252 +486,109 @@ def _check_init(ck, cfg: TrainConfig) -> None:
 # ----------------------------------------------------------------------------- train
 
 
+@dataclass
+class RunState:
+    """A run's progress: saved with every last.safetensors (its meta), restored by resume."""
+    epoch: int = 0                   # the current epoch (0-based)
+    step: int = 0                    # steps done within it
+    global_step: int = 0
+    history: list = field(default_factory=list)   # metrics.csv, one row per epoch
+    best_score: float = -1.0
+    best_epoch: int = -1
+    bad_epochs: int = 0              # epochs since the best one (early stopping)
+    elapsed_s: float = 0.0           # training time over every start of the run (the time budget)
+    finished: bool = False
+    stop_reason: str = ""
+    epoch_sums: dict | None = None   # the interrupted epoch's running loss sums
+
+
+@dataclass
+class Run:
+    """What the training helpers share: settings, process group, models, optimisers, files, clock."""
+    cfg: TrainConfig
+    dist: _Dist
+    dir: Path
+    model: RackLayNet
+    disc: Discriminators | None
+    optimizers: dict                 # "gen" (+ "disc")
+    bf16: bool
+    channels_last: bool
+    weight: torch.Tensor             # cross-entropy class weights
+    t_start: float
+    base_elapsed: float = 0.0        # elapsed_s when this start of the run began
+    gen: torch.nn.Module | None = None    # the model as trained this epoch (DDP-wrapped in multi-process runs)
+    frozen: bool | None = None       # whether the encoder is frozen in `gen`
+
+    @property
+    def mcfg(self) -> ModelConfig:
+        return self.cfg.model_config()
+
+    def elapsed(self) -> float:
+        return self.base_elapsed + time.time() - self.t_start
+
+    def budget_over(self) -> bool:
+        over = self.cfg.max_minutes is not None and self.elapsed() >= self.cfg.max_minutes * 60
+        return self.dist.broadcast_flag(over)
+
+
 def train(cfg: TrainConfig, transform=None) -> Path:
     """Train (or resume) a run; returns its directory."""
-    from torch.nn.parallel import DistributedDataParallel as DDP
-    from torch.utils.data import DataLoader
     from tqdm import tqdm
-
-    from .checkpoint import load_checkpoint, save_checkpoint
-    from .torchdata import RackLayDataset
 
     t_start = time.time()
     dist = _Dist(cfg.device)
-    device = dist.device
+    run_dir = cfg.run_dir()
     made_dir = False   # this call created the run folder (removed again if it fails before a checkpoint)
     try:
-        if device.type == "cpu":
+        if dist.device.type == "cpu":
             torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // dist.world))
-        run_dir = cfg.run_dir()
-        last_path, best_path = run_dir / "last.safetensors", run_dir / "best.safetensors"
-        mcfg = cfg.model_config()
-
-        if dist.main and run_dir.is_dir():   # half-written checkpoints of a killed run
-            from .atomic import remove_stale_temps
-            for name in (last_path.name, best_path.name):
-                remove_stale_temps(run_dir, name)
-        resume_ck = None
-        if cfg.resume:
-            if not last_path.is_file():
-                raise FileNotFoundError(f"{last_path}: nothing to resume (no last checkpoint)")
-            resume_ck = load_checkpoint(last_path)
-            saved = resume_ck.meta.get("train_config", {})
-            diff = [k for k in _RUN_DEFINING if k in saved and _norm(saved[k]) != _norm(getattr(cfg, k))]
-            if diff:
-                raise ValueError(f"{last_path}: resume must keep the run's settings; differs in "
-                                 + ", ".join(f"{k} ({saved[k]!r} vs {getattr(cfg, k)!r})" for k in diff))
-        elif last_path.exists():
-            raise ValueError(f"{run_dir}: run exists; pass resume to continue it or choose another name")
-
-        seed_everything(cfg.seed)
-        model = RackLayNet(mcfg)
-        disc = Discriminators(mcfg) if cfg.disc else None
-        if resume_ck is None:
-            if cfg.init:
-                ck = load_checkpoint(cfg.init)
-                _check_init(ck, cfg)
-                sd = ck.section("model")
-                own = model.state_dict()
-                model.load_state_dict({k: sd[k] for k in own}, strict=True)
-            elif cfg.imagenet_weights:
-                load_imagenet_weights(model.encoder, cfg.imagenet_weights)
-            elif cfg.pretrained and cfg.encoder == "efficientnet-lite0":
-                load_lite0_weights(model.encoder)
-        model.to(device)
-        if disc is not None:
-            disc.to(device)
-        bf16 = resolve_amp(cfg.amp, device) == "bf16"
-        # channels_last: faster convolutions on CPU (oneDNN) in fp32 too (measured 12 % per step for
-        # EfficientNet-Lite0 at 160x256), and what bf16 autocast wants
-        channels_last = bf16 or device.type == "cpu"
-        if channels_last:
-            model.to(memory_format=torch.channels_last)
-
-        gen_opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-        disc_opt = torch.optim.Adam(disc.parameters(), lr=cfg.disc_lr, betas=(0.5, 0.999)) if disc else None
-        optimizers = {"gen": gen_opt, **({"disc": disc_opt} if disc_opt else {})}
-
-        state = {"epoch": 0, "step": 0, "global_step": 0, "history": [], "best_score": -1.0,
-                 "best_epoch": -1, "bad_epochs": 0, "elapsed_s": 0.0, "finished": False, "stop_reason": "",
-                 "epoch_sums": None}   # the interrupted epoch's running loss sums (restored on resume)
-        if resume_ck is not None:
-            from .checkpoint import _load_strict
-            _load_strict(model, {k: v.to(device) for k, v in resume_ck.section("model").items()}, last_path, "model")
-            if disc is not None:
-                resume_ck.load_discriminators(disc)
-            for name, opt in optimizers.items():
-                resume_ck.load_optimizer(opt, name)
-            state.update({k: resume_ck.meta[k] for k in state if k in resume_ck.meta})
-            budget_left = cfg.max_minutes is None or state["elapsed_s"] < cfg.max_minutes * 60
-            if (state["finished"] and state["stop_reason"].startswith("time budget") and budget_left
-                    and state["epoch"] < cfg.epochs):
-                state["finished"] = False       # a larger --max-minutes extends a budget-stopped run
-            if state["finished"]:
-                if dist.main:
-                    print(f"{run_dir}: run already finished ({state['stop_reason']})")
-                return run_dir
-            del resume_ck
-
-        # data
-        train_ids, val_ids = split_ids(cfg)
-        kw = dict(image_size=cfg.image_size, layout_size=cfg.layout_size, views=cfg.views, R=cfg.R, cache=cfg.cache)
-        if transform is None and cfg.augment != "none":
-            from .augment import make_augment
-            transform = make_augment(cfg.augment, seed=cfg.seed, letterbox=cfg.letterbox)
-        kw["letterbox"] = cfg.letterbox
-        train_ds = RackLayDataset(cfg.data, ids=train_ids, transform=transform, **kw)
-        val_ds = RackLayDataset(cfg.data, ids=val_ids, **kw) if dist.main else None
-        batches = _Batches()
-        loader = DataLoader(_Seeded(train_ds, cfg.seed), batch_sampler=batches, num_workers=cfg.workers,
-                            persistent_workers=cfg.workers > 0)
-        val_loader = (DataLoader(val_ds, batch_size=cfg.batch_size, shuffle=False, num_workers=cfg.workers)
-                      if dist.main else None)
+        resume_ck = open_resume(cfg, run_dir, dist.main)
+        run = build_run(cfg, dist, run_dir, t_start, init=resume_ck is None)
+        st = RunState() if resume_ck is None else restore(run, resume_ck)
+        del resume_ck
+        if st.finished:
+            if dist.main:
+                print(f"{run_dir}: run already finished ({st.stop_reason})")
+            return run_dir
+        train_ds, loader, batches, val_loader = make_loaders(cfg, transform, dist)
         steps_per_epoch = len(epoch_batches(len(train_ds), cfg.batch_size, 0, cfg.seed, dist.world, dist.rank))
         total_steps = steps_per_epoch * cfg.epochs
-        weight = torch.tensor(cfg.class_weights, dtype=torch.float32, device=device)
-
         if dist.main:
             made_dir = not run_dir.exists()
-            run_dir.mkdir(parents=True, exist_ok=True)
-            write_config(run_dir, cfg)
-            hw = mcfg.input_hw
-            print(f"{mcfg.variant()} ({cfg.encoder} encoder, {cfg.decoder} decoder), {len(train_ids)} train / "
-                  f"{len(val_ids)} val images, {hw[1]}x{hw[0]}->{cfg.layout_size}, {'bf16' if bf16 else 'fp32'}, "
-                  f"{dist.world} process(es) on {device}, "
-                  f"{torch.get_num_threads()} thread(s) each -> {run_dir}")
-
-        def save_last():
-            if dist.main:
-                meta = {**state, "train_config": cfg.to_dict(), "variant": mcfg.variant()}
-                save_checkpoint(last_path, model, mcfg, optimizer=optimizers, extra=meta, disc=disc)
-
-        def budget_over() -> bool:
-            over = cfg.max_minutes is not None and base_elapsed + time.time() - t_start >= cfg.max_minutes * 60
-            return dist.broadcast_flag(over)
-
-        base_elapsed = state["elapsed_s"]
-        gen_ddp = None
-        frozen_mode = None
+            start_run_dir(run, len(train_ds), len(val_loader.dataset))
+        run.base_elapsed = st.elapsed_s
         stop = False
-        while state["epoch"] < cfg.epochs and not stop:
-            epoch = state["epoch"]
-            frozen = epoch < cfg.freeze_encoder_epochs
-            if frozen != frozen_mode:   # (re)wrap when the trainable set changes
-                for p in model.encoder.parameters():
-                    p.requires_grad_(not frozen)
-                gen_ddp = DDP(model, device_ids=[device.index] if device.type == "cuda" else None) if dist.enabled else model
-                frozen_mode = frozen
-            disc_ddp = None
-            adv = disc is not None and epoch >= cfg.disc_start
-            if adv:
-                disc_ddp = DDP(disc, device_ids=[device.index] if device.type == "cuda" else None) if dist.enabled else disc
-            model.train()
-            if frozen:
-                model.encoder.eval()
+        while st.epoch < cfg.epochs and not stop:
+            epoch = st.epoch
+            gen, disc = models_for_epoch(run, epoch)
             all_batches = epoch_batches(len(train_ds), cfg.batch_size, epoch, cfg.seed, dist.world, dist.rank)
-            start = state["step"]
-            batches.batches = [[(i, epoch) for i in b] for b in all_batches[start:]]
-            sums = {k: 0.0 for k in ("loss", "ce", "adv", "disc")}
-            sums.update(state.get("epoch_sums") or {})
+            batches.batches = [[(i, epoch) for i in b] for b in all_batches[st.step:]]
+            sums = {"loss": 0.0, "ce": 0.0, "adv": 0.0, "disc": 0.0, **(st.epoch_sums or {})}
             t_epoch = time.time()
-            bar = tqdm(total=len(all_batches), initial=start, desc=f"epoch {epoch + 1}/{cfg.epochs}",
+            bar = tqdm(total=len(all_batches), initial=st.step, desc=f"epoch {epoch + 1}/{cfg.epochs}",
                        disable=not (cfg.progress and dist.main), dynamic_ncols=True)
             for batch in loader:
-                lr = lr_at(state["global_step"], total_steps, cfg)
-                for g in gen_opt.param_groups:
+                lr = lr_at(st.global_step, total_steps, cfg)
+                for g in run.optimizers["gen"].param_groups:
                     g["lr"] = lr
-                x = batch["image"].to(device)
-                if channels_last:
-                    x = x.contiguous(memory_format=torch.channels_last)
-                targets = {v: batch[v].to(device) for v in cfg.views}
-                with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-                    out = gen_ddp(x)
-                ce = sum(layout_loss(out[v], targets[v], weight) for v in cfg.views)
-                loss = ce
-                adv_loss = torch.zeros(())
-                probs = {}
-                if adv:
-                    disc.requires_grad_(False)
-                    for v in cfg.views:
-                        probs[v] = out[v].float().softmax(2)
-                        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-                            d_fake = disc(v, probs[v])
-                        adv_loss = adv_loss + lsgan_generator_loss(d_fake.float())
-                    disc.requires_grad_(True)
-                    loss = ce + cfg.disc_weight * adv_loss
-                gen_opt.zero_grad(set_to_none=True)
-                loss.backward()
-                gen_opt.step()
-                d_loss = torch.zeros(())
-                if adv:
-                    # one forward per view on [real; fake] so DDP sees a single pass
-                    for v in cfg.views:
-                        both = torch.cat([one_hot_layouts(targets[v]), probs[v].detach()])
-                        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-                            scores = disc_ddp(v, both).float()
-                        n = x.shape[0]
-                        d_loss = d_loss + lsgan_discriminator_loss(scores[:n], scores[n:])
-                    disc_opt.zero_grad(set_to_none=True)
-                    d_loss.backward()
-                    disc_opt.step()
-                for k, val in (("loss", loss), ("ce", ce), ("adv", adv_loss), ("disc", d_loss)):
-                    sums[k] += float(val.detach())
-                state["step"] += 1
-                state["global_step"] += 1
-                state["epoch_sums"] = dict(sums)
+                losses = train_step(run, gen, disc, batch)
+                count_step(st, sums, losses)
                 bar.update(1)
-                bar.set_postfix(loss=f"{sums['loss'] / state['step']:.4f}", lr=f"{lr:.2e}")
-                _maybe_crash(state["global_step"])
-                over = budget_over()
-                state["elapsed_s"] = base_elapsed + time.time() - t_start
+                bar.set_postfix(loss=f"{sums['loss'] / st.step:.4f}", lr=f"{lr:.2e}")
+                over = run.budget_over()
+                st.elapsed_s = run.elapsed()
                 if over:
                     stop = True
-                    state["stop_reason"] = f"time budget of {cfg.max_minutes} min reached"
+                    st.stop_reason = f"time budget of {cfg.max_minutes} min reached"
                     break
-                if cfg.checkpoint_every and state["step"] % cfg.checkpoint_every == 0 and state["step"] < len(all_batches):
-                    save_last()
+                if cfg.checkpoint_every and st.step % cfg.checkpoint_every == 0 and st.step < len(all_batches):
+                    save_last(run, st)
             bar.close()
             # epoch end (or budget stop mid-epoch): validate, record, checkpoint
-            n_steps = max(1, state["step"])
-            tr = dict(zip(sums, dist.mean([sums[k] / n_steps for k in sums])))
-            val = None
-            if dist.main:
-                val = validate(model, val_loader, cfg, weight, device, progress=cfg.progress, bf16=bf16)
-                row = _history_row(epoch, state["step"], lr_at(max(0, state["global_step"] - 1), total_steps, cfg),
-                                   tr, val, time.time() - t_epoch, state["elapsed_s"])
-                state["history"].append(row)
-                improved = val["score"] > state["best_score"]
-                if improved:
-                    state["best_score"], state["best_epoch"], state["bad_epochs"] = val["score"], epoch, 0
-                    meta = {"epoch": epoch, "val_score": val["score"], "val": val["result"],
-                            "train_config": cfg.to_dict(), "variant": mcfg.variant()}
-                    save_checkpoint(best_path, model, mcfg, extra=meta)
-                else:
-                    state["bad_epochs"] += 1
-                print(f"epoch {epoch + 1}: train loss {tr['loss']:.4f}, val loss {val['loss']:.4f}, "
-                      f"val score {val['score']:.4f}" + (" (best)" if improved else "")
-                      + f", {time.time() - t_epoch:.0f} s")
-            early = dist.broadcast_flag(bool(cfg.patience) and state["bad_epochs"] >= (cfg.patience or 0))
-            if early and not stop:
-                stop = True
-                state["stop_reason"] = f"early stop: no improvement for {cfg.patience} epochs"
-            if state["step"] >= len(all_batches) or not stop or early:
-                state["epoch"] += 1
-                state["step"] = 0
-                state["epoch_sums"] = None
-            # else: stopped by the time budget mid-epoch; a resume with more time finishes the epoch
-            if state["epoch"] >= cfg.epochs and not stop:
-                stop = True
-                state["stop_reason"] = f"{cfg.epochs} epochs done"
-            state["finished"] = stop
-            state["elapsed_s"] = base_elapsed + time.time() - t_start
-            save_last()
-            if dist.main:
-                write_history(run_dir, state["history"])
-            dist.barrier()
+            stop = end_of_epoch(run, st, sums, val_loader, len(all_batches), total_steps, t_epoch, stop)
         if dist.main:
-            print(f"{run_dir}: {state['stop_reason']}; best val score {state['best_score']:.4f} "
-                  f"(epoch {state['best_epoch'] + 1}), {state['elapsed_s'] / 60:.1f} min")
+            print(f"{run_dir}: {st.stop_reason}; best val score {st.best_score:.4f} "
+                  f"(epoch {st.best_epoch + 1}), {st.elapsed_s / 60:.1f} min")
         return run_dir
     except BaseException:
         # a run that fails before its first checkpoint (bad data, a mismatched R, Ctrl-C) leaves
@@ -732,6 +598,254 @@ def train(cfg: TrainConfig, transform=None) -> Path:
         raise
     finally:
         dist.close()
+
+
+def open_resume(cfg: TrainConfig, run_dir: Path, main: bool):
+    """The checkpoint to resume (None for a new run), checked against `cfg`; removes half-written
+    checkpoints of a killed run and refuses to start a new run over an existing one."""
+    from .checkpoint import load_checkpoint
+
+    last_path = run_dir / "last.safetensors"
+    if main and run_dir.is_dir():
+        from .atomic import remove_stale_temps
+        for name in ("last.safetensors", "best.safetensors"):
+            remove_stale_temps(run_dir, name)
+    if not cfg.resume:
+        if last_path.exists():
+            raise ValueError(f"{run_dir}: run exists; pass resume to continue it or choose another name")
+        return None
+    if not last_path.is_file():
+        raise FileNotFoundError(f"{last_path}: nothing to resume (no last checkpoint)")
+    ck = load_checkpoint(last_path)
+    saved = ck.meta.get("train_config", {})
+    diff = [k for k in _RUN_DEFINING if k in saved and _norm(saved[k]) != _norm(getattr(cfg, k))]
+    if diff:
+        raise ValueError(f"{last_path}: resume must keep the run's settings; differs in "
+                         + ", ".join(f"{k} ({saved[k]!r} vs {getattr(cfg, k)!r})" for k in diff))
+    return ck
+
+
+def build_run(cfg: TrainConfig, dist: _Dist, run_dir: Path, t_start: float, init: bool) -> Run:
+    """Seeded models (initialised from `cfg.init` or ImageNet weights when `init`) on the device,
+    their optimisers and the precision."""
+    from .checkpoint import load_checkpoint
+
+    device, mcfg = dist.device, cfg.model_config()
+    seed_everything(cfg.seed)
+    model = RackLayNet(mcfg)
+    disc = Discriminators(mcfg) if cfg.disc else None
+    if init and cfg.init:
+        ck = load_checkpoint(cfg.init)
+        _check_init(ck, cfg)
+        sd = ck.section("model")
+        model.load_state_dict({k: sd[k] for k in model.state_dict()}, strict=True)
+    elif init and cfg.imagenet_weights:
+        load_imagenet_weights(model.encoder, cfg.imagenet_weights)
+    elif init and cfg.pretrained and cfg.encoder == "efficientnet-lite0":
+        load_lite0_weights(model.encoder)
+    model.to(device)
+    if disc is not None:
+        disc.to(device)
+    bf16 = resolve_amp(cfg.amp, device) == "bf16"
+    # channels_last: faster convolutions on CPU (oneDNN) in fp32 too (measured 12 % per step for
+    # EfficientNet-Lite0 at 160x256), and what bf16 autocast wants
+    channels_last = bf16 or device.type == "cpu"
+    if channels_last:
+        model.to(memory_format=torch.channels_last)
+    optimizers = {"gen": torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)}
+    if disc is not None:
+        optimizers["disc"] = torch.optim.Adam(disc.parameters(), lr=cfg.disc_lr, betas=(0.5, 0.999))
+    weight = torch.tensor(cfg.class_weights, dtype=torch.float32, device=device)
+    return Run(cfg, dist, run_dir, model, disc, optimizers, bf16, channels_last, weight, t_start)
+
+
+def restore(run: Run, ck) -> RunState:
+    """Weights, optimiser state and progress from the resumed checkpoint. A run stopped by its
+    time budget is not finished any more when a larger `max_minutes` leaves time and epochs."""
+    from .checkpoint import load_state_strict
+
+    device = run.dist.device
+    load_state_strict(run.model, {k: v.to(device) for k, v in ck.section("model").items()}, ck.path, "model")
+    if run.disc is not None:
+        ck.load_discriminators(run.disc)
+    for name, opt in run.optimizers.items():
+        ck.load_optimizer(opt, name)
+    st = RunState(**{f.name: ck.meta[f.name] for f in fields(RunState) if f.name in ck.meta})
+    cfg = run.cfg
+    budget_left = cfg.max_minutes is None or st.elapsed_s < cfg.max_minutes * 60
+    if st.finished and st.stop_reason.startswith("time budget") and budget_left and st.epoch < cfg.epochs:
+        st.finished = False
+    return st
+
+
+def make_loaders(cfg: TrainConfig, transform, dist: _Dist):
+    """(training dataset, its loader, the loader's batch sampler, validation loader (rank 0 only))."""
+    from torch.utils.data import DataLoader
+
+    from .torchdata import RackLayDataset
+
+    train_ids, val_ids = split_ids(cfg)
+    kw = dict(image_size=cfg.image_size, layout_size=cfg.layout_size, views=cfg.views, R=cfg.R, cache=cfg.cache)
+    if transform is None and cfg.augment != "none":
+        from .augment import make_augment
+        transform = make_augment(cfg.augment, seed=cfg.seed, letterbox=cfg.letterbox)
+    kw["letterbox"] = cfg.letterbox
+    train_ds = RackLayDataset(cfg.data, ids=train_ids, transform=transform, **kw)
+    val_ds = RackLayDataset(cfg.data, ids=val_ids, **kw) if dist.main else None
+    batches = _Batches()
+    loader = DataLoader(_Seeded(train_ds, cfg.seed), batch_sampler=batches, num_workers=cfg.workers,
+                        persistent_workers=cfg.workers > 0)
+    val_loader = (DataLoader(val_ds, batch_size=cfg.batch_size, shuffle=False, num_workers=cfg.workers)
+                  if dist.main else None)
+    return train_ds, loader, batches, val_loader
+
+
+def start_run_dir(run: Run, n_train: int, n_val: int) -> None:
+    """Create the run folder, write config.yaml and say what is being trained."""
+    cfg, mcfg = run.cfg, run.mcfg
+    run.dir.mkdir(parents=True, exist_ok=True)
+    write_config(run.dir, cfg)
+    hw = mcfg.input_hw
+    print(f"{mcfg.variant()} ({cfg.encoder} encoder, {cfg.decoder} decoder), {n_train} train / "
+          f"{n_val} val images, {hw[1]}x{hw[0]}->{cfg.layout_size}, {'bf16' if run.bf16 else 'fp32'}, "
+          f"{run.dist.world} process(es) on {run.dist.device}, "
+          f"{torch.get_num_threads()} thread(s) each -> {run.dir}")
+
+
+def models_for_epoch(run: Run, epoch: int):
+    """(generator, discriminators or None) as trained in `epoch`: the encoder frozen during the
+    first `freeze_encoder_epochs`, the discriminators from `disc_start` on; DDP-wrapped in a
+    multi-process run (re-wrapped when the trainable set changes)."""
+    from torch.nn.parallel import DistributedDataParallel as DDP
+
+    cfg, dist = run.cfg, run.dist
+    ids = [dist.device.index] if dist.device.type == "cuda" else None
+    frozen = epoch < cfg.freeze_encoder_epochs
+    if frozen != run.frozen:
+        for p in run.model.encoder.parameters():
+            p.requires_grad_(not frozen)
+        run.gen = DDP(run.model, device_ids=ids) if dist.enabled else run.model
+        run.frozen = frozen
+    disc = None
+    if run.disc is not None and epoch >= cfg.disc_start:
+        disc = DDP(run.disc, device_ids=ids) if dist.enabled else run.disc
+    run.model.train()
+    if frozen:
+        run.model.encoder.eval()
+    return run.gen, disc
+
+
+def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
+    """One optimisation step: the generator on cross-entropy (+ λ·adversarial loss when `disc`
+    is given), then the discriminators on the one-hot truth vs the generator's probabilities."""
+    cfg, device, bf16 = run.cfg, run.dist.device, run.bf16
+    x = batch["image"].to(device)
+    if run.channels_last:
+        x = x.contiguous(memory_format=torch.channels_last)
+    targets = {v: batch[v].to(device) for v in cfg.views}
+    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+        out = gen(x)
+    ce = sum(layout_loss(out[v], targets[v], run.weight) for v in cfg.views)
+    loss, adv_loss, d_loss = ce, torch.zeros(()), torch.zeros(())
+    probs = {}
+    if disc is not None:
+        run.disc.requires_grad_(False)
+        for v in cfg.views:
+            probs[v] = out[v].float().softmax(2)
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+                d_fake = run.disc(v, probs[v])
+            adv_loss = adv_loss + lsgan_generator_loss(d_fake.float())
+        run.disc.requires_grad_(True)
+        loss = ce + cfg.disc_weight * adv_loss
+    gen_opt = run.optimizers["gen"]
+    gen_opt.zero_grad(set_to_none=True)
+    loss.backward()
+    gen_opt.step()
+    if disc is not None:
+        # one forward per view on [real; fake] so DDP sees a single pass
+        for v in cfg.views:
+            both = torch.cat([one_hot_layouts(targets[v]), probs[v].detach()])
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+                scores = disc(v, both).float()
+            n = x.shape[0]
+            d_loss = d_loss + lsgan_discriminator_loss(scores[:n], scores[n:])
+        disc_opt = run.optimizers["disc"]
+        disc_opt.zero_grad(set_to_none=True)
+        d_loss.backward()
+        disc_opt.step()
+    return {"loss": float(loss.detach()), "ce": float(ce.detach()), "adv": float(adv_loss.detach()),
+            "disc": float(d_loss.detach())}
+
+
+def count_step(st: RunState, sums: dict, losses: dict) -> None:
+    """Add a step's losses to the epoch's sums and advance the step counters."""
+    for k, v in losses.items():
+        sums[k] += v
+    st.step += 1
+    st.global_step += 1
+    st.epoch_sums = dict(sums)
+    _maybe_crash(st.global_step)
+
+
+def end_of_epoch(run: Run, st: RunState, sums: dict, val_loader, n_batches: int, total_steps: int,
+                 t_epoch: float, stop: bool) -> bool:
+    """Validate, record the epoch (metrics.csv, curves, best.safetensors), decide early stopping,
+    move to the next epoch (unless the time budget stopped this one midway: a resume with more
+    time finishes it) and write last.safetensors. Returns whether training stops."""
+    cfg, dist = run.cfg, run.dist
+    epoch = st.epoch
+    n_steps = max(1, st.step)
+    tr = dict(zip(sums, dist.mean([sums[k] / n_steps for k in sums])))
+    if dist.main:
+        record_epoch(run, st, tr, val_loader, total_steps, t_epoch)
+    early = dist.broadcast_flag(bool(cfg.patience) and st.bad_epochs >= (cfg.patience or 0))
+    if early and not stop:
+        stop = True
+        st.stop_reason = f"early stop: no improvement for {cfg.patience} epochs"
+    if st.step >= n_batches or not stop or early:
+        st.epoch, st.step, st.epoch_sums = epoch + 1, 0, None
+    if st.epoch >= cfg.epochs and not stop:
+        stop = True
+        st.stop_reason = f"{cfg.epochs} epochs done"
+    st.finished = stop
+    st.elapsed_s = run.elapsed()
+    save_last(run, st)
+    if dist.main:
+        write_history(run.dir, st.history)
+    dist.barrier()
+    return stop
+
+
+def record_epoch(run: Run, st: RunState, tr: dict, val_loader, total_steps: int, t_epoch: float) -> None:
+    """Rank 0: validate, append the history row, keep best.safetensors, print the epoch line."""
+    from .checkpoint import save_checkpoint
+
+    cfg, epoch = run.cfg, st.epoch
+    val = validate(run.model, val_loader, cfg, run.weight, run.dist.device, progress=cfg.progress, bf16=run.bf16)
+    row = _history_row(epoch, st.step, lr_at(max(0, st.global_step - 1), total_steps, cfg),
+                       tr, val, time.time() - t_epoch, st.elapsed_s)
+    st.history.append(row)
+    improved = val["score"] > st.best_score
+    if improved:
+        st.best_score, st.best_epoch, st.bad_epochs = val["score"], epoch, 0
+        meta = {"epoch": epoch, "val_score": val["score"], "val": val["result"],
+                "train_config": cfg.to_dict(), "variant": run.mcfg.variant()}
+        save_checkpoint(run.dir / "best.safetensors", run.model, run.mcfg, extra=meta)
+    else:
+        st.bad_epochs += 1
+    print(f"epoch {epoch + 1}: train loss {tr['loss']:.4f}, val loss {val['loss']:.4f}, "
+          f"val score {val['score']:.4f}" + (" (best)" if improved else "")
+          + f", {time.time() - t_epoch:.0f} s")
+
+
+def save_last(run: Run, st: RunState) -> None:
+    """last.safetensors (rank 0): model, discriminators, optimisers and the run state."""
+    from .checkpoint import save_checkpoint
+
+    if run.dist.main:
+        meta = {**asdict(st), "train_config": run.cfg.to_dict(), "variant": run.mcfg.variant()}
+        save_checkpoint(run.dir / "last.safetensors", run.model, run.mcfg, optimizer=run.optimizers,
+                        extra=meta, disc=run.disc)
 
 
 def _norm(v):

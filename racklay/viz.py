@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .layout import BOX, CLASS_NAMES, SHELF, Grid
+from .layout import CLASS_NAMES, Grid
 
 #: RGB colour per class id: background, shelf (free space), box (occupied)
 PALETTE = np.array([[24, 24, 32], [70, 160, 230], [250, 150, 40]], dtype=np.uint8)

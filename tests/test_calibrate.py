@@ -15,8 +15,8 @@ from racklay.checkpoint import load_checkpoint, save_checkpoint
 from racklay.cli import main as racklay_main
 from racklay.model import ModelConfig, RackLayNet
 from racklay.predict import Predictor, decide
-from racklay.toy import build_toy_dataset
 from racklay.torchdata import RackLayDataset
+from racklay.toy import build_toy_dataset
 
 IMG, S, R = 64, 32, 4
 #: logits per ground-truth class of a model that ranks boxes right but calls them "shelf"

@@ -6,16 +6,14 @@ import sys
 import numpy as np
 import pytest
 
+from conftest import make_toy
 from racklay.cli import main
 from racklay.data import RackLayRoot
-from racklay.toy import build_toy_dataset
 
 
 @pytest.fixture(scope="module")
 def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("cli") / "ds"
-    build_toy_dataset(root, n=8, seed=2, D=64)
-    return root
+    return make_toy(tmp_path_factory, n=8, seed=2, D=64)
 
 
 @pytest.mark.parametrize("prog", ["racklay", "transfer", "annotate"])

@@ -1,21 +1,18 @@
-import json
 import shutil
 
 import numpy as np
 import pytest
 import torch
 
+from conftest import make_toy
 from racklay import layout as L
 from racklay.data import DataError, RackLayRoot, check_dataset, make_splits, parse_split_entry
-from racklay.toy import build_toy_dataset
 from racklay.torchdata import RackLayDataset
 
 
 @pytest.fixture(scope="module")
 def toy_root(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy") / "ds"
-    build_toy_dataset(root, n=10, seed=1, D=64)
-    return root
+    return make_toy(tmp_path_factory, n=10, seed=1, D=64)
 
 
 @pytest.fixture

@@ -4,22 +4,28 @@ shelves and cartons on real rack photos), the loader is strict, and the RackLay 
 it handles non-square inputs."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
 
+from conftest import REAL_PHOTOS
 from racklay.data import read_image
-from racklay.model import (EfficientNetLite0Encoder, ModelConfig, RackLayNet, build_model, lite0_weights_path,
-                           load_lite0_weights)
+from racklay.model import (
+    EfficientNetLite0Encoder,
+    ModelConfig,
+    RackLayNet,
+    build_model,
+    lite0_weights_path,
+    load_lite0_weights,
+)
 from racklay.torchdata import image_to_tensor, prepare_image
 
-PHOTOS = Path(__file__).resolve().parents[1] / "datasets" / "real-photos"
+PHOTOS = REAL_PHOTOS
 #: ImageNet classes a rack photo plausibly shows: carton, crate, bookcase, bookshop, grocery store,
 #: file cabinet, tobacco shop, shoe shop, library, forklift
 PLAUSIBLE = {478, 519, 453, 454, 582, 553, 860, 788, 624, 561}
 
 
+@pytest.mark.slow
 def test_pretrained_classifier_ranks_rack_classes_on_real_photos():
     enc = EfficientNetLite0Encoder(with_classifier=True)
     load_lite0_weights(enc)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import make_toy
 from racklay import layout as L
 from racklay.cli import main as racklay_main
 from racklay.data import RackLayRoot, read_image
-from racklay.toy import build_toy_dataset
 from racklay.predict import Predictor
 
 IMG, S, R = 64, 32, 4
@@ -20,9 +20,7 @@ IMG, S, R = 64, 32, 4
 
 @pytest.fixture(scope="module")
 def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy")
-    build_toy_dataset(root, n=10, seed=3, R=R, D=128)
-    return root
+    return make_toy(tmp_path_factory, n=10, seed=3, R=R, D=128)
 
 
 @pytest.fixture(scope="module")
@@ -152,6 +150,7 @@ def test_predict_folder_outputs_and_bad_files(toy, ckpt, tmp_path, capsys):
     assert "Paper protocol" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_predictor_any_size_and_bad_weights(ckpt, tmp_path):
     from racklay.predict import Predictor
 
@@ -196,6 +195,30 @@ def test_onnx_parity_and_backend(ckpt, onnx_file, toy, capsys):
         for v in cfg.views:
             assert (a[v] == b[v]).mean() > 0.999
             np.testing.assert_allclose(a["probs"][v], b["probs"][v], atol=1e-4)
+
+
+def test_onnx_metadata_is_the_checkpoint_config_and_read_strictly(ckpt, onnx_file, tmp_path):
+    """The ONNX file stores `ModelConfig.to_dict` (the checkpoint serialiser) and reads it back
+    equal; a key this version does not know (a newer exporter) is refused with one line naming
+    the file and the key, not silently dropped."""
+    import onnx
+
+    from racklay.checkpoint import load_model
+    from racklay.model import ModelConfig
+    from racklay.onnx import ONNX_CONFIG_KEY
+
+    _, cfg, _ = load_model(ckpt)
+    assert Predictor(onnx_file).cfg == cfg
+    proto = onnx.load(str(onnx_file))
+    (entry,) = [p for p in proto.metadata_props if p.key == ONNX_CONFIG_KEY]
+    assert json.loads(entry.value) == cfg.to_dict()
+    assert ModelConfig.from_dict(json.loads(entry.value)) == cfg
+    entry.value = json.dumps({**cfg.to_dict(), "from_the_future": 1})
+    newer = tmp_path / "newer.onnx"
+    onnx.save(proto, str(newer))
+    with pytest.raises(ValueError, match=r"newer.onnx: .*from_the_future.*re-export") as e:
+        Predictor(newer)
+    assert "\n" not in str(e.value)
 
 
 def test_predict_cli_onnx_matches_torch(ckpt, onnx_file, toy, tmp_path):

@@ -186,9 +186,9 @@ def test_annotator_refuses_the_bomb_from_its_header(bomb_setup):
 def test_predict_leaves_no_half_written_sample(tmp_path, monkeypatch):
     """A prediction that fails while writing (here: the figure) leaves none of its files."""
     import racklay.viz
-    from racklay.predict import Predictor, predict_folder
     from racklay.checkpoint import save_checkpoint
     from racklay.model import ModelConfig, RackLayNet
+    from racklay.predict import Predictor, predict_folder
 
     cfg = ModelConfig(R=2, image_size=64, layout_size=32)
     w = save_checkpoint(tmp_path / "w.safetensors", RackLayNet(cfg), cfg)

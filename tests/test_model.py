@@ -2,13 +2,23 @@
 discriminator, safetensors round trips, the torchvision-compatible ImageNet loader."""
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 
 from racklay.checkpoint import load_checkpoint, load_model, save_checkpoint
-from racklay.model import (Discriminators, ModelConfig, RackLayNet, ResNet18Encoder, build_model,
-                           load_imagenet_weights, lsgan_discriminator_loss, lsgan_generator_loss,
-                           one_hot_layouts)
+from racklay.model import (
+    Discriminators,
+    ModelConfig,
+    RackLayNet,
+    ResNet18Encoder,
+    build_model,
+    load_imagenet_weights,
+    lsgan_discriminator_loss,
+    lsgan_generator_loss,
+    one_hot_layouts,
+)
 
 IMG, LAY, R = 64, 32, 3
 
@@ -89,11 +99,20 @@ def test_model_config_validation():
     with pytest.raises(ValueError, match="multiple of 32"):
         ModelConfig(image_size=100)
     assert ModelConfig.from_dict(ModelConfig(R=2).to_dict()) == ModelConfig(R=2)
+    wide = ModelConfig(image_size=(64, 96), views=("front",))
+    assert json.loads(json.dumps(wide.to_dict())) == wide.to_dict()   # JSON-able as it is
+    assert ModelConfig.from_dict(json.loads(json.dumps(wide.to_dict()))) == wide
+    # a dict field (racklay calibrate's decision_bias) round-trips through JSON too
+    cal = ModelConfig(decision_bias={"top": (0.0, 0.5, 1.25)})
+    assert ModelConfig.from_dict(json.loads(json.dumps(cal.to_dict()))) == cal
+    with pytest.raises(ValueError, match="unknown model config keys: \\['nope'\\]"):
+        ModelConfig.from_dict({**wide.to_dict(), "nope": 1})
     # a config written before the encoder was a choice (older checkpoints) is a ResNet-18 one
     old = {k: v for k, v in ModelConfig(R=2, encoder="resnet18").to_dict().items() if k not in ("encoder", "letterbox")}
     assert ModelConfig.from_dict(old).encoder == "resnet18"
 
 
+@pytest.mark.slow
 def test_checkpoint_round_trip_is_exact(tmp_path):
     cfg = ModelConfig(R=2, image_size=IMG, layout_size=LAY, decoder="paper", disc=True)
     net, disc = RackLayNet(cfg), Discriminators(cfg)

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from racklay import layout as L
-from racklay.export3d import (COLORS, glb_bytes, glb_mesh_arrays, ply_text, rack_parts, read_glb,
-                              render_figure)
+from racklay.export3d import COLORS, glb_bytes, glb_mesh_arrays, ply_text, rack_parts, read_glb, render_figure
 from racklay.reasoning import ReasoningConfig, analyze_layouts, analyze_shelf
 
 G = L.Grid(256)  # 3.125 cm pixels; the default opening (4 cm) rounds to 1 px: no-op

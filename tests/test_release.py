@@ -2,19 +2,18 @@
 the quick demo runs end to end from it."""
 from __future__ import annotations
 
+import json
+import re
 import shutil
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import REAL_PHOTOS, REPO, run_module
 from racklay import release
 from racklay.checkpoint import load_model
 
-REPO = Path(__file__).resolve().parents[1]
-PHOTO = REPO / "datasets" / "real-photos" / "19_mock_white_shelf_3lvl.jpg"
+PHOTO = REAL_PHOTOS / "19_mock_white_shelf_3lvl.jpg"
 
 
 def test_shipped_weights_are_intact_small_and_load():
@@ -38,10 +37,10 @@ def test_corrupt_shipped_weights_are_refused(tmp_path, monkeypatch):
         release.release_weights()
 
 
+@pytest.mark.slow
 def test_predict_without_weights_uses_the_shipped_model_and_finds_the_shelves(tmp_path):
     out = tmp_path / "pred"
-    r = subprocess.run([sys.executable, "-m", "racklay", "predict", str(PHOTO), "--out", str(out), "--no-png"],
-                       capture_output=True, text=True, cwd=REPO)
+    r = run_module("racklay", "predict", PHOTO, "--out", out, "--no-png", cwd=REPO)
     assert r.returncode == 0, r.stderr
     assert "shipped model" in r.stderr
     from racklay.data import RackLayRoot
@@ -57,17 +56,35 @@ def test_predict_without_weights_uses_the_shipped_model_and_finds_the_shelves(tm
 
 
 @pytest.mark.slow
-def test_quick_demo_runs_end_to_end_from_the_shipped_model(tmp_path):
-    from transfer.demo import QUICK, DemoConfig, run_demo
+def test_quick_demo_runs_end_to_end_from_the_shipped_model(tmp_path, capsys):
+    """`transfer demo --quick` (the README's main job, `make demo`, reduced) through its command line."""
+    from transfer.cli import main as transfer_main
 
-    res = run_demo(DemoConfig(out=str(tmp_path / "demo"), **QUICK), log=lambda m: None)
-    photos = sorted(p for p in (REPO / "datasets" / "real-photos").iterdir() if p.suffix == ".jpg")
-    figs = res["figures"]
-    assert len(figs) == len(photos) + 1 and figs[-1].name == "contact_sheet.png"
-    assert all(f.is_file() for f in figs)
-    assert res["shipped"] == release.release_weights()
-    assert res["gain"] is not None and all(np.isfinite(res["gain"]))
-    assert Path(res["weights"]).is_file()
-    table = res["compare"]["paths"]["table_md"].read_text()
+    out = tmp_path / "demo"
+    assert transfer_main(["demo", "--quick", "--out", str(out)]) == 0
+    log = capsys.readouterr().out
+    photos = sorted(p.stem for p in REAL_PHOTOS.iterdir() if p.suffix == ".jpg")
+    figs = out / "real-photo-predictions"
+    assert sorted(p.stem for p in figs.glob("*.png") if p.stem != "contact_sheet") == photos
+    assert (figs / "contact_sheet.png").is_file() and (figs / "SOURCES.tsv").is_file()
+    assert f"the shipped model ({release.RELEASE_NAME})" in log
+    gain = re.search(r"fine-tuned vs real only, top-view box mIoU: ([\d.]+) vs ([\d.]+)", log)
+    assert gain and all(np.isfinite(float(g)) for g in gain.groups())
+    assert (out / "compare" / "runs" / "seed0" / "finetune_f1" / "best.safetensors").is_file()
+    table = (out / "compare" / "table.md").read_text().lower()
     for row in ("synthetic only", "real only", "fine-tune"):
-        assert row in table.lower()
+        assert row in table
+
+
+def test_toy_demo_builds_checks_scores_and_draws(tmp_path, capsys):
+    """`transfer demo --toy`: the seconds-long schematic demo of the data and metrics layer."""
+    from transfer.cli import main as transfer_main
+
+    out = tmp_path / "toy"
+    assert transfer_main(["demo", "--toy", "--n", "6", "--out", str(out)]) == 0
+    log = capsys.readouterr().out
+    assert "6 samples" in log and "-> OK" in log
+    scores = json.loads((out / "scores.json").read_text())
+    # boxes eroded and a shelf dropped: worse than perfect, better than nothing
+    assert 0 < scores["top"]["dataset"]["box"]["IoU"] < 1
+    assert (out / "figure.png").is_file() and len(list((out / "degraded-predictions" / "topLayouts").iterdir())) == 6

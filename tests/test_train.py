@@ -2,7 +2,6 @@
 torchrun (DDP, gloo), fine-tuning checks and config handling. Tiny sizes (64 px in, 32 px out)."""
 from __future__ import annotations
 
-import csv
 import os
 import shutil
 import signal
@@ -14,27 +13,22 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import ENV, make_toy, metrics_rows, run_module
 from racklay.checkpoint import load_checkpoint, load_model, save_checkpoint
 from racklay.data import RackLayRoot
 from racklay.model import ModelConfig, RackLayNet
-from racklay.toy import build_toy_dataset
 from racklay.train import TrainConfig, epoch_batches, train
 
 VENV_BIN = Path(sys.executable).parent
-ENV = {**os.environ, "MALLOC_MMAP_THRESHOLD_": "4294967296", "MALLOC_TRIM_THRESHOLD_": "4294967296"}
 TINY = dict(image_size=64, layout_size=32, R=4, batch_size=4, progress=False, threads=1, warmup_steps=2)
 
 
 @pytest.fixture(scope="module")
 def toy(tmp_path_factory):
-    root = tmp_path_factory.mktemp("toy") / "toy"
-    build_toy_dataset(root, n=24, seed=0, R=4, D=64)
-    return root
+    return make_toy(tmp_path_factory, n=24, seed=0, R=4, D=64)
 
 
-def _rows(run: Path) -> list[dict]:
-    with open(run / "metrics.csv") as f:
-        return list(csv.DictReader(f))
+_rows = metrics_rows
 
 
 @pytest.mark.slow
@@ -68,10 +62,9 @@ def test_overfit_a_handful_of_samples(tmp_path, toy):
 
 
 def _cli(*args, env=None, torchrun=False):
-    if torchrun:
-        cmd = [str(VENV_BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "racklay", *args]
-    else:
-        cmd = [sys.executable, "-m", "racklay", *args]
+    if not torchrun:
+        return run_module("racklay", *args, env=env)
+    cmd = [str(VENV_BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "racklay", *args]
     return subprocess.run(cmd, env=env or ENV, capture_output=True, text=True, timeout=300)
 
 
@@ -238,3 +231,58 @@ def test_stale_checkpoint_temp_files_removed_at_next_start(tmp_path, toy):
     train(TrainConfig(max_minutes=1e-4, resume=True, **base))
     assert not any(p.exists() for p in stale) and keep.exists()
     assert load_checkpoint(run / "last.safetensors").meta["global_step"] == 1
+
+
+# the golden run: a fixed-seed 2-epoch run whose metrics.csv (every column but the wall-clock ones)
+# was recorded before train() was restructured; behaviour is unchanged while it still matches.
+# It covers a frozen-encoder epoch, the discriminators joining in epoch 2, paper augmentation and
+# mid-epoch checkpoints. fp32 on one thread; CPUs differ in the last bits, hence the tolerance.
+GOLDEN = Path(__file__).parent / "data" / "train_golden_metrics.json"
+GOLDEN_CFG = dict(epochs=2, disc=True, disc_start=1, freeze_encoder_epochs=1, augment="paper", amp="none",
+                  checkpoint_every=3, seed=5, **TINY)
+WALL_CLOCK = ("seconds", "elapsed_min")
+
+
+def golden_rows(toy, out) -> list[dict]:
+    run = train(TrainConfig(data=str(toy), out=str(out), name="golden", **GOLDEN_CFG))
+    return [{k: (int(v) if k in ("epoch", "step") else float(v)) for k, v in r.items() if k not in WALL_CLOCK}
+            for r in _rows(run)]
+
+
+def test_golden_run_metrics_unchanged(tmp_path, toy):
+    import json
+
+    want = json.loads(GOLDEN.read_text())
+    got = golden_rows(toy, tmp_path)
+    assert [list(r) for r in got] == [list(r) for r in want]          # same columns, same order
+    for g, w in zip(got, want):
+        for k in w:
+            assert g[k] == pytest.approx(w[k], rel=1e-3, abs=1e-6), (g["epoch"], k)
+
+
+def test_train_flags_cover_trainconfig_and_take_help_defaults_from_it(capsys, monkeypatch):
+    """One flag per TrainConfig field, shared by racklay train and the transfer commands; help
+    texts show the dataclass defaults (change one there and --help follows)."""
+    import dataclasses
+
+    from racklay.cli import main as racklay_main
+    from racklay.commands.train import FLAGS
+    from transfer.cli import main as transfer_main
+
+    assert sorted(f[0] for f in FLAGS) == sorted(f.name for f in dataclasses.fields(TrainConfig))
+    monkeypatch.setattr("shutil.get_terminal_size", lambda *a, **k: os.terminal_size((400, 40)))
+    with pytest.raises(SystemExit):
+        racklay_main(["train", "--help"])
+    out = capsys.readouterr().out
+    assert f"epochs (default {TrainConfig.epochs})" in out and "(default 1,5,5)" in out
+    monkeypatch.setattr(TrainConfig.__dataclass_fields__["epochs"], "default", 77)
+    for argv, main in ((["train", "--help"], racklay_main), (["pretrain", "--help"], transfer_main)):
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert "epochs (default 77)" in capsys.readouterr().out
+    # the same validation in both command lines
+    for argv, main in ((["train", "--data", "x", "--epochs", "0"], racklay_main),
+                       (["pretrain", "--synthetic", "x", "--epochs", "0"], transfer_main)):
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert "argument --epochs: must be >= 1, got 0" in capsys.readouterr().err

@@ -2,8 +2,6 @@
 their error messages. Tiny sizes throughout (image 64, layout 32) on toy datasets."""
 from __future__ import annotations
 
-import json
-import shutil
 import types
 from pathlib import Path
 
@@ -152,11 +150,11 @@ def tiny_data(tmp_path_factory):
     return base
 
 
+# a compare run (about a minute): every test that uses it is marked slow
 @pytest.fixture(scope="module")
 def killed_then_resumed_compare(tiny_data, monkeypatch_module):
     """A compare killed in its second training run, then started again with the same settings."""
     import racklay.train as rt
-
     from transfer.compare import CompareConfig, compare
 
     cfg = CompareConfig(real=str(tiny_data / "real"), out=str(tiny_data / "cmp"), synthetic=str(tiny_data / "syn"),
@@ -188,6 +186,7 @@ def monkeypatch_module():
     mp.undo()
 
 
+@pytest.mark.slow
 def test_compare_writes_table2_rows_and_files(killed_then_resumed_compare):
     out = Path(killed_then_resumed_compare["cfg"].out)
     md = (out / "table.md").read_text()
@@ -209,6 +208,7 @@ def test_compare_writes_table2_rows_and_files(killed_then_resumed_compare):
     assert all(0 <= r["metrics"]["top"]["paper"]["box"]["mIoU"] <= 1 for r in recs)
 
 
+@pytest.mark.slow
 def test_killed_compare_resumes_without_redoing_finished_runs(killed_then_resumed_compare):
     k = killed_then_resumed_compare
     assert k["first"] == ["pretrain", "real_f1"]             # died in the 2nd training run
@@ -222,6 +222,7 @@ def test_killed_compare_resumes_without_redoing_finished_runs(killed_then_resume
     assert not list(out.rglob("*.tmp*"))                      # no half-written files
 
 
+@pytest.mark.slow
 def test_compare_refuses_to_resume_with_different_settings(killed_then_resumed_compare):
     import dataclasses
 
@@ -249,6 +250,7 @@ def _real_loss(weights, root) -> float:
     return float(sum(layout_loss(out[v], batch[v], w) for v in cfg.views))
 
 
+@pytest.mark.slow
 def test_finetune_loads_pretrain_checkpoint_and_improves(killed_then_resumed_compare, tiny_data, tmp_path, capsys):
     from transfer.cli import main
 
@@ -266,6 +268,7 @@ def test_finetune_loads_pretrain_checkpoint_and_improves(killed_then_resumed_com
     assert after < 0.8 * before, (before, after)
 
 
+@pytest.mark.slow
 def test_finetune_rejects_checkpoint_with_other_R_or_D(killed_then_resumed_compare, tiny_data, tmp_path):
     from transfer.cli import main
     from transfer.workflow import check_init_compatible

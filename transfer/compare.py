@@ -14,7 +14,6 @@ an existing OUT runs only the new jobs; changing a setting that affects results 
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path

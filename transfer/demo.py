@@ -3,7 +3,8 @@
 On a fresh machine with no GPU and nothing downloaded (under 10 minutes on 2 cores, fp32):
 
 1. the shipped model (trained on WareSynth's `release` recipe, docs/model-card.md) predicts
-   every photo in `datasets/real-photos/`: a figure per photo and one contact sheet. Those
+   every real photo (the copies of `datasets/real-photos/` shipped in `transfer/photos/`): a
+   figure per photo and one contact sheet. Those
    photos carry no labels here: they are shown, not scored;
 2. WareSynth renders a small `proxy_real` set (train/test). **Proxy-real is rendered, not
    real**: a deliberately different domain (textures, lighting, camera noise/blur/JPEG, lens
@@ -22,10 +23,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-PHOTOS = REPO / "datasets" / "real-photos"
+#: the real photos (package data: copies of datasets/real-photos/*.jpg with their SOURCES.tsv)
+PHOTOS = Path(str(resources.files("transfer") / "photos"))
 
 
 @dataclass

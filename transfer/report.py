@@ -257,10 +257,9 @@ def learning_curve_plot(records: list[dict], out: str | Path, title: str = "") -
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullLocator
 
     from racklay.viz import save_figure
-
-    from matplotlib.ticker import NullLocator
 
     fig, axes = plt.subplots(2, 2, figsize=(10, 7.5))
     axes = axes.ravel()

@@ -2,10 +2,10 @@
    racklay analyze --layouts ROOT [--split test] --out DIR"""
 from __future__ import annotations
 
-from racklay.cli import at_least, positive_float
-
 import sys
 from pathlib import Path
+
+from racklay.cli import at_least, positive_float
 
 FORMATS = ("glb", "ply", "both", "none")
 

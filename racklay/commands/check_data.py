@@ -1,10 +1,9 @@
 """racklay check-data ROOT"""
 from __future__ import annotations
 
-from racklay.cli import at_least
-
-import json
 import sys
+
+from racklay.cli import at_least
 
 
 def register(sub) -> None:

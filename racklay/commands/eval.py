@@ -39,11 +39,9 @@ def run(args) -> int:
     from pathlib import Path
 
     from racklay.atomic import atomic_write_json
-    from racklay.cli import CLIError
     from racklay.evaluate import eval_report, evaluate
     from racklay.metrics import format_tables
     from racklay.predict import Predictor
-
     from racklay.release import weights_for_cli
 
     args.weights = weights_for_cli(args.weights)

@@ -38,9 +38,8 @@ def run(args) -> int:
     from pathlib import Path
 
     from racklay.cli import CLIError
-    from racklay.predict import Predictor, list_inputs, predict_folder
-
     from racklay.data import check_prediction_out
+    from racklay.predict import Predictor, list_inputs, predict_folder
     from racklay.release import weights_for_cli
 
     args.weights = weights_for_cli(args.weights)

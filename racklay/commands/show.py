@@ -19,11 +19,11 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from racklay.cli import CLIError
     from racklay.data import RackLayRoot
     from racklay.viz import layout_figure
-
-    from pathlib import Path
 
     ds = RackLayRoot(args.root)
     if not ds.root.is_dir():

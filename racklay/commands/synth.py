@@ -21,7 +21,7 @@ def register(sub) -> None:
             "split files and COCO annotations. See docs/waresynth.md."),
         epilog="recipe keys (override with --set key=value):\n" + _keys_help())
     p.add_argument("--recipe", default="complex",
-                   help="recipe name in datasets/recipes/ (simple, complex, proxy_real) or a YAML path")
+                   help="built-in recipe name (simple, complex, proxy_real, release: racklay/synth/recipes/) or a YAML path")
     p.add_argument("--n", type=at_least(1), required=True, help="number of images in the whole dataset (all shards)")
     p.add_argument("--out", required=True, help="output dataset folder")
     p.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")

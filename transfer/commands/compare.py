@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from racklay.cli import at_least, positive_float
+from racklay.commands.train import TrainHelpFormatter
 
 from . import add_model_args, add_train_args, parse_sets
 
@@ -17,7 +18,8 @@ def register(sub) -> None:
     from ..workflow import FINETUNE_LR_RATIO, REAL_VAL_FRACTION
 
     p = sub.add_parser(
-        "compare", help="synthetic-only vs real-only vs synthetic->real fine-tune (paper Table 2)",
+        "compare", formatter_class=TrainHelpFormatter,
+        help="synthetic-only vs real-only vs synthetic->real fine-tune (paper Table 2)",
         description="Run the three training regimes of the paper's Table 2 on the same real test split, "
                     "over several seeds: (1) pretrain on --synthetic and evaluate on the real test split; "
                     "(2) train the same architecture on the real training split only (random init, or "
@@ -55,7 +57,7 @@ def register(sub) -> None:
     add_train_args(p, "training of every run (defaults: racklay.train.TrainConfig's)", single_run=False, helps={
         "epochs": "epochs of real-only and fine-tune runs",
         "lr": "learning rate of pretrain and real-only runs",
-        "max-minutes": "time budget per real-only / fine-tune run"})
+        "max_minutes": "time budget per real-only / fine-tune run"})
     p.set_defaults(func=run)
 
 

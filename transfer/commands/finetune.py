@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from racklay.cli import at_least
+from racklay.commands.train import TrainHelpFormatter
 
 from . import add_model_args, add_train_args, print_run, split_out, train_kwargs
 
@@ -10,7 +11,8 @@ def register(sub) -> None:
     from ..workflow import FINETUNE_LR_RATIO, REAL_VAL_FRACTION
 
     p = sub.add_parser(
-        "finetune", help="fine-tune the shipped model (or a pretrain checkpoint) on real data (step 2)",
+        "finetune", formatter_class=TrainHelpFormatter,
+        help="fine-tune the shipped model (or a pretrain checkpoint) on real data (step 2)",
         description="Fine-tune a checkpoint (from `transfer pretrain`) on a real RackLay-format dataset "
                     "(the authors' real-world set, or `annotate export` output) with the paper's "
                     "augmentation: colour jitter (brightness/contrast/saturation in [0.8, 1.2], hue "
@@ -34,7 +36,7 @@ def register(sub) -> None:
                    help="keep the ResNet encoder frozen for the first N epochs (default 0)")
     p.add_argument("--no-augment", action="store_true", help="disable the paper's augmentation")
     add_model_args(p, from_checkpoint=True)
-    add_train_args(p)
+    add_train_args(p, helps={"lr": f"learning rate (default {FINETUNE_LR_RATIO:g} x TrainConfig's {{default}})"})
     p.set_defaults(func=run)
 
 

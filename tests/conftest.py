@@ -1,0 +1,39 @@
+"""Helpers shared by the test files (import them: `from conftest import REPO, make_toy`).
+
+Slow tests (more than ~10 s on 2 CPU cores) carry `@pytest.mark.slow`: `pytest -m "not slow"`
+runs the fast subset in a few minutes; plain `pytest` runs everything."""
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+#: the 21 real photos (an annotation project with their labels)
+REAL_PHOTOS = REPO / "datasets" / "real-photos"
+#: glibc's allocator settings the Makefile uses (they halve torch step times on this kind of VM)
+ENV = {**os.environ, "MALLOC_MMAP_THRESHOLD_": "4294967296", "MALLOC_TRIM_THRESHOLD_": "4294967296"}
+
+
+def make_toy(tmp_path_factory, n: int, seed: int, name: str = "toy", **kw) -> Path:
+    """A schematic RackLay-format dataset (racklay.toy) of `n` samples in a fresh temporary
+    folder; `kw` goes to build_toy_dataset (R, D, ...)."""
+    from racklay.toy import build_toy_dataset
+
+    root = tmp_path_factory.mktemp(name) / "ds"
+    build_toy_dataset(root, n=n, seed=seed, **kw)
+    return root
+
+
+def run_module(module: str, *args, env=None, timeout: float = 300, cwd=None) -> subprocess.CompletedProcess:
+    """`python -m MODULE ARGS` in a child process (text output captured)."""
+    return subprocess.run([sys.executable, "-m", module, *map(str, args)], env=env or ENV, capture_output=True,
+                          text=True, timeout=timeout, cwd=cwd)
+
+
+def metrics_rows(run: Path) -> list[dict]:
+    """A training run's metrics.csv as a list of rows (strings)."""
+    with open(Path(run) / "metrics.csv") as f:
+        return list(csv.DictReader(f))
