@@ -13,8 +13,8 @@ from importlib import resources
 from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
-RELEASE_NAME = "racklay-lite0-release-v1.safetensors"
-RELEASE_SHA256 = "7dc54fae1ab0b07b41cb81eba1c6611f7ac7ea97ce5fe58098624fcc38c04e81"
+RELEASE_NAME = "racklay-lite0-release-v2.safetensors"
+RELEASE_SHA256 = "d6a2c14b5bc5b3ad32a82c2c8e1769719c65a39dd6127c44578e2ad6d3cd34a0"
 WEIGHTS_DIR = Path(str(resources.files("racklay") / "weights"))   # package data
 
 _verified: set[str] = set()
@@ -67,7 +67,8 @@ def make_release(checkpoint: str | os.PathLike, out: str | os.PathLike, extra: d
     model = RackLayNet(ck.cfg)
     model.load_state_dict(ck.section("model"), strict=True)
     model = model.to(torch.float16)
-    meta = {k: ck.meta[k] for k in ("epoch", "val_score", "val", "train_config", "variant") if k in ck.meta}
+    meta = {k: ck.meta[k] for k in ("epoch", "val_score", "val", "train_config", "variant", "calibration")
+            if k in ck.meta}
     meta.update(extra or {})
     meta["storage"] = "fp16"
     return save_checkpoint(out, model, ck.cfg, extra=meta)
