@@ -112,22 +112,9 @@ def fit_decision_bias(predictor, data, split: str | None = "val", batch_size: in
     import torch
     from torch.utils.data import DataLoader
 
-    from .data import RackLayRoot
-    from .torchdata import RackLayDataset
+    from .evaluate import split_dataset
 
-    root = RackLayRoot(data)
-    if not root.root.is_dir():
-        raise FileNotFoundError(f"{root.root}: dataset folder not found")
-    ids = root.resolve(split)
-    if limit is not None:
-        ids = ids[: int(limit)]
-    if not ids:
-        raise ValueError(f"{root.root}: split {split!r} has no samples")
-    views = [v for v in predictor.views if v in root.views()]
-    if not views:
-        raise ValueError(f"{root.root}: no layouts for the model's views {'/'.join(predictor.views)}")
-    ds = RackLayDataset(root.root, ids=ids, image_size=predictor.image_size, layout_size=predictor.layout_size,
-                        views=views, R=predictor.R, letterbox=predictor.cfg.letterbox)
+    _, views, ds = split_dataset(predictor, data, split, limit)
     hists = {v: DiffHistogram() for v in views}
     bar = None
     if progress:

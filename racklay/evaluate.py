@@ -26,24 +26,13 @@ def _predictor(weights, backend: str, threads: int | None):
     return Predictor(weights, backend=backend, threads=threads)
 
 
-def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, backend: str = "torch",
-             workers: int = 0, progress: bool = True, limit: int | None = None, native: bool = False,
-             with_probs: bool = True, threads: int | None = None, pred_out: str | os.PathLike | None = None) -> dict:
-    """Score `weights` (checkpoint path, ONNX path, a `Predictor`, or `(model, cfg)`) on the
-    `split` of the dataset at `data`. Returns the `LayoutMetrics.result()` dict
-    ({view: {"paper", "dataset", "confusion", "images"}}).
-
-    limit: score only the first `limit` ids of the split. with_probs: pass softmax probabilities
-    so the result carries average precision. pred_out: also write the predicted layouts as a
-    RackLay dataset there (so `racklay score` / `racklay show` can read them)."""
-    import torch
-    from torch.utils.data import DataLoader
-
+def split_dataset(pred, data, split: str | None, limit: int | None = None):
+    """The (root, views, RackLayDataset) a model is scored on: `split` of the dataset at `data`
+    (its first `limit` ids), the model's views that the dataset has, at the model's input and
+    layout sizes. One-line errors name the folder, or the weights when the model's R does not fit."""
     from .data import RackLayRoot
-    from .metrics import LayoutMetrics
     from .torchdata import RackLayDataset
 
-    pred = _predictor(weights, backend, threads)
     root = RackLayRoot(data)
     if not root.root.is_dir():
         raise FileNotFoundError(f"{root.root}: dataset folder not found")
@@ -62,9 +51,29 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
         model = pred.weights or "the model"
         raise ValueError(f"{model}: the model predicts R={pred.R} shelves but the layouts in {root.root} "
                          f"have R={ref[0]}; use a model trained for R={ref[0]}")
-    S = pred.layout_size
-    ds = RackLayDataset(root.root, ids=ids, image_size=pred.image_size, layout_size=S, views=views, R=pred.R,
-                        letterbox=pred.cfg.letterbox)
+    ds = RackLayDataset(root.root, ids=ids, image_size=pred.image_size, layout_size=pred.layout_size, views=views,
+                        R=pred.R, letterbox=pred.cfg.letterbox)
+    return root, views, ds
+
+
+def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, backend: str = "torch",
+             workers: int = 0, progress: bool = True, limit: int | None = None, native: bool = False,
+             with_probs: bool = True, threads: int | None = None, pred_out: str | os.PathLike | None = None) -> dict:
+    """Score `weights` (checkpoint path, ONNX path, a `Predictor`, or `(model, cfg)`) on the
+    `split` of the dataset at `data`. Returns the `LayoutMetrics.result()` dict
+    ({view: {"paper", "dataset", "confusion", "images"}}).
+
+    limit: score only the first `limit` ids of the split. with_probs: pass softmax probabilities
+    so the result carries average precision. pred_out: also write the predicted layouts as a
+    RackLay dataset there (so `racklay score` / `racklay show` can read them)."""
+    import torch
+    from torch.utils.data import DataLoader
+
+    from .data import RackLayRoot
+    from .metrics import LayoutMetrics
+
+    pred = _predictor(weights, backend, threads)
+    root, views, ds = split_dataset(pred, data, split, limit)
     loader = DataLoader(ds, batch_size=batch_size, shuffle=False, num_workers=workers)
     metrics = LayoutMetrics()
     out_root = RackLayRoot(pred_out) if pred_out is not None else None

@@ -37,3 +37,32 @@ def metrics_rows(run: Path) -> list[dict]:
     """A training run's metrics.csv as a list of rows (strings)."""
     with open(Path(run) / "metrics.csv") as f:
         return list(csv.DictReader(f))
+
+
+
+def ground_truth_net(items, lut):
+    """A stand-in model (torch Module) that returns fixed logits for the ground truth of whichever
+    dataset image it is given (found by the image tensor's hash): `lut[k]` are the 3 logits of a
+    pixel whose true class is k. `items` are RackLayDataset samples. Exercises scoring and
+    decision code without training."""
+    import hashlib
+
+    import torch
+
+    def key(x):
+        return hashlib.sha1(x.numpy().tobytes()).hexdigest()
+
+    class GroundTruthNet(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.table = {key(it["image"]): {v: it[v] for v in ("top", "front")} for it in items}
+            self.lut = torch.as_tensor(lut, dtype=torch.float32)
+
+        def forward(self, x):
+            out = {}
+            for v in ("top", "front"):
+                gt = torch.stack([self.table[key(xi)][v] for xi in x]).long()   # (N, R, S, S)
+                out[v] = self.lut[gt].permute(0, 1, 4, 2, 3).contiguous()       # (N, R, 3, S, S)
+            return out
+
+    return GroundTruthNet()

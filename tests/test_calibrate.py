@@ -3,13 +3,13 @@ the fit recovers a known under-calling of boxes, the Predictor applies the store
 CLI writes a checkpoint that carries them. Tiny models on the schematic toy dataset."""
 from __future__ import annotations
 
-import hashlib
 import math
 
 import numpy as np
 import pytest
 import torch
 
+from conftest import ground_truth_net
 from racklay.calibrate import DiffHistogram, fit_decision_bias
 from racklay.checkpoint import load_checkpoint, save_checkpoint
 from racklay.cli import main as racklay_main
@@ -30,30 +30,11 @@ def toy(tmp_path_factory):
     return root
 
 
-class UnderCallingNet(torch.nn.Module):
-    """Returns UNDER_CALLING logits for the ground truth of whichever toy image it is given."""
-
-    def __init__(self, items):
-        super().__init__()
-        self.table = {self.key(it["image"]): {v: it[v] for v in ("top", "front")} for it in items}
-        self.lut = torch.tensor([UNDER_CALLING[k] for k in range(3)])
-
-    @staticmethod
-    def key(x):
-        return hashlib.sha1(x.numpy().tobytes()).hexdigest()
-
-    def forward(self, x):
-        out = {}
-        for v in ("top", "front"):
-            gt = torch.stack([self.table[self.key(xi)][v] for xi in x]).long()   # (N, R, S, S)
-            out[v] = self.lut[gt].permute(0, 1, 4, 2, 3).contiguous()           # (N, R, 3, S, S)
-        return out
-
-
 def _under_calling_predictor(toy, split="val", bias=None):
     cfg = ModelConfig(R=R, image_size=IMG, layout_size=S, decision_bias=bias)
     ds = RackLayDataset(toy, split=split, image_size=IMG, layout_size=S, R=R)
-    return Predictor.from_model(UnderCallingNet([ds[i] for i in range(len(ds))]), cfg), ds
+    lut = [UNDER_CALLING[k] for k in range(3)]
+    return Predictor.from_model(ground_truth_net([ds[i] for i in range(len(ds))], lut), cfg), ds
 
 
 def test_fit_recovers_box_bias_and_predictor_applies_it(toy):

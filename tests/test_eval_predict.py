@@ -2,14 +2,13 @@
 Tiny models (64 px input, 32 px layouts) on the schematic toy dataset keep this fast."""
 from __future__ import annotations
 
-import hashlib
 import json
 
 import numpy as np
 import pytest
 import torch
 
-from conftest import make_toy
+from conftest import ground_truth_net, make_toy
 from racklay import layout as L
 from racklay.cli import main as racklay_main
 from racklay.data import RackLayRoot, read_image
@@ -43,27 +42,6 @@ def onnx_file(ckpt, tmp_path_factory):
     return out
 
 
-class LookupNet(torch.nn.Module):
-    """A 'perfect' model: returns confident logits of the ground truth of whichever dataset image
-    it is given (found by the image tensor's hash). Exercises evaluate's batching/alignment."""
-
-    def __init__(self, items):
-        super().__init__()
-        self.table = {self.key(it["image"]): {v: it[v] for v in ("top", "front")} for it in items}
-
-    @staticmethod
-    def key(x):
-        return hashlib.sha1(x.numpy().tobytes()).hexdigest()
-
-    def forward(self, x):
-        out = {}
-        for v in ("top", "front"):
-            gts = [self.table[self.key(xi)][v] for xi in x]
-            onehot = torch.nn.functional.one_hot(torch.stack(gts), 3).permute(0, 1, 4, 2, 3).float()
-            out[v] = 20.0 * onehot
-        return out
-
-
 def test_perfect_predictor_scores_one(toy):
     from racklay.evaluate import evaluate
     from racklay.model import ModelConfig
@@ -71,7 +49,7 @@ def test_perfect_predictor_scores_one(toy):
 
     cfg = ModelConfig(R=R, image_size=IMG, layout_size=S)
     ds = RackLayDataset(toy, split="test", image_size=IMG, layout_size=S, R=R)
-    net = LookupNet([ds[i] for i in range(len(ds))])
+    net = ground_truth_net([ds[i] for i in range(len(ds))], 20.0 * torch.eye(3))   # confident and right
     res = evaluate((net, cfg), toy, split="test", batch_size=3, progress=False)
     for v in ("top", "front"):
         assert res[v]["images"] == len(ds)
