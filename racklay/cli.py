@@ -41,7 +41,17 @@ def build_parser(prog: str = "racklay", description: str | None = None, commands
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in commands if commands is not None else COMMANDS:
         importlib.import_module(name).register(sub)
+    if commands is None:
+        # the demo moved to the `transfer` app (racklay never imports it); old scripts get told where
+        moved = sub.add_parser("demo", help="moved: the demo is `transfer demo` (same options)", add_help=False,
+                               prefix_chars="\0")   # every word after "demo" is just passed on
+        moved.add_argument("rest", nargs="*")
+        moved.set_defaults(func=_demo_moved)
     return parser
+
+
+def _demo_moved(args) -> int:
+    raise CLIError("the demo moved: run `transfer demo " + " ".join(args.rest) + "` (same options)")
 
 
 def _version() -> str:

@@ -90,3 +90,11 @@ def test_show_writes_figure(toy, tmp_path):
     w, h = Image.open(out).size
     assert w > 600 and h > 300
     assert main(["show", str(toy), "--index", "99", "--out", str(out)]) == 2
+
+
+def test_racklay_demo_says_where_the_demo_went(capsys):
+    from racklay.cli import main
+
+    assert main(["demo", "--quick"]) == 2
+    err = capsys.readouterr().err
+    assert "transfer demo --quick" in err and err.count("\n") == 1
