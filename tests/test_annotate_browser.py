@@ -11,6 +11,7 @@ import os
 import shutil
 import socket
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from urllib.parse import urlparse
 
@@ -58,23 +59,30 @@ def server(tmp_path):
     demo.close()
 
 
-@pytest.fixture
-def page_at(server, tmp_path):
-    """A Chromium page on the tool, the photo shown and nothing waiting for the server."""
+@contextmanager
+def browser_page(url, profile):
+    """A Chromium page opened on the tool at `url`, the photo shown and nothing waiting for the server."""
     from playwright.sync_api import sync_playwright
 
     from annotate.browser import launch, wait_ready
 
-    project, url = server
     with sync_playwright() as pw:
-        ctx = launch(pw, tmp_path / "chrome-profile")
+        ctx = launch(pw, profile)
         try:
             page = ctx.new_page()
             page.goto(url)
             wait_ready(page)
-            yield project, page
+            yield page
         finally:
             ctx.close()
+
+
+@pytest.fixture
+def page_at(server, tmp_path):
+    """A Chromium page on the tool, the photo shown and nothing waiting for the server."""
+    project, url = server
+    with browser_page(url, tmp_path / "chrome-profile") as page:
+        yield project, page
 
 
 def settle(page):
@@ -199,27 +207,18 @@ def test_fast_corner_clicks_all_saved(page_at):
 def test_fast_box_clicks_make_the_boxes_clicked(server, tmp_path):
     """5 boxes drawn by clicks 100 ms apart (before: clicks lost, the rest paired into wrong
     boxes, a zero-width box saved): 5 boxes with exactly the clicked corners, in order."""
-    from playwright.sync_api import sync_playwright
-
-    from annotate.browser import click_image, launch, wait_ready
+    from annotate.browser import click_image
 
     project, url = server
     mark_rack(project)
     boxes = BOXES + [((340, 278), (386, 222)), ((312, 187), (380, 150))]
-    with sync_playwright() as pw:
-        ctx = launch(pw, tmp_path / "chrome-profile")
-        try:
-            page = ctx.new_page()
-            page.goto(url)
-            wait_ready(page)
-            page.keyboard.press("3")
-            for p0, p1 in boxes:
-                for x, y in (p0, p1):
-                    click_image(page, x, y)
-                    page.wait_for_timeout(100)
-            settle(page)
-        finally:
-            ctx.close()
+    with browser_page(url, tmp_path / "chrome-profile") as page:
+        page.keyboard.press("3")
+        for p0, p1 in boxes:
+            for x, y in (p0, p1):
+                click_image(page, x, y)
+                page.wait_for_timeout(100)
+        settle(page)
     got = project.load(PHOTO.name)["boxes"]
     assert len(got) == 5, got
     for b, (p0, p1) in zip(got, boxes):
@@ -287,9 +286,7 @@ def test_zoom_keeps_the_point_under_the_cursor_pan_and_view_filters(page_at):
 def test_server_away_banner_and_recovery(tmp_path):
     """With the server down the page says so (before: a broken-image icon, no message) and takes
     no clicks; when the server is back the page recovers by itself and the work goes on."""
-    from playwright.sync_api import sync_playwright
-
-    from annotate.browser import click_image, launch, require_browser, wait_ready
+    from annotate.browser import click_image, require_browser, wait_ready
 
     require_browser()
     proj_dir = tmp_path / "project"
@@ -297,12 +294,8 @@ def test_server_away_banner_and_recovery(tmp_path):
     shutil.copy(PHOTO, proj_dir / PHOTO.name)
     port = _free_port()
     project, demo, url = serve(proj_dir, port)
-    with sync_playwright() as pw:
-        ctx = launch(pw, tmp_path / "chrome-profile")
-        try:
-            page = ctx.new_page()
-            page.goto(url)
-            wait_ready(page)
+    try:
+        with browser_page(url, tmp_path / "chrome-profile") as page:
             click_image(page, *CORNERS[0], wait=True)
             demo.close()
             banner = page.locator("#rl-banner")
@@ -314,9 +307,8 @@ def test_server_away_banner_and_recovery(tmp_path):
                                    " && window.rl && rl.view && rl.W > 0", timeout=30000)
             wait_ready(page)
             click_image(page, *CORNERS[1], wait=True)
-        finally:
-            ctx.close()
-            demo.close()
+    finally:
+        demo.close()
     got = project.load(PHOTO.name)["rack"]["corners"]
     np.testing.assert_allclose(got, CORNERS[:2], atol=1.0)
 
@@ -324,9 +316,7 @@ def test_server_away_banner_and_recovery(tmp_path):
 def test_unreadable_photos_listed_and_skipped(tmp_path):
     """A corrupt photo and a 30000 x 30000 PNG in the project (before: the page failed to load for
     everyone): both listed as unreadable, the page opens the good photo, next skips them."""
-    from playwright.sync_api import sync_playwright
-
-    from annotate.browser import click_image, launch, require_browser, wait_ready
+    from annotate.browser import click_image, require_browser
     from test_image_bombs import write_png_bomb
 
     require_browser()
@@ -336,48 +326,34 @@ def test_unreadable_photos_listed_and_skipped(tmp_path):
     write_png_bomb(proj_dir / "00_huge.png", 30000, 30000)
     shutil.copy(PHOTO, proj_dir / PHOTO.name)
     project, demo, url = serve(proj_dir)
-    with sync_playwright() as pw:
-        ctx = launch(pw, tmp_path / "chrome-profile")
-        try:
-            page = ctx.new_page()
-            page.goto(url)
-            wait_ready(page)
+    try:
+        with browser_page(url, tmp_path / "chrome-profile") as page:
             assert page.evaluate("rl.view.name") == PHOTO.name
             assert "2 unreadable (skipped)" in page.locator("#header").inner_text()
             page.keyboard.press("n")                  # the only readable photo: stays
             settle(page)
             assert page.evaluate("rl.view.name") == PHOTO.name
             click_image(page, *CORNERS[0], wait=True)
-        finally:
-            ctx.close()
-            demo.close()
+    finally:
+        demo.close()
     assert project.statuses() == {"00_broken.jpg": "unreadable", "00_huge.png": "unreadable", PHOTO.name: "in progress"}
 
 
 def test_drag_draws_a_box(server, tmp_path):
     """In boxes mode a drag from one corner of a box's front face to the other draws it."""
-    from playwright.sync_api import sync_playwright
-
-    from annotate.browser import image_to_client, launch, wait_ready
+    from annotate.browser import image_to_client
 
     project, url = server
     mark_rack(project)
-    with sync_playwright() as pw:
-        ctx = launch(pw, tmp_path / "chrome-profile")
-        try:
-            page = ctx.new_page()
-            page.goto(url)
-            wait_ready(page)
-            page.keyboard.press("3")
-            settle(page)
-            (x0, y0), (x1, y1) = (image_to_client(page, *p) for p in BOXES[1])
-            page.mouse.move(x0, y0)
-            page.mouse.down()
-            page.mouse.move(x1, y1, steps=5)
-            page.mouse.up()
-            settle(page)
-        finally:
-            ctx.close()
+    with browser_page(url, tmp_path / "chrome-profile") as page:
+        page.keyboard.press("3")
+        settle(page)
+        (x0, y0), (x1, y1) = (image_to_client(page, *p) for p in BOXES[1])
+        page.mouse.move(x0, y0)
+        page.mouse.down()
+        page.mouse.move(x1, y1, steps=5)
+        page.mouse.up()
+        settle(page)
     got = project.load(PHOTO.name)["boxes"]
     assert len(got) == 1
     np.testing.assert_allclose([got[0]["p0"], got[0]["p1"]], BOXES[1], atol=1.0)
