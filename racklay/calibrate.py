@@ -48,6 +48,11 @@ class DiffHistogram:
     def __init__(self):
         self.n = int(2 * DIFF_RANGE * BINS_PER_UNIT)
         self.counts = np.zeros((NUM_CLASSES, self.n, self.n), dtype=np.int64)
+        # (3, n, n) logits (0, shelf−bg, box−bg) at the bin centres: what `decide` sees for each bin
+        c = (np.arange(self.n) + 0.5) / BINS_PER_UNIT - DIFF_RANGE
+        self.centres = np.zeros((NUM_CLASSES, self.n, self.n), dtype=np.float32)
+        self.centres[1] = c[:, None]
+        self.centres[2] = c[None, :]
 
     def _index(self, d: np.ndarray) -> np.ndarray:
         i = np.floor((d + DIFF_RANGE) * BINS_PER_UNIT).astype(np.int64)
@@ -62,19 +67,11 @@ class DiffHistogram:
         flat = (g * self.n + i) * self.n + j
         self.counts += np.bincount(flat, minlength=self.counts.size).reshape(self.counts.shape)
 
-    def centres(self) -> np.ndarray:
-        """(3, n, n) logits (0, shelf−bg, box−bg) at the bin centres: what `decide` sees."""
-        c = (np.arange(self.n) + 0.5) / BINS_PER_UNIT - DIFF_RANGE
-        z = np.zeros((NUM_CLASSES, self.n, self.n), dtype=np.float32)
-        z[1] = c[:, None]
-        z[2] = c[None, :]
-        return z
-
     def scores(self, bias) -> dict:
         """Dataset-level shelf / box IoU (percent) and their mean for one bias triple."""
         from .predict import decide
 
-        cls = decide(self.centres(), bias, axis=0)
+        cls = decide(self.centres, bias, axis=0)
         conf = np.stack([np.bincount(cls.ravel(), weights=self.counts[g].ravel(), minlength=NUM_CLASSES)
                          for g in range(NUM_CLASSES)])          # conf[gt, pred]
         out = {}
