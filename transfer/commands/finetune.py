@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from racklay.cli import at_least
-from racklay.commands.train import TrainHelpFormatter
+from racklay.commands.train import TrainHelpFormatter, add_train_flags
 
 from . import add_model_args, add_train_args, print_run, split_out, train_kwargs
 
@@ -37,6 +37,9 @@ def register(sub) -> None:
     p.add_argument("--no-augment", action="store_true", help="disable the paper's augmentation")
     add_model_args(p, from_checkpoint=True)
     add_train_args(p, helps={"lr": f"learning rate (default {FINETUNE_LR_RATIO:g} x TrainConfig's {{default}})"})
+    add_train_flags(p.add_argument_group("loss"), ["class_weights"], default=None, helps={
+        "class_weights": "cross-entropy weights background,shelf,box (default: the ones the checkpoint was "
+                         "trained with, from its metadata; else TrainConfig's {default})"})
     p.set_defaults(func=run)
 
 
@@ -48,10 +51,13 @@ def run(args) -> int:
     from racklay.release import weights_for_cli
 
     out, name = split_out(args.out)
+    kw = train_kwargs(args)
+    if args.class_weights is not None:
+        kw["class_weights"] = args.class_weights
     run_dir = finetune(weights_for_cli(args.init), args.real, out, name=name, seed=args.seed, lr=args.lr,
                        train_split=args.train_split, train_fraction=args.fraction,
                        val_fraction=args.val_fraction, freeze_encoder_epochs=args.freeze_encoder_epochs,
                        augment=not args.no_augment, image_size=args.image_size, layout_size=args.layout_size,
-                       R=args.R, **train_kwargs(args))
+                       R=args.R, **kw)
     print_run(run_dir)
     return 0
