@@ -54,7 +54,7 @@ class Tool:
     built once for each new rack, shelves and boxes and shared by the edit, the outlines, the
     texts and the preview."""
 
-    def __init__(self, project: Project, predictor=None, user: str | None = None, tmp_dir: str | None = None):
+    def __init__(self, project: Project, predictor=None, user: str | None = None):
         self.project = project
         self.predictor = predictor
         self.user = user
@@ -778,12 +778,12 @@ DELETE_CACHE = (60, 300)
 CONCURRENCY = dict(concurrency_limit=1, concurrency_id="annotate")
 
 
-def build_app(project: Project, predictor=None, user: str | None = None, tmp_dir: str | None = None):
+def build_app(project: Project, predictor=None, user: str | None = None):
     import time
 
     import gradio as gr
 
-    tool = Tool(project, predictor, user, tmp_dir=tmp_dir)
+    tool = Tool(project, predictor, user)
     presets = [p["name"] for p in project.settings["presets"]]
 
     with gr.Blocks(title="RackLay annotate", delete_cache=DELETE_CACHE) as demo:
@@ -1057,7 +1057,7 @@ def serve(project_dir, host: str = "127.0.0.1", port: int = 7860, model: str | N
     env_before = os.environ.get("GRADIO_TEMP_DIR")
     tmp = run_temp_dir()
     try:
-        demo = build_app(project, load_predictor(model, backend), tmp_dir=tmp)
+        demo = build_app(project, load_predictor(model, backend))   # gradio files go to $GRADIO_TEMP_DIR = tmp
         kw = launch_kwargs(host, port, auth.check if auth is not None else None)
         try:
             demo.launch(prevent_thread_lock=True, **kw)

@@ -74,12 +74,16 @@ def split_ids(ids: list[str], counts: dict[str, float] | None = None,
 
 
 def annotation_layouts(project: Project, ann: dict) -> tuple[np.ndarray, np.ndarray, G.Scene]:
-    st = project.settings
-    scene = G.build_scene(ann, st)
+    scene = G.build_scene(ann, project.settings)
     if not scene.shelf_v:
         raise G.GeometryError("no shelf marked")
-    top, front = scene.layouts(st["R"], L.Grid(st["D"], st["extent"]))
-    return top, front, scene
+    return (*scene_layouts(project, scene), scene)
+
+
+def scene_layouts(project: Project, scene: G.Scene) -> tuple[np.ndarray, np.ndarray]:
+    """(top, front) layouts of a built scene at the project's R and grid."""
+    st = project.settings
+    return scene.layouts(st["R"], L.Grid(st["D"], st["extent"]))
 
 
 def _dir_mode() -> int:
@@ -154,7 +158,7 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
             skipped.append((str(p), str(e)))
             continue
         warnings += [f"{name}: {msg}" for msg in scene.warnings]
-        chosen.append((name, ann))
+        chosen.append((name, ann, scene))   # the scene is kept (small); layouts are drawn when written
     if not chosen:
         why = f" ({len(skipped)} invalid, first: {skipped[0][1]})" if skipped else ""
         raise ValueError(f"{project.root}: no annotation with status {', '.join(only_status)} to export{why}")
@@ -170,8 +174,8 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         if progress:
             from tqdm import tqdm
             it = tqdm(list(it), desc="export", unit="img")
-        for sid, (name, ann) in it:
-            top, front, scene = annotation_layouts(project, ann)
+        for sid, (name, ann, scene) in it:
+            top, front = scene_layouts(project, scene)
             ds.write_sample(sid, image_bytes=encode_png(project.read_image(name)), top=top, front=front,
                             meta=_sample_meta(project, name, ann, scene))
         for split, ids in splits.items():

@@ -139,7 +139,7 @@ class Scene:
         for b in self.boxes:
             if b.shelf != i:
                 continue
-            y0 = -self.depth / 2 + b.front_offset
+            y0 = L.offset_to_y(b.front_offset, self.depth)
             out.append(L.Box(cx=L.u_to_x((b.u0 + b.u1) / 2, self.width), cy=y0 + b.depth / 2,
                              sx=b.u1 - b.u0, sy=b.depth, sz=b.v1 - b.v0, z0=b.z0))
         return out
@@ -377,7 +377,7 @@ def front_box_rects(front: np.ndarray, top: np.ndarray | None, grid: L.Grid, she
                 rows = np.nonzero((top[i][:, x:x + w] == L.BOX).any(axis=1))[0]
                 if rows.size:
                     ya, yb = float(grid.row_to_y(rows.max() + 1)), float(grid.row_to_y(rows.min()))
-                    off = float(np.clip(ya + rack_depth / 2, 0.0, rack_depth))
+                    off = float(np.clip(L.y_to_offset(ya, rack_depth), 0.0, rack_depth))
                     depth = float(np.clip(yb - ya, grid.res, rack_depth - off)) if rack_depth - off > 0 else None
             score = float(probs_box[i][lab == k].mean()) if probs_box is not None else None
             u0, u1 = np.clip(L.x_to_u(np.array([xa, xb]), width), 0.0, width)

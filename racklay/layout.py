@@ -20,7 +20,8 @@ z up.
 
 Rack plane (the annotation tool's, annotate.geometry): u along the rack's front face from its
 left edge (0 .. W), v up from its bottom. A shelf spans the rack's width, so x = u - W/2 and
-u = x + W/2 (`u_to_x`, `x_to_u`: the one place this shift is written).
+u = x + W/2 (`u_to_x`, `x_to_u`: the one place this shift is written). Depth is measured the same
+way from the board's front edge: y = offset - depth/2 (`offset_to_y`, `y_to_offset`).
 
 Top view T_i: column c <-> x, row r <-> y. Column centres are x = (c + 0.5 - D/2) * res, so x
 grows to the right and x = 0 is the centre line of the map. Rows run the other way: the far side
@@ -139,6 +140,18 @@ def u_to_x(u, width: float):
 def x_to_u(x, width: float):
     """Shelf-frame x -> rack-plane u: u = x + width/2 (the inverse of u_to_x)."""
     return x + width / 2
+
+
+def offset_to_y(offset, depth: float):
+    """Distance behind the board's front edge (0 .. depth, the annotation tool's box `front_offset`)
+    -> shelf-frame y (metres from the board's centre line, +y away from the camera):
+    y = offset - depth/2. Scalars or numpy arrays."""
+    return offset - depth / 2
+
+
+def y_to_offset(y, depth: float):
+    """Shelf-frame y -> distance behind the board's front edge (the inverse of offset_to_y)."""
+    return y + depth / 2
 
 
 def _span_mask(centres: np.ndarray, lo: float, hi: float) -> np.ndarray:

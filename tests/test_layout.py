@@ -35,6 +35,15 @@ def test_rack_plane_shelf_frame_shift():
     assert L.x_to_u(-1.35, W) == 0.0
 
 
+def test_front_offset_shelf_frame_shift():
+    """A box's distance behind the board's front edge <-> shelf-frame y: the front edge is
+    y = -depth/2 (the camera's side), the back edge +depth/2, and the two are inverses."""
+    d = 0.9
+    assert L.offset_to_y(0.0, d) == -0.45 and L.offset_to_y(0.9, d) == 0.45
+    off = np.array([0.0, 0.2, 0.9])
+    np.testing.assert_allclose(L.y_to_offset(L.offset_to_y(off, d), d), off, atol=1e-15)
+
+
 def test_bad_grid_rejected():
     with pytest.raises(ValueError):
         L.Grid(511)
