@@ -13,8 +13,8 @@ from importlib import resources
 from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
-RELEASE_NAME = "racklay-lite0-release-v2.safetensors"
-RELEASE_SHA256 = "d6a2c14b5bc5b3ad32a82c2c8e1769719c65a39dd6127c44578e2ad6d3cd34a0"
+RELEASE_NAME = "racklay-lite0-release-v3.safetensors"
+RELEASE_SHA256 = "1a9bc12fa7ffcbe2c26f6cb4d056ece953587139b47357990b201458fbf67ad9"
 WEIGHTS_DIR = Path(str(resources.files("racklay") / "weights"))   # package data
 
 _verified: set[str] = set()
