@@ -46,6 +46,11 @@ class DemoConfig:
     photos: str = str(PHOTOS)
     workers: int = 1                # WareSynth workers
 
+    @property
+    def real_seed(self) -> int:
+        """WareSynth seed of the proxy-real set (another than `seed`, which seeds the training)."""
+        return self.seed + 1
+
 
 QUICK = dict(n_real=30, epochs=1, max_minutes=0.25)
 
@@ -109,7 +114,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         log(f"      {len(figs) - 1} figures and a contact sheet -> {figs[-1]}")
     log(f"[2/4] WareSynth: {cfg.n_real} 'proxy_real' images (RENDERED stand-in for real photos, "
         f"train/test) -> {data / 'proxy_real'}")
-    real = _synth("proxy_real", cfg.n_real, data / "proxy_real", cfg.seed + 1, cfg.layout_d, cfg.workers, log)
+    real = _synth("proxy_real", cfg.n_real, data / "proxy_real", cfg.real_seed, cfg.layout_d, cfg.workers, log)
     log(f"[3/4] transfer compare on proxy-real: synthetic only (the shipped model) / real only (ImageNet "
         f"encoder) / synthetic -> real fine-tune, {cfg.seeds} seed(s), at most {cfg.max_minutes:g} min per run")
     ccfg = CompareConfig(real=str(real), out=str(out / "compare"), pretrained=str(weights), seeds=list(range(cfg.seeds)),

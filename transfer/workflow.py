@@ -69,27 +69,24 @@ def dataset_shape(root: str | os.PathLike, split: str | None = None) -> tuple[in
 
 def checkpoint_config(path: str | os.PathLike):
     """The model config stored in a checkpoint (clear error naming the file if unusable)."""
-    return _load_checkpoint(path)[0]
+    from racklay.checkpoint import load_model
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: checkpoint not found")
+    _, cfg, _ = load_model(p)
+    return cfg
 
 
 def checkpoint_class_weights(path: str | os.PathLike) -> tuple[float, ...] | None:
     """The loss class weights the checkpoint was trained with (its `train_config` metadata), or
     None when the file does not record them. A fine-tune keeps them: the release model was
     trained with boxes weighted 10, and fine-tuning it with another weighting moves its
-    decisions (measured in docs/transfer.md)."""
-    tc = _load_checkpoint(path)[1].get("train_config") or {}
-    w = tc.get("class_weights")
+    decisions (measured in docs/model-card.md, "Fine-tuning keeps the model's class weights")."""
+    from racklay.checkpoint import load_checkpoint
+
+    w = (load_checkpoint(path).meta.get("train_config") or {}).get("class_weights")
     return tuple(float(v) for v in w) if w else None
-
-
-def _load_checkpoint(path):
-    from racklay.checkpoint import load_model
-
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"{p}: checkpoint not found")
-    _, cfg, meta = load_model(p)
-    return cfg, meta or {}
 
 
 def check_init_compatible(init: str | os.PathLike, real: str | os.PathLike, split: str = "train",
@@ -151,8 +148,10 @@ def train_on_real(real, out, name: str, seed: int = 0, init=None, augment: bool 
         kw.setdefault("encoder", mcfg.encoder)
         kw.setdefault("letterbox", mcfg.letterbox)
         kw.setdefault("disc", mcfg.disc)
-        if kw.get("class_weights") is None and checkpoint_class_weights(init) is not None:
-            kw["class_weights"] = checkpoint_class_weights(init)
+        if kw.get("class_weights") is None:
+            own = checkpoint_class_weights(init)
+            if own is not None:
+                kw["class_weights"] = own
         if lr is None:
             lr = default_lr() * FINETUNE_LR_RATIO
     cfg = train_config(data=str(real), out=str(out), name=name, seed=seed, init=str(init) if init else None,
