@@ -42,7 +42,7 @@ def main() -> int:
         generate_dataset(load_recipe("proxy_real", {"layout_size": d.layout_d}), d.n_real, args.real, seed=d.real_seed,
                          workers=2)
     weights = resolve_weights(args.weights)
-    own = workflow.checkpoint_class_weights(weights)
+    own = workflow.checkpoint_loss(weights).get("class_weights")
     print(f"model {weights}: trained with class weights {own}", flush=True)
     tmp = tempfile.TemporaryDirectory(prefix="racklay-ftcw-")
     out = Path(args.out or tmp.name)

@@ -21,6 +21,12 @@ Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3,
   line up with them (an A/B with 1x1 skips from every encoder stage: validation score 0.299 with
   skips vs 0.309 without, 600 steps at 128 px, docs/accuracy.md), and without them the decoder
   is cheaper.
+- `columns`: `light` plus a column branch that gives it the finer 1/16 features without
+  pretending they are aligned with the layout: each image column of the 1/16 map (all of its
+  rows at once) is mapped by one learned linear map to a column of the decoder's first stage
+  (layout rows), the "image column -> map column" idea of dense-transformer BEV decoders. The
+  map's last layer starts at zero, so a `light` checkpoint grows into a `columns` model that
+  first computes exactly what it did (`GROWABLE_DECODERS`, `racklay train --init`).
 
 The encoder uses torchvision's ResNet-18 parameter names (conv1, bn1, layer1.0.conv1, ...; no fc)
 so a user's local torchvision weight file loads with `load_imagenet_weights`.
@@ -38,7 +44,10 @@ import torch.nn.functional as F
 
 from .layout import DEFAULT_EXTENT_M, DEFAULT_R, NUM_CLASSES, VIEWS
 
-DECODERS = ("light", "paper")
+DECODERS = ("light", "paper", "columns")
+#: a checkpoint with decoder K can initialise a model with decoder V when (K, V) is listed: V is K
+#: plus branches whose last layer starts at zero, so the grown model computes what K computed
+GROWABLE_DECODERS = {("light", "columns")}
 ENCODERS = ("resnet18", "efficientnet-lite0")
 #: the encoder of configs written before the encoder was a choice (checkpoints, ONNX files)
 LEGACY_ENCODER = "resnet18"
@@ -427,6 +436,38 @@ class LightDecoder(nn.Module):
         return self.head(self.final(x))
 
 
+class ColumnsDecoder(LightDecoder):
+    """`LightDecoder` plus a column branch from the 1/16 features (C16 channels, `rows` rows at the
+    model's input size): a 1x1 conv-BN-ReLU to 64 channels, then one conv whose kernel spans the
+    whole column height maps every image column to `rows` x channels[0] values, reshaped into a
+    column of the first decoder stage and added to it. Image rows (heights on the rack, one per
+    shelf band) and layout rows (depth, or height within a shelf) are not the same axis, so the
+    map is learned, not a skip; image columns and layout columns both run along the rack. The
+    last conv starts at zero (the decoder starts as `LightDecoder`)."""
+
+    def __init__(self, out_channels: int, layout_size: int, cin: int, c16: int, rows: int,
+                 channels=(128, 64, 32, 16), width: int = 64):
+        super().__init__(out_channels, layout_size, cin, channels)
+        self.rows = rows
+        self.col_reduce = conv_bn_relu(c16, width, 1)
+        self.col_map = nn.Conv2d(width, channels[0] * rows, (rows, 1))
+
+    def forward(self, feats):
+        f16 = feats[-2]
+        if f16.shape[-2] != self.rows:
+            raise ValueError(f"columns decoder: the 1/16 feature map has {f16.shape[-2]} rows, the model was built "
+                             f"for {self.rows} rows (input height {16 * self.rows} px)")
+        x = F.interpolate(self.stem(feats[-1]), scale_factor=2, mode="nearest")
+        cols = self.col_map(self.col_reduce(f16))                  # (N, C*rows, 1, W16)
+        x = x + cols.reshape(x.shape[0], -1, self.rows, cols.shape[-1])
+        x = self.convs[0](x)
+        for conv in self.convs[1:]:
+            x = conv(F.interpolate(x, scale_factor=2, mode="nearest"))
+        S = self.layout_size
+        x = F.interpolate(x, size=(S, S), mode="bilinear", align_corners=False)
+        return self.head(self.final(x))
+
+
 class RackLayNet(nn.Module):
     """Shared encoder (ResNet-18 or EfficientNet-Lite0) + one decoder per view.
     forward(x) -> {view: (N, R, 3, S, S)}."""
@@ -441,6 +482,8 @@ class RackLayNet(nn.Module):
         def make():
             if cfg.decoder == "paper":
                 return PaperDecoder(out, cfg.layout_size, cin)
+            if cfg.decoder == "columns":
+                return ColumnsDecoder(out, cfg.layout_size, cin, self.encoder.channels[-2], cfg.input_hw[0] // 16)
             return LightDecoder(out, cfg.layout_size, cin)
 
         self.decoders = nn.ModuleDict({v: make() for v in cfg.views})
@@ -448,6 +491,9 @@ class RackLayNet(nn.Module):
         with torch.no_grad():   # start from the class prior, not from uniform logits
             for dec in self.decoders.values():
                 dec.head.bias.view(cfg.R, NUM_CLASSES)[:] = torch.tensor(HEAD_PRIOR_LOGITS)
+                if isinstance(dec, ColumnsDecoder):
+                    dec.col_map.weight.zero_()
+                    dec.col_map.bias.zero_()
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         feats = self.encoder(x)
@@ -541,5 +587,5 @@ def count_parameters(module: nn.Module) -> int:
 
 __all__ = ["ModelConfig", "RackLayNet", "Discriminators", "PatchDiscriminator", "ResNet18Encoder",
            "EfficientNetLite0Encoder", "load_lite0_weights", "lite0_weights_path", "ENCODERS",
-           "PaperDecoder", "LightDecoder", "load_imagenet_weights", "build_model", "one_hot_layouts",
+           "PaperDecoder", "LightDecoder", "ColumnsDecoder", "GROWABLE_DECODERS", "load_imagenet_weights", "build_model", "one_hot_layouts",
            "lsgan_generator_loss", "lsgan_discriminator_loss", "DECODERS", "count_parameters"]

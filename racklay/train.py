@@ -42,9 +42,10 @@ import torch
 import torch.nn.functional as F
 
 from .augment import PRESETS as AUGMENT_PRESETS
-from .layout import CLASS_NAMES
+from .layout import CLASS_NAMES, NUM_CLASSES
 from .model import (
     DECODERS,
+    GROWABLE_DECODERS,
     Discriminators,
     ModelConfig,
     RackLayNet,
@@ -60,7 +61,7 @@ from .precision import AMP_MODES, resolve_amp
 # max_minutes, may change on resume)
 _RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder", "encoder",
                  "pretrained", "augment", "letterbox",
-                 "disc", "disc_weight", "disc_start", "class_weights", "seed", "train_split",
+                 "disc", "disc_weight", "disc_start", "class_weights", "iou_weight", "seed", "train_split",
                  "val_split", "val_fraction", "train_fraction", "init", "freeze_encoder_epochs",
                  "imagenet_weights", "amp", "warmup_steps", "weight_decay", "disc_lr")
 
@@ -89,6 +90,7 @@ class TrainConfig:
     disc_start: int = 5                  # first epoch (0-based) with the adversarial terms
     disc_lr: float = 1e-4
     class_weights: tuple = (1.0, 5.0, 5.0)
+    iou_weight: float = 0.0              # + this x soft-IoU loss of shelf and box (layout_iou_loss); 0: off
     seed: int = 0
     workers: int = 0                     # DataLoader workers (0 is fastest on 2 cores + cache)
     cache: bool = True                   # keep decoded, resized samples in memory
@@ -136,8 +138,8 @@ class TrainConfig:
             v = getattr(self, name)
             if v is not None and not v > 0:
                 raise ValueError(f"{name} must be > 0, got {v}")
-        if self.weight_decay < 0 or self.disc_weight < 0:
-            raise ValueError("weight_decay and disc_weight must be >= 0")
+        if self.weight_decay < 0 or self.disc_weight < 0 or self.iou_weight < 0:
+            raise ValueError("weight_decay, disc_weight and iou_weight must be >= 0")
         self.model_config()  # validates views, sizes, R
 
     # field annotation (a string: `from __future__ import annotations`) -> accepted Python types
@@ -329,6 +331,21 @@ def layout_loss(logits: torch.Tensor, target: torch.Tensor, weight: torch.Tensor
     return F.cross_entropy(logits.float().transpose(1, 2), target, weight=weight)
 
 
+def layout_iou_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """1 - soft IoU (Jaccard) of the softmax probabilities with the truth, per foreground class
+    (shelf, box) over every pixel of the batch (as the dataset-level IoU counts them), averaged over
+    the two classes. Weighted cross-entropy alone calls a pixel shelf or box as soon as it is
+    somewhat likely, so footprints come out too large when the rack's size is uncertain; this term
+    rewards the footprint that maximises the overlap instead."""
+    probs = logits.float().softmax(2)
+    loss = 0.0
+    for c in range(1, NUM_CLASSES):
+        p, g = probs[:, :, c], (target == c).float()
+        inter = (p * g).sum()
+        loss = loss + 1 - (inter + 1.0) / (p.sum() + g.sum() - inter + 1.0)
+    return loss / (NUM_CLASSES - 1)
+
+
 def split_ids(cfg: TrainConfig) -> tuple[list[str], list[str]]:
     from .data import RackLayRoot, make_splits
 
@@ -472,10 +489,29 @@ def write_config(run_dir: Path, cfg: TrainConfig) -> None:
     atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(d, sort_keys=False))
 
 
+def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
+    """Load a checkpoint's weights into `model`. Same decoder: every tensor, strictly. A decoder
+    grown from the checkpoint's (GROWABLE_DECODERS): every tensor the checkpoint has, strictly; the
+    new branches keep their initialisation (their last layer is zero, so the model starts by
+    computing what the checkpoint computed)."""
+    own = model.state_dict()
+    if decoder == model.cfg.decoder:
+        model.load_state_dict({k: sd[k] for k in own}, strict=True)
+        return
+    extra = sorted(set(sd) - set(own))
+    if extra:
+        raise ValueError(f"{path}: tensors {extra[:3]} have no place in a {model.cfg.decoder} model")
+    model.load_state_dict({**own, **sd}, strict=True)
+
+
 def _check_init(ck, cfg: TrainConfig) -> None:
     c = ck.cfg
-    problems = [f"{k} {getattr(c, k)} (run: {getattr(cfg, k)})" for k in ("R", "layout_size", "decoder", "encoder")
+    problems = [f"{k} {getattr(c, k)} (run: {getattr(cfg, k)})" for k in ("R", "layout_size", "encoder")
                 if getattr(c, k) != getattr(cfg, k)]
+    if c.decoder != cfg.decoder and (c.decoder, cfg.decoder) not in GROWABLE_DECODERS:
+        problems.append(f"decoder {c.decoder} (run: {cfg.decoder})")
+    if c.decoder != cfg.decoder and c.input_hw != cfg.model_config().input_hw:
+        problems.append(f"image_size {c.image_size} (run: {cfg.image_size}; a grown decoder keeps the input size)")
     missing = [v for v in cfg.views if v not in c.views]
     if missing:
         problems.append(f"views {list(c.views)} lack {missing}")
@@ -563,7 +599,7 @@ def train(cfg: TrainConfig, transform=None) -> Path:
             gen, disc = models_for_epoch(run, epoch)
             all_batches = epoch_batches(len(train_ds), cfg.batch_size, epoch, cfg.seed, dist.world, dist.rank)
             batches.batches = [[(i, epoch) for i in b] for b in all_batches[st.step:]]
-            sums = {"loss": 0.0, "ce": 0.0, "adv": 0.0, "disc": 0.0, **(st.epoch_sums or {})}
+            sums = {"loss": 0.0, "ce": 0.0, "iou": 0.0, "adv": 0.0, "disc": 0.0, **(st.epoch_sums or {})}
             t_epoch = time.time()
             bar = tqdm(total=len(all_batches), initial=st.step, desc=f"epoch {epoch + 1}/{cfg.epochs}",
                        disable=not (cfg.progress and dist.main), dynamic_ncols=True)
@@ -637,8 +673,7 @@ def build_run(cfg: TrainConfig, dist: _Dist, run_dir: Path, t_start: float, init
     if init and cfg.init:
         ck = load_checkpoint(cfg.init)
         _check_init(ck, cfg)
-        sd = ck.section("model")
-        model.load_state_dict({k: sd[k] for k in model.state_dict()}, strict=True)
+        load_grown(model, ck.section("model"), ck.cfg.decoder, ck.path)
     elif init and cfg.imagenet_weights:
         load_imagenet_weights(model.encoder, cfg.imagenet_weights)
     elif init and cfg.pretrained and cfg.encoder == "efficientnet-lite0":
@@ -746,7 +781,8 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
         out = gen(x)
     ce = sum(layout_loss(out[v], targets[v], run.weight) for v in cfg.views)
-    loss, adv_loss, d_loss = ce, torch.zeros(()), torch.zeros(())
+    iou = sum(layout_iou_loss(out[v], targets[v]) for v in cfg.views) if cfg.iou_weight else torch.zeros(())
+    loss, adv_loss, d_loss = ce + cfg.iou_weight * iou, torch.zeros(()), torch.zeros(())
     probs = {}
     if disc is not None:
         run.disc.requires_grad_(False)
@@ -756,7 +792,7 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
                 d_fake = run.disc(v, probs[v])
             adv_loss = adv_loss + lsgan_generator_loss(d_fake.float())
         run.disc.requires_grad_(True)
-        loss = ce + cfg.disc_weight * adv_loss
+        loss = loss + cfg.disc_weight * adv_loss
     gen_opt = run.optimizers["gen"]
     gen_opt.zero_grad(set_to_none=True)
     loss.backward()
@@ -773,7 +809,7 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
         disc_opt.zero_grad(set_to_none=True)
         d_loss.backward()
         disc_opt.step()
-    return {"loss": float(loss.detach()), "ce": float(ce.detach()), "adv": float(adv_loss.detach()),
+    return {"loss": float(loss.detach()), "ce": float(ce.detach()), "iou": float(iou.detach()), "adv": float(adv_loss.detach()),
             "disc": float(d_loss.detach())}
 
 

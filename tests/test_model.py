@@ -27,7 +27,7 @@ def _x(n=2, seed=0):
     return torch.randn(n, 3, IMG, IMG, generator=torch.Generator().manual_seed(seed))
 
 
-@pytest.mark.parametrize("decoder", ["light", "paper"])
+@pytest.mark.parametrize("decoder", ["light", "paper", "columns"])
 @pytest.mark.parametrize("views", [("top",), ("front",), ("top", "front")])
 @pytest.mark.parametrize("disc", [False, True])
 def test_output_shapes_of_every_variant(decoder, views, disc):
@@ -44,6 +44,33 @@ def test_output_shapes_of_every_variant(decoder, views, disc):
         d = Discriminators(cfg)
         score = d(views[0], out[views[0]].softmax(2))
         assert score.shape == (2, 1, LAY // 16, LAY // 16)
+
+
+def test_columns_decoder_grows_from_light_and_learns_per_column():
+    """A light checkpoint grown into a columns model computes exactly what it did (the column
+    map starts at zero); once the map is non-zero, what one image column holds changes the
+    layout's matching columns far more than the opposite ones; an input of another height is
+    refused with a message naming the built height."""
+    from racklay.train import load_grown
+
+    light = ModelConfig(R=2, image_size=(64, 128), layout_size=32, views=("top",), encoder="resnet18")
+    cols = ModelConfig.from_dict({**light.to_dict(), "decoder": "columns"})
+    a = RackLayNet(light).eval()
+    b = RackLayNet(cols).eval()
+    load_grown(b, a.state_dict(), "light", "light.safetensors")
+    x = torch.randn(2, 3, 64, 128, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        assert torch.equal(a(x)["top"], b(x)["top"])
+        torch.nn.init.normal_(b.decoders["top"].col_map.weight, std=0.05)
+        y0 = b(x)["top"]
+        x2 = x.clone()
+        x2[..., :16] = torch.randn(2, 3, 64, 16, generator=torch.Generator().manual_seed(2))   # left image columns
+        d = (b(x2)["top"] - y0).abs().mean((0, 1, 2, 3))           # change per layout column
+    assert d[:8].mean() > 3 * d[-8:].mean()
+    with pytest.raises(ValueError, match="built for 4 rows"):
+        b(torch.randn(1, 3, 96, 128))
+    with pytest.raises(ValueError, match="no place in a columns model"):
+        load_grown(b, {**a.state_dict(), "stray.weight": torch.zeros(1)}, "light", "light.safetensors")
 
 
 def test_layout_size_independent_of_image_size():

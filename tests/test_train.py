@@ -136,6 +136,11 @@ def test_init_checks_and_run_guards(tmp_path, toy):
         train(TrainConfig(data=str(bare), out=str(tmp_path), name="noval", **TINY))
     with pytest.raises(ValueError, match="class_weights"):
         TrainConfig(class_weights=(1, 5))
+    # a columns checkpoint cannot shrink back into a light model
+    cc = ModelConfig(R=4, image_size=64, layout_size=32, decoder="columns")
+    cols = save_checkpoint(tmp_path / "cols.safetensors", RackLayNet(cc), cc)
+    with pytest.raises(ValueError, match="cols.safetensors.*decoder columns"):
+        train(TrainConfig(data=str(toy), out=str(tmp_path), name="shrink", init=str(cols), decoder="light", **TINY))
 
 
 def test_fine_tune_from_checkpoint_with_frozen_encoder_and_fractions(tmp_path, toy):
@@ -153,6 +158,44 @@ def test_fine_tune_from_checkpoint_with_frozen_encoder_and_fractions(tmp_path, t
     assert not torch.equal(src.decoders["top"].head.weight, model.decoders["top"].head.weight)
     # 14 train ids -> 25% validation (4) -> 10 train -> half of them (5): 2 batches (4 + 1 dropped)
     assert _rows(run)[0]["step"] == "1"
+
+
+def test_soft_iou_loss_measures_overlap_and_is_logged(tmp_path, toy):
+    """layout_iou_loss is 1 - IoU for confident predictions (an over-sized shelf footprint costs
+    exactly its extra area), ~1 when nothing is predicted, and a run with --iou-weight logs it."""
+    from racklay.train import layout_iou_loss
+
+    t = torch.zeros(1, 1, 20, 20, dtype=torch.long)
+    t[0, 0, 5:15, 5:15] = 1                                   # 100 shelf pixels, no box
+    big = torch.zeros(1, 1, 20, 20, dtype=torch.long)
+    big[0, 0, 4:16, 4:16] = 1                                 # 144 pixels covering them
+    conf = lambda lab: torch.nn.functional.one_hot(lab, 3).permute(0, 1, 4, 2, 3).float() * 60
+    assert float(layout_iou_loss(conf(t), t)) == pytest.approx(0.0, abs=1e-6)
+    # shelf: IoU 100/144; box: absent in both -> (0 + 1) / (0 + 1) = 1, loss 0
+    assert float(layout_iou_loss(conf(big), t)) == pytest.approx((1 - 101 / 145) / 2, abs=1e-4)
+    assert float(layout_iou_loss(conf(torch.zeros_like(t)), t)) == pytest.approx((1 - 1 / 101) / 2, abs=1e-4)
+    with pytest.raises(ValueError, match="iou_weight"):
+        TrainConfig(iou_weight=-1)
+    run = train(TrainConfig(data=str(toy), out=str(tmp_path), name="iou", iou_weight=1.0, epochs=1, disc=False,
+                            patience=None, checkpoint_every=0, **TINY))
+    row = _rows(run)[0]
+    assert 0 < float(row["train_iou"]) <= 2            # summed over the two views
+    assert float(row["train_loss"]) == pytest.approx(float(row["train_ce"]) + float(row["train_iou"]), rel=1e-4)
+
+
+def test_fine_tune_grows_a_light_checkpoint_into_columns(tmp_path, toy):
+    """--init a light checkpoint with --decoder columns: every tensor of the checkpoint is loaded,
+    the column branch is added and trained, and the result is a columns checkpoint."""
+    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32, disc=False)
+    src = RackLayNet(cfg0)
+    init = save_checkpoint(tmp_path / "light.safetensors", src, cfg0)
+    cfg = TrainConfig(data=str(toy), out=str(tmp_path), name="grow", init=str(init), decoder="columns", epochs=1,
+                      disc=False, freeze_encoder_epochs=1, patience=None, checkpoint_every=0, **TINY)
+    model, mcfg, _ = load_model(train(cfg) / "last.safetensors")
+    assert mcfg.decoder == "columns"
+    for (k, a), b in zip(src.encoder.state_dict().items(), model.encoder.state_dict().values()):
+        assert torch.equal(a, b), k
+    assert model.decoders["top"].col_map.weight.abs().sum() > 0
 
 
 def test_cli_config_yaml_and_flag_precedence(tmp_path, toy):

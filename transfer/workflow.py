@@ -78,15 +78,21 @@ def checkpoint_config(path: str | os.PathLike):
     return cfg
 
 
-def checkpoint_class_weights(path: str | os.PathLike) -> tuple[float, ...] | None:
-    """The loss class weights the checkpoint was trained with (its `train_config` metadata), or
-    None when the file does not record them. A fine-tune keeps them: the release model was
-    trained with boxes weighted 10, and fine-tuning it with another weighting moves its
-    decisions (measured in docs/model-card.md, "Fine-tuning keeps the model's class weights")."""
+def checkpoint_loss(path: str | os.PathLike) -> dict:
+    """The loss settings the checkpoint was trained with, from its `train_config` metadata:
+    `class_weights` (tuple) and `iou_weight` (float), each only when the file records it. A
+    fine-tune keeps them: the release model was trained with boxes weighted 10, and fine-tuning it
+    with another weighting moves its decisions (measured in docs/model-card.md, "Fine-tuning keeps
+    the model's class weights")."""
     from racklay.checkpoint import load_checkpoint
 
-    w = (load_checkpoint(path).meta.get("train_config") or {}).get("class_weights")
-    return tuple(float(v) for v in w) if w else None
+    tc = load_checkpoint(path).meta.get("train_config") or {}
+    own = {}
+    if tc.get("class_weights"):
+        own["class_weights"] = tuple(float(v) for v in tc["class_weights"])
+    if tc.get("iou_weight") is not None:
+        own["iou_weight"] = float(tc["iou_weight"])
+    return own
 
 
 def check_init_compatible(init: str | os.PathLike, real: str | os.PathLike, split: str = "train",
@@ -148,10 +154,8 @@ def train_on_real(real, out, name: str, seed: int = 0, init=None, augment: bool 
         kw.setdefault("encoder", mcfg.encoder)
         kw.setdefault("letterbox", mcfg.letterbox)
         kw.setdefault("disc", mcfg.disc)
-        if kw.get("class_weights") is None:
-            own = checkpoint_class_weights(init)
-            if own is not None:
-                kw["class_weights"] = own
+        for k, v in checkpoint_loss(init).items():   # the model's own loss, unless given
+            kw.setdefault(k, v)
         if lr is None:
             lr = default_lr() * FINETUNE_LR_RATIO
     cfg = train_config(data=str(real), out=str(out), name=name, seed=seed, init=str(init) if init else None,

