@@ -13,8 +13,8 @@ from importlib import resources
 from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
-RELEASE_NAME = "racklay-lite0-release-v3.safetensors"
-RELEASE_SHA256 = "1a9bc12fa7ffcbe2c26f6cb4d056ece953587139b47357990b201458fbf67ad9"
+RELEASE_NAME = "racklay-lite0-release-v4.safetensors"
+RELEASE_SHA256 = "4fdf09cbe04090bf0235cd680b8e16396e13bface29d44d66bc4b921798140a2"
 WEIGHTS_DIR = Path(str(resources.files("racklay") / "weights"))   # package data
 
 _verified: set[str] = set()
@@ -67,11 +67,37 @@ def make_release(checkpoint: str | os.PathLike, out: str | os.PathLike, extra: d
     model = RackLayNet(ck.cfg)
     model.load_state_dict(ck.section("model"), strict=True)
     model = model.to(torch.float16)
-    meta = {k: ck.meta[k] for k in ("epoch", "val_score", "val", "train_config", "variant", "calibration")
+    meta = {k: ck.meta[k] for k in ("epoch", "val_score", "val", "train_config", "variant", "calibration", "averaged_from")
             if k in ck.meta}
     meta.update(extra or {})
     meta["storage"] = "fp16"
     return save_checkpoint(out, model, ck.cfg, extra=meta)
+
+
+def average_checkpoints(checkpoints: list, out: str | os.PathLike) -> Path:
+    """Write the uniform weight average of checkpoints of one architecture (a "model soup", e.g. a
+    model and its own fine-tune) as a training-style checkpoint: float tensors (BatchNorm
+    statistics included) averaged in fp64, integer counters from the last; the model config and
+    the training facts (`train_config`, whose loss a later fine-tune inherits) from the last; the
+    sources listed under `averaged_from`. Different configs are refused."""
+    from .checkpoint import load_checkpoint, save_checkpoint
+    from .model import RackLayNet
+
+    cks = [load_checkpoint(c) for c in checkpoints]
+    if len(cks) < 2:
+        raise ValueError("average_checkpoints needs at least two checkpoints")
+    last = cks[-1]
+    for ck in cks[:-1]:
+        if ck.cfg.to_dict() != last.cfg.to_dict():
+            raise ValueError(f"{ck.path}: model config differs from {last.path}; only one architecture can be averaged")
+    sds = [ck.section("model") for ck in cks]
+    avg = {k: (sum(sd[k].double() for sd in sds) / len(sds)).to(v.dtype) if v.is_floating_point() else v
+           for k, v in sds[-1].items()}
+    model = RackLayNet(last.cfg)
+    model.load_state_dict(avg, strict=True)
+    meta = {k: last.meta[k] for k in ("train_config", "variant") if k in last.meta}
+    meta["averaged_from"] = [str(c) for c in checkpoints]
+    return save_checkpoint(out, model, last.cfg, extra=meta)
 
 
 def add_weights_arg(p, what: str = "model checkpoint (.safetensors) or exported .onnx", flag: str = "--weights") -> None:

@@ -37,6 +37,43 @@ def test_corrupt_shipped_weights_are_refused(tmp_path, monkeypatch):
         release.release_weights()
 
 
+def test_average_checkpoints_writes_the_mean_model_with_its_sources(tmp_path):
+    """A model soup: float tensors (BN statistics too) are the mean, integer counters and the
+    training facts come from the last checkpoint, sources are recorded; another architecture is
+    refused; the release file made from it keeps the record."""
+    import torch
+
+    from racklay.checkpoint import load_checkpoint, save_checkpoint
+    from racklay.model import ModelConfig, RackLayNet
+
+    cfg = ModelConfig(R=2, image_size=64, layout_size=32, encoder="resnet18")
+    paths = []
+    for i in range(2):
+        torch.manual_seed(i)
+        net = RackLayNet(cfg)
+        net.decoders["top"].head.bias.data.fill_(float(i))
+        net.encoder.bn1.running_mean.fill_(2.0 * i)
+        net.encoder.bn1.num_batches_tracked.fill_(10 * (i + 1))
+        paths.append(save_checkpoint(tmp_path / f"m{i}.safetensors", net, cfg,
+                                     extra={"train_config": {"iou_weight": float(i)}}))
+    a, b = (load_checkpoint(p).section("model") for p in paths)
+    out = release.average_checkpoints(paths, tmp_path / "soup.safetensors")
+    ck = load_checkpoint(out)
+    sd = ck.section("model")
+    k = "decoders.top.convs.0.0.weight"
+    assert torch.allclose(sd[k], (a[k] + b[k]) / 2)
+    assert torch.allclose(sd["decoders.top.head.bias"], torch.full_like(sd["decoders.top.head.bias"], 0.5))
+    assert torch.allclose(sd["encoder.bn1.running_mean"], torch.ones_like(sd["encoder.bn1.running_mean"]))
+    assert int(sd["encoder.bn1.num_batches_tracked"]) == 20
+    assert ck.meta["train_config"] == {"iou_weight": 1.0} and ck.meta["averaged_from"] == [str(p) for p in paths]
+    assert load_checkpoint(release.make_release(out, tmp_path / "rel.safetensors")).meta["averaged_from"] == \
+        ck.meta["averaged_from"]
+    other = ModelConfig(R=3, image_size=64, layout_size=32, encoder="resnet18")
+    odd = save_checkpoint(tmp_path / "odd.safetensors", RackLayNet(other), other)
+    with pytest.raises(ValueError, match="odd.safetensors.*config differs"):
+        release.average_checkpoints([odd, paths[0]], tmp_path / "bad.safetensors")
+
+
 @pytest.mark.slow
 def test_predict_without_weights_uses_the_shipped_model_and_finds_the_shelves(tmp_path):
     out = tmp_path / "pred"
