@@ -71,6 +71,9 @@ def test_columns_decoder_grows_from_light_and_learns_per_column():
         b(torch.randn(1, 3, 96, 128))
     with pytest.raises(ValueError, match="no place in a columns model"):
         load_grown(b, {**a.state_dict(), "stray.weight": torch.zeros(1)}, "light", "light.safetensors")
+    cut = {k: v for k, v in a.state_dict().items() if not k.startswith("decoders.top.final")}
+    with pytest.raises(ValueError, match="lacks tensors.*decoders.top.final"):
+        load_grown(b, cut, "light", "light.safetensors")
 
 
 def test_layout_size_independent_of_image_size():
