@@ -445,6 +445,9 @@ class ColumnsDecoder(LightDecoder):
     map is learned, not a skip; image columns and layout columns both run along the rack. The
     last conv starts at zero (the decoder starts as `LightDecoder`)."""
 
+    #: the submodules a `light` checkpoint does not have (see `grown_tensor_names`)
+    GROWN = ("col_reduce", "col_map")
+
     def __init__(self, out_channels: int, layout_size: int, cin: int, c16: int, rows: int,
                  channels=(128, 64, 32, 16), width: int = 64):
         super().__init__(out_channels, layout_size, cin, channels)
@@ -466,6 +469,17 @@ class ColumnsDecoder(LightDecoder):
         S = self.layout_size
         x = F.interpolate(x, size=(S, S), mode="bilinear", align_corners=False)
         return self.head(self.final(x))
+
+
+def grown_tensor_names(model: nn.Module) -> set[str]:
+    """State-dict names of the branches a grown decoder adds to the one it grows from (the
+    `GROWN` submodules of every `ColumnsDecoder` in `model`)."""
+    names = set()
+    for prefix, m in model.named_modules():
+        if isinstance(m, ColumnsDecoder):
+            for sub in m.GROWN:
+                names |= {f"{prefix}.{sub}.{k}" for k in getattr(m, sub).state_dict()}
+    return names
 
 
 class RackLayNet(nn.Module):
@@ -587,5 +601,5 @@ def count_parameters(module: nn.Module) -> int:
 
 __all__ = ["ModelConfig", "RackLayNet", "Discriminators", "PatchDiscriminator", "ResNet18Encoder",
            "EfficientNetLite0Encoder", "load_lite0_weights", "lite0_weights_path", "ENCODERS",
-           "PaperDecoder", "LightDecoder", "ColumnsDecoder", "GROWABLE_DECODERS", "load_imagenet_weights", "build_model", "one_hot_layouts",
+           "PaperDecoder", "LightDecoder", "ColumnsDecoder", "GROWABLE_DECODERS", "grown_tensor_names", "load_imagenet_weights", "build_model", "one_hot_layouts",
            "lsgan_generator_loss", "lsgan_discriminator_loss", "DECODERS", "count_parameters"]

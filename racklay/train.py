@@ -49,6 +49,7 @@ from .model import (
     Discriminators,
     ModelConfig,
     RackLayNet,
+    grown_tensor_names,
     load_imagenet_weights,
     load_lite0_weights,
     lsgan_discriminator_loss,
@@ -501,7 +502,7 @@ def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
     extra = sorted(set(sd) - set(own))
     if extra:
         raise ValueError(f"{path}: tensors {extra[:3]} have no place in a {model.cfg.decoder} model")
-    lacking = sorted(k for k in set(own) - set(sd) if ".col_" not in k)   # only the new branches may be new
+    lacking = sorted(set(own) - set(sd) - grown_tensor_names(model))   # only the new branches may be new
     if lacking:
         raise ValueError(f"{path}: lacks tensors {lacking[:3]} that a {decoder} checkpoint has")
     model.load_state_dict({**own, **sd}, strict=True)
