@@ -128,3 +128,47 @@ class RackLayDataset(Dataset):
         for v, arr in lays.items():
             item[v] = torch.from_numpy(np.ascontiguousarray(arr).astype(np.int64))
         return item
+
+
+class ReplayMix(Dataset):
+    """A small (real) training set plus synthetic *replay*: every epoch holds all of `real` and
+    `round(ratio x len(real))` samples of `pool` (a large synthetic set), drawn afresh each epoch
+    from (seed, epoch), so a fine-tune on a few dozen photos keeps seeing the renders the model
+    learnt from and does not forget them. Items are addressed as `item(i, epoch)`; indices
+    below `len(real)` are the real samples. Both parts run the real set's transform."""
+
+    def __init__(self, real: RackLayDataset, pool: RackLayDataset, ratio: float, seed: int = 0):
+        if not ratio > 0:
+            raise ValueError(f"replay ratio must be > 0, got {ratio}")
+        if len(pool) == 0:
+            raise ValueError(f"{pool.root.root}: the replay set is empty")
+        self.real, self.pool, self.seed = real, pool, int(seed)
+        self.pool.transform = real.transform
+        self.n_real = len(real)
+        self.n_replay = min(len(pool), max(1, round(ratio * self.n_real)))
+        self._perm: tuple[int, np.ndarray] | None = None
+
+    @property
+    def transform(self):
+        return self.real.transform
+
+    def __len__(self) -> int:
+        return self.n_real + self.n_replay
+
+    def replay_ids(self, epoch: int) -> list[str]:
+        """The pool samples of epoch `epoch`, in order."""
+        return [self.pool.ids[j] for j in self._draw(epoch)]
+
+    def _draw(self, epoch: int) -> np.ndarray:
+        if self._perm is None or self._perm[0] != epoch:
+            rng = np.random.default_rng([self.seed, int(epoch), 0x5E1A])
+            self._perm = (epoch, rng.choice(len(self.pool), self.n_replay, replace=False))
+        return self._perm[1]
+
+    def item(self, i: int, epoch: int) -> dict:
+        if i < self.n_real:
+            return self.real[i]
+        return self.pool[int(self._draw(epoch)[i - self.n_real])]
+
+    def __getitem__(self, i: int) -> dict:
+        return self.item(i, 0)

@@ -63,6 +63,7 @@ from .precision import AMP_MODES, resolve_amp
 _RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder", "encoder",
                  "pretrained", "augment", "letterbox",
                  "disc", "disc_weight", "disc_start", "class_weights", "iou_weight", "seed", "train_split",
+                 "replay", "replay_ratio",
                  "val_split", "val_fraction", "train_fraction", "init", "freeze_encoder_epochs",
                  "imagenet_weights", "amp", "warmup_steps", "weight_decay", "disc_lr")
 
@@ -102,6 +103,8 @@ class TrainConfig:
     val_split: str = "val"
     val_fraction: float | None = None    # carve validation from the train split instead
     train_fraction: float = 1.0          # reproducible subset of the training split
+    replay: str | None = None            # synthetic root whose train split is mixed into every epoch
+    replay_ratio: float = 1.0            # replay images per training image and epoch (drawn afresh)
     init: str | None = None              # checkpoint to fine-tune from
     freeze_encoder_epochs: int = 0
     imagenet_weights: str | None = None  # local ImageNet weight file (torchvision resnet18 / Lite0)
@@ -139,6 +142,8 @@ class TrainConfig:
             v = getattr(self, name)
             if v is not None and not v > 0:
                 raise ValueError(f"{name} must be > 0, got {v}")
+        if not self.replay_ratio > 0:
+            raise ValueError(f"replay_ratio must be > 0, got {self.replay_ratio}")
         if self.weight_decay < 0 or self.disc_weight < 0 or self.iou_weight < 0:
             raise ValueError("weight_decay, disc_weight and iou_weight must be >= 0")
         self.model_config()  # validates views, sizes, R
@@ -288,7 +293,8 @@ class _Seeded(torch.utils.data.Dataset):
                 if callable(getattr(t, meth, None)):
                     getattr(t, meth)(s)
                     break
-        return self.base[i]
+        item = getattr(self.base, "item", None)   # ReplayMix: which replay samples depends on the epoch
+        return item(i, epoch) if item is not None else self.base[i]
 
 
 class _Batches:
@@ -372,6 +378,23 @@ def split_ids(cfg: TrainConfig) -> tuple[list[str], list[str]]:
     if not val:
         raise ValueError(f"{root.root}: validation set is empty")
     return train, val
+
+
+def replay_ids(cfg: TrainConfig) -> list[str]:
+    """The pool of `--replay`: the replay root's train split (all its samples if it has no split
+    files). Its R must match the run's; its layouts are resized to the layout size like the data's."""
+    from .data import RackLayRoot
+
+    root = RackLayRoot(cfg.replay)
+    if not root.root.is_dir():
+        raise FileNotFoundError(f"{root.root}: replay dataset folder not found")
+    ids = root.resolve("train" if "train" in root.splits() else None)
+    if not ids:
+        raise ValueError(f"{root.root}: replay dataset has no samples")
+    shape = root.layout_shape(ids[:50])
+    if shape is not None and shape[0] != cfg.R:
+        raise ValueError(f"{root.root}: replay layouts have R={shape[0]} shelves, the run has R={cfg.R}")
+    return ids
 
 
 @torch.no_grad()
@@ -595,7 +618,8 @@ def train(cfg: TrainConfig, transform=None) -> Path:
         total_steps = steps_per_epoch * cfg.epochs
         if dist.main:
             made_dir = not run_dir.exists()
-            start_run_dir(run, len(train_ds), len(val_loader.dataset))
+            start_run_dir(run, getattr(train_ds, "n_real", len(train_ds)), len(val_loader.dataset),
+                          getattr(train_ds, "n_replay", 0))
         run.base_elapsed = st.elapsed_s
         stop = False
         while st.epoch < cfg.epochs and not stop:
@@ -721,7 +745,7 @@ def make_loaders(cfg: TrainConfig, transform, dist: _Dist):
     """(training dataset, its loader, the loader's batch sampler, validation loader (rank 0 only))."""
     from torch.utils.data import DataLoader
 
-    from .torchdata import RackLayDataset
+    from .torchdata import RackLayDataset, ReplayMix
 
     train_ids, val_ids = split_ids(cfg)
     kw = dict(image_size=cfg.image_size, layout_size=cfg.layout_size, views=cfg.views, R=cfg.R, cache=cfg.cache)
@@ -730,6 +754,9 @@ def make_loaders(cfg: TrainConfig, transform, dist: _Dist):
         transform = make_augment(cfg.augment, seed=cfg.seed, letterbox=cfg.letterbox)
     kw["letterbox"] = cfg.letterbox
     train_ds = RackLayDataset(cfg.data, ids=train_ids, transform=transform, **kw)
+    if cfg.replay:
+        pool = RackLayDataset(cfg.replay, ids=replay_ids(cfg), **{**kw, "cache": False})
+        train_ds = ReplayMix(train_ds, pool, cfg.replay_ratio, seed=cfg.seed)
     val_ds = RackLayDataset(cfg.data, ids=val_ids, **kw) if dist.main else None
     batches = _Batches()
     loader = DataLoader(_Seeded(train_ds, cfg.seed), batch_sampler=batches, num_workers=cfg.workers,
@@ -739,13 +766,14 @@ def make_loaders(cfg: TrainConfig, transform, dist: _Dist):
     return train_ds, loader, batches, val_loader
 
 
-def start_run_dir(run: Run, n_train: int, n_val: int) -> None:
+def start_run_dir(run: Run, n_train: int, n_val: int, n_replay: int = 0) -> None:
     """Create the run folder, write config.yaml and say what is being trained."""
     cfg, mcfg = run.cfg, run.mcfg
     run.dir.mkdir(parents=True, exist_ok=True)
     write_config(run.dir, cfg)
     hw = mcfg.input_hw
-    print(f"{mcfg.variant()} ({cfg.encoder} encoder, {cfg.decoder} decoder), {n_train} train / "
+    replay = f" + {n_replay} replay from {cfg.replay} (new each epoch)" if n_replay else ""
+    print(f"{mcfg.variant()} ({cfg.encoder} encoder, {cfg.decoder} decoder), {n_train} train{replay} / "
           f"{n_val} val images, {hw[1]}x{hw[0]}->{cfg.layout_size}, {'bf16' if run.bf16 else 'fp32'}, "
           f"{run.dist.world} process(es) on {run.dist.device}, "
           f"{torch.get_num_threads()} thread(s) each -> {run.dir}")

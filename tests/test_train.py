@@ -329,3 +329,44 @@ def test_train_flags_cover_trainconfig_and_take_help_defaults_from_it(capsys, mo
         with pytest.raises(SystemExit):
             main(argv)
         assert "argument --epochs: must be >= 1, got 0" in capsys.readouterr().err
+
+
+def test_replay_mixes_fresh_synthetic_samples_into_every_epoch(tmp_path, toy):
+    """--replay: each epoch holds every real sample plus round(ratio x n) samples of the replay
+    set's train split, drawn afresh per epoch, reproducibly by seed, never twice in one epoch;
+    a run with it trains, records it in config.yaml and says so; a replay set with another R is
+    a one-line error naming it."""
+    from racklay.torchdata import RackLayDataset, ReplayMix
+
+    src = RackLayRoot(toy)
+    real = RackLayRoot(tmp_path / "real")
+    for sid in src.split_ids("train")[:4]:
+        real.write_sample(f"r{sid}", image=src.read_image(sid), top=src.read_layouts("top", sid),
+                          front=src.read_layouts("front", sid))
+    real.write_split("train", [f"r{s}" for s in src.split_ids("train")[:3]])
+    real.write_split("val", [f"r{src.split_ids('train')[3]}"])
+    pool_ids = src.split_ids("train")
+    kw = dict(image_size=64, layout_size=32, R=4)
+    mix = ReplayMix(RackLayDataset(real.root, "train", **kw), RackLayDataset(toy, ids=pool_ids, **kw), 2.0, seed=1)
+    assert len(mix) == 3 + 6
+    assert [mix.item(i, 0)["id"] for i in range(3)] == [f"r{s}" for s in pool_ids[:3]]
+    e0, e1 = mix.replay_ids(0), mix.replay_ids(1)
+    assert len(set(e0)) == 6 and set(e0) <= set(pool_ids) and e0 != e1
+    assert [mix.item(3 + k, 1)["id"] for k in range(6)] == e1
+    again = ReplayMix(RackLayDataset(real.root, "train", **kw), RackLayDataset(toy, ids=pool_ids, **kw), 2.0, seed=1)
+    assert again.replay_ids(1) == e1
+    with pytest.raises(ValueError, match="ratio"):
+        ReplayMix(mix.real, mix.pool, 0)
+
+    cfg = TrainConfig(data=str(real.root), out=str(tmp_path), name="rp", replay=str(toy), replay_ratio=2.0,
+                      epochs=1, disc=False, patience=None, checkpoint_every=0, **TINY)
+    run = train(cfg)
+    assert TrainConfig.from_yaml(run / "config.yaml").replay == str(toy)
+    assert len(_rows(run)) == 1
+    from racklay.toy import build_toy_dataset
+
+    two = build_toy_dataset(tmp_path / "two", n=4, seed=2, R=2, D=64).root
+    r = _cli(*_tiny_flags(real.root, tmp_path, "rp2"), "--replay", str(two), "--epochs", "1")
+    assert r.returncode != 0
+    err = r.stderr.strip().splitlines()[-1]
+    assert "replay" in err and "R=2" in err and str(two) in err, err

@@ -374,3 +374,23 @@ def test_finetune_keeps_the_loss_the_checkpoint_was_trained_with(tiny_data, tmp_
     assert seen[0].iou_weight == 0.5
     finetune(init, tiny_data / "real", tmp_path, name="ft2", iou_weight=0.0)
     assert seen[1].iou_weight == 0.0
+
+
+def test_finetune_cli_mixes_synthetic_replay(tiny_data, tmp_path, monkeypatch):
+    """`transfer finetune --replay ROOT --replay-ratio 0.5` reaches the trainer; without the flags
+    the fine-tune has no replay (TrainConfig's default)."""
+    import racklay.train as rt
+    from racklay.checkpoint import save_checkpoint
+    from racklay.model import ModelConfig, build_model
+    from transfer.cli import main
+
+    mcfg = ModelConfig(image_size=64, layout_size=64, encoder="resnet18", decoder="light", disc=False)
+    init = save_checkpoint(tmp_path / "init.safetensors", build_model(mcfg), mcfg)
+    seen = []
+    monkeypatch.setattr(rt, "train", lambda cfg, transform=None: seen.append(cfg) or str(tmp_path / "run"))
+    monkeypatch.setattr("transfer.commands.finetune.print_run", lambda run: None)
+    base = ["finetune", "--init", str(init), "--real", str(tiny_data / "real"), "--out", str(tmp_path / "ft")]
+    assert main(base + ["--replay", str(tiny_data / "syn"), "--replay-ratio", "0.5"]) == 0
+    assert main(base) == 0
+    assert (seen[0].replay, seen[0].replay_ratio) == (str(tiny_data / "syn"), 0.5)
+    assert seen[1].replay is None

@@ -88,6 +88,11 @@ FLAGS = [
      "carve this fraction of the training split as validation (reproducible by seed)"),
     ("train_fraction", ["--train-fraction"], dict(type=float),
      "use this reproducible fraction of the training split (learning curves; default {default})"),
+    ("replay", ["--replay"], dict(metavar="ROOT"),
+     "synthetic RackLay root mixed into every epoch (its train split): a fine-tune on a few real photos "
+     "keeps seeing renders and does not forget them"),
+    ("replay_ratio", ["--replay-ratio"], dict(type=positive_float),
+     "with --replay: replay images per training image and epoch, drawn afresh each epoch (default {default})"),
     ("init", ["--init"], {}, "fine-tune from this checkpoint (R, layout size, decoder must match)"),
     ("freeze_encoder_epochs", ["--freeze-encoder-epochs"], dict(type=at_least(0)),
      "keep the encoder frozen for the first N epochs (fine-tuning; default {default})"),
