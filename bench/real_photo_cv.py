@@ -87,18 +87,21 @@ def main() -> int:
     ap.add_argument("--epochs", type=int, default=100, help="epochs per fold (default 100)")
     ap.add_argument("--lr", type=float, default=2e-4, help="peak learning rate (default 2e-4)")
     ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--soup", default="", help="also score each fold's fine-tune averaged with the start model at "
+                    "these weights of the fine-tune, e.g. 0.3,0.5 (racklay.release.average_checkpoints; no training)")
     ap.add_argument("--out", type=Path, default=None, help="keep the fold runs here (default: a temporary folder)")
     ap.add_argument("--json", default=None, help="also write the numbers here")
     args = ap.parse_args()
 
     from annotate.cli import main as annotate_main
+    from racklay.checkpoint import load_checkpoint
     from racklay.data import RackLayRoot
     from racklay.evaluate import evaluate
-    from racklay.release import resolve_weights
+    from racklay.release import average_checkpoints, resolve_weights
     from racklay.train import TrainConfig, train
     from transfer.workflow import checkpoint_config, checkpoint_loss
 
-    weights = resolve_weights(args.weights)
+    weights = Path(resolve_weights(args.weights)).resolve()
     mcfg = checkpoint_config(weights)
     tmp = tempfile.TemporaryDirectory(prefix="racklay-realcv-")
     work = args.out or Path(tmp.name)
@@ -107,9 +110,19 @@ def main() -> int:
         if annotate_main(["export", str(args.project), "--out", str(export), "--split-fractions", "test=1"]) != 0:
             raise SystemExit(f"{args.project}: annotate export failed")
     groups = photo_groups(args.project, RackLayRoot(export))
+    seen = set(load_checkpoint(weights).meta.get("fine_tuned_on_photos", []))
+    names = {(RackLayRoot(export).read_meta(s) or {}).get("source_image") for v in groups.values() for s in v}
+    if seen & names:
+        raise SystemExit(f"{weights}: was fine-tuned on {len(seen & names)} of these photos, so a cross-validation on "
+                         "them would be in-sample; pass --weights of a model that has not seen them (the model it "
+                         f"was fine-tuned from: {load_checkpoint(weights).meta.get('fine_tuned_from', 'see docs/model-card.md')})")
     print(f"model {weights}; {sum(map(len, groups.values()))} photos in {len(groups)} source groups: "
           + ", ".join(f"{g} {len(v)}" for g, v in groups.items()), flush=True)
+    alphas = [float(a) for a in args.soup.split(",") if a.strip()]
+    if any(not 0 < a < 1 for a in alphas):
+        raise SystemExit(f"--soup: weights must be in (0, 1), got {args.soup}")
     before, after, rows = [], [], []
+    soups: dict[float, list] = {a: [] for a in alphas}
     for g, test in groups.items():
         train_ids = [s for h, v in groups.items() if h != g for s in v]
         root = fold_root(export, work / f"fold-{g.replace('/', '_')}", train_ids, test)
@@ -126,13 +139,20 @@ def main() -> int:
         r1 = evaluate(str(run / "last.safetensors"), root, split="test", native=True, progress=False)
         before.append(r0)
         after.append(r1)
+        for a in alphas:
+            soup = average_checkpoints([weights, run / "last.safetensors"], run / f"soup-{a:g}.safetensors",
+                                       weights=[1 - a, a])
+            soups[a].append(evaluate(str(soup), root, split="test", native=True, progress=False))
         rows.append((g, len(test), ious([r0]), ious([r1])))
         print(f"fold {g}: trained on {len(train_ids)} photos, {(time.time() - t0) / 60:.1f} min", flush=True)
-    rows.append(("pooled (all photos)", sum(len(v) for v in groups.values()), ious(before), ious(after)))
+    n_all = sum(len(v) for v in groups.values())
+    rows.append(("pooled (all photos)", n_all, ious(before), ious(after)))
+    for a in alphas:
+        rows.append((f"pooled, start + {a:g} x (fine-tune - start)", n_all, ious(before), ious(soups[a])))
     keys = list(rows[0][2])
-    print(f"\n{'held-out source':38s} {'n':>3s}  " + "  ".join(f"{k:>19s}" for k in keys))
+    print(f"\n{'held-out source':44s} {'n':>3s}  " + "  ".join(f"{k:>19s}" for k in keys))
     for g, n, a, b in rows:
-        print(f"{g:38s} {n:3d}  " + "  ".join(f"{a[k]:6.1f} -> {b[k]:5.1f} ({b[k] - a[k]:+5.1f})" for k in keys))
+        print(f"{g:44s} {n:3d}  " + "  ".join(f"{a[k]:6.1f} -> {b[k]:5.1f} ({b[k] - a[k]:+5.1f})" for k in keys))
     print("(dataset-level IoU %, shipped model -> fine-tuned on the other sources' photos)")
     if args.json:
         Path(args.json).write_text(json.dumps({"weights": str(weights), "args": {k: str(v) for k, v in vars(args).items()},

@@ -13,8 +13,8 @@ from importlib import resources
 from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
-RELEASE_NAME = "racklay-lite0-release-v4.safetensors"
-RELEASE_SHA256 = "4fdf09cbe04090bf0235cd680b8e16396e13bface29d44d66bc4b921798140a2"
+RELEASE_NAME = "racklay-lite0-release-v5.safetensors"
+RELEASE_SHA256 = "b8b861adf6a3baf0ce0958c70deb79451bb94e5d001d609b56f6fe75fee50830"
 WEIGHTS_DIR = Path(str(resources.files("racklay") / "weights"))   # package data
 
 _verified: set[str] = set()
@@ -67,19 +67,22 @@ def make_release(checkpoint: str | os.PathLike, out: str | os.PathLike, extra: d
     model = RackLayNet(ck.cfg)
     model.load_state_dict(ck.section("model"), strict=True)
     model = model.to(torch.float16)
-    meta = {k: ck.meta[k] for k in ("epoch", "val_score", "val", "train_config", "variant", "calibration", "averaged_from")
+    meta = {k: ck.meta[k] for k in ("epoch", "val_score", "val", "train_config", "variant", "calibration", "averaged_from",
+                                    "averaged_weights", "fine_tuned_from", "fine_tuned_on_photos")
             if k in ck.meta}
     meta.update(extra or {})
     meta["storage"] = "fp16"
     return save_checkpoint(out, model, ck.cfg, extra=meta)
 
 
-def average_checkpoints(checkpoints: list, out: str | os.PathLike) -> Path:
-    """Write the uniform weight average of checkpoints of one architecture (a "model soup", e.g. a
-    model and its own fine-tune) as a training-style checkpoint: float tensors (BatchNorm
-    statistics included) averaged in fp64, integer counters from the last; the model config and
-    the training facts (`train_config`, whose loss a later fine-tune inherits) from the last; the
-    sources listed under `averaged_from`. Different configs are refused."""
+def average_checkpoints(checkpoints: list, out: str | os.PathLike, weights: list | None = None) -> Path:
+    """Write the weight average of checkpoints of one architecture (a "model soup", e.g. a model
+    and its own fine-tune) as a training-style checkpoint: float tensors (BatchNorm statistics
+    included) averaged in fp64, uniformly or with `weights` (non-negative, normalised to sum 1:
+    [0.7, 0.3] moves a model 30 % of the way to its fine-tune); integer counters from the last; the
+    model config and the training facts (`train_config`, whose loss a later fine-tune inherits) from
+    the last; the sources listed under `averaged_from` (with `averaged_weights`). Different configs
+    are refused."""
     from .checkpoint import load_checkpoint, save_checkpoint
     from .model import RackLayNet
 
@@ -90,13 +93,18 @@ def average_checkpoints(checkpoints: list, out: str | os.PathLike) -> Path:
     for ck in cks[:-1]:
         if ck.cfg.to_dict() != last.cfg.to_dict():
             raise ValueError(f"{ck.path}: model config differs from {last.path}; only one architecture can be averaged")
+    w = [1.0] * len(cks) if weights is None else [float(x) for x in weights]
+    if len(w) != len(cks) or min(w) < 0 or not sum(w) > 0:
+        raise ValueError(f"average_checkpoints: need {len(cks)} non-negative weights with a positive sum, got {weights}")
+    w = [x / sum(w) for x in w]
     sds = [ck.section("model") for ck in cks]
-    avg = {k: (sum(sd[k].double() for sd in sds) / len(sds)).to(v.dtype) if v.is_floating_point() else v
+    avg = {k: sum(wi * sd[k].double() for wi, sd in zip(w, sds)).to(v.dtype) if v.is_floating_point() else v
            for k, v in sds[-1].items()}
     model = RackLayNet(last.cfg)
     model.load_state_dict(avg, strict=True)
     meta = {k: last.meta[k] for k in ("train_config", "variant") if k in last.meta}
     meta["averaged_from"] = [str(c) for c in checkpoints]
+    meta["averaged_weights"] = w
     return save_checkpoint(out, model, last.cfg, extra=meta)
 
 

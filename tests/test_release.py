@@ -68,6 +68,11 @@ def test_average_checkpoints_writes_the_mean_model_with_its_sources(tmp_path):
     assert ck.meta["train_config"] == {"iou_weight": 1.0} and ck.meta["averaged_from"] == [str(p) for p in paths]
     assert load_checkpoint(release.make_release(out, tmp_path / "rel.safetensors")).meta["averaged_from"] == \
         ck.meta["averaged_from"]
+    w = load_checkpoint(release.average_checkpoints(paths, tmp_path / "w.safetensors", weights=[7, 3]))
+    assert torch.allclose(w.section("model")[k], (0.7 * a[k].double() + 0.3 * b[k].double()).float())
+    assert w.meta["averaged_weights"] == pytest.approx([0.7, 0.3])
+    with pytest.raises(ValueError, match="non-negative weights"):
+        release.average_checkpoints(paths, tmp_path / "bad.safetensors", weights=[1, -1])
     other = ModelConfig(R=3, image_size=64, layout_size=32, encoder="resnet18")
     odd = save_checkpoint(tmp_path / "odd.safetensors", RackLayNet(other), other)
     with pytest.raises(ValueError, match="odd.safetensors.*config differs"):
