@@ -1,16 +1,18 @@
 """Does fine-tuning on labelled real photos help on photos from *other* sources? Grouped cross-validation.
 
-  .venv/bin/python bench/real_photo_cv.py --replay /data/release [--weights FILE] [--epochs 100]
+  .venv/bin/python bench/real_photo_cv.py --weights MODEL --replay /data/release [--soup 0.3,0.5]
 
 The labelled photos of an `annotate` project (default `datasets/real-photos/`) are grouped by
 where they come from (the `repo` column of the project's SOURCES.tsv: each source is one site,
-camera and labeller). For each group, the model (default: the shipped one) is fine-tuned on the
+camera and labeller). For each group, the model (`--weights`; it must not have seen these photos,
+so not the shipped v5, which was fine-tuned on them: the bench refuses it) is fine-tuned on the
 photos of every *other* group, with synthetic replay (`--replay`: the release set's train split,
 `--replay-ratio` renders per photo and epoch) and the release recipe's augmentation and loss, and
 scored on the held-out group at the photos' own resolution. The table compares the model before
 and after, per group and pooled over all photos (dataset-level IoU: every photo is scored by a
 model that never saw its source). This is the honest estimate of what a fine-tune on labelled
-photos buys on a new site; it asserts nothing. About 5 minutes per group on 2 CPU cores.
+photos buys on a new site; it asserts nothing. `--soup` also scores each fold's fine-tune
+averaged with the start model (no training). About 6 minutes per group on 2 CPU cores.
 """
 from __future__ import annotations
 
@@ -153,7 +155,7 @@ def main() -> int:
     print(f"\n{'held-out source':44s} {'n':>3s}  " + "  ".join(f"{k:>19s}" for k in keys))
     for g, n, a, b in rows:
         print(f"{g:44s} {n:3d}  " + "  ".join(f"{a[k]:6.1f} -> {b[k]:5.1f} ({b[k] - a[k]:+5.1f})" for k in keys))
-    print("(dataset-level IoU %, shipped model -> fine-tuned on the other sources' photos)")
+    print("(dataset-level IoU %, start model -> fine-tuned on the other sources' photos)")
     if args.json:
         Path(args.json).write_text(json.dumps({"weights": str(weights), "args": {k: str(v) for k, v in vars(args).items()},
                                                "rows": [{"group": g, "n": n, "before": a, "after": b}
