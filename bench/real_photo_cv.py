@@ -30,16 +30,16 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 
-def photo_groups(project: Path, root) -> dict[str, list[str]]:
-    """group (source repo) -> exported sample ids, from the project's SOURCES.tsv."""
+def photo_groups(project: Path, source_of: dict[str, str]) -> dict[str, list[str]]:
+    """group (source repo) -> exported sample ids (`source_of`: sample id -> photo file name), from
+    the project's SOURCES.tsv."""
     src = project / "SOURCES.tsv"
     if not src.is_file():
         raise SystemExit(f"{src}: not found (the bench groups photos by their source)")
     with open(src, newline="") as f:
         repo_of = {r["file"]: r["repo"] for r in csv.DictReader(f, delimiter="\t")}
     groups: dict[str, list[str]] = {}
-    for sid in root.ids():
-        name = (root.read_meta(sid) or {}).get("source_image")
+    for sid, name in source_of.items():
         if name not in repo_of:
             raise SystemExit(f"{src}: no row for {name!r} (sample {sid})")
         groups.setdefault(repo_of[name], []).append(sid)
@@ -67,13 +67,13 @@ def fold_root(export: Path, out: Path, train: list[str], test: list[str]) -> Pat
 
 def ious(results: list[dict]) -> dict[str, float]:
     """Dataset-level shelf / box IoU (%) per view over the pooled confusion matrices."""
+    from racklay.metrics import confusion_scores
+
     out = {}
     for v in ("top", "front"):
-        cm = sum(np.array(r[v]["confusion"], float) for r in results)
-        tp = np.diag(cm)
-        for c, name in ((1, "shelf"), (2, "box")):
-            u = cm[:, c].sum() + cm[c, :].sum() - tp[c]
-            out[f"{v} {name}"] = 100 * tp[c] / u if u else float("nan")
+        scores = confusion_scores(sum(np.array(r[v]["confusion"]) for r in results))
+        for name in ("shelf", "box"):
+            out[f"{v} {name}"] = 100 * scores[name]["IoU"]
     return out
 
 
@@ -111,13 +111,15 @@ def main() -> int:
     if not (export / "splits" / "test.txt").is_file():
         if annotate_main(["export", str(args.project), "--out", str(export), "--split-fractions", "test=1"]) != 0:
             raise SystemExit(f"{args.project}: annotate export failed")
-    groups = photo_groups(args.project, RackLayRoot(export))
-    seen = set(load_checkpoint(weights).meta.get("fine_tuned_on_photos", []))
-    names = {(RackLayRoot(export).read_meta(s) or {}).get("source_image") for v in groups.values() for s in v}
-    if seen & names:
-        raise SystemExit(f"{weights}: was fine-tuned on {len(seen & names)} of these photos, so a cross-validation on "
+    root = RackLayRoot(export)
+    source_of = {sid: (root.read_meta(sid) or {}).get("source_image") for sid in root.ids()}
+    groups = photo_groups(args.project, source_of)
+    meta = load_checkpoint(weights).meta
+    seen = set(meta.get("fine_tuned_on_photos", [])) & set(source_of.values())
+    if seen:
+        raise SystemExit(f"{weights}: was fine-tuned on {len(seen)} of these photos, so a cross-validation on "
                          "them would be in-sample; pass --weights of a model that has not seen them (the model it "
-                         f"was fine-tuned from: {load_checkpoint(weights).meta.get('fine_tuned_from', 'see docs/model-card.md')})")
+                         f"was fine-tuned from: {meta.get('fine_tuned_from', 'see docs/model-card.md')})")
     print(f"model {weights}; {sum(map(len, groups.values()))} photos in {len(groups)} source groups: "
           + ", ".join(f"{g} {len(v)}" for g, v in groups.items()), flush=True)
     alphas = [float(a) for a in args.soup.split(",") if a.strip()]

@@ -101,19 +101,27 @@ class LayoutMetrics:
                 prec = np.concatenate(acc.prec[name]) if acc.prec[name] else np.zeros(0)
                 r["paper"][name] = {"mIoU": float(iou.mean()) if iou.size else float("nan"),
                                     "pixel_precision": float(prec.mean()) if prec.size else float("nan")}
-            cm = acc.cm.astype(np.float64)
-            tp = np.diag(cm)
-            for cls, cname in enumerate(CLASS_NAMES):
-                fp = cm[:, cls].sum() - tp[cls]
-                fn = cm[cls, :].sum() - tp[cls]
-                d = {"IoU": _div(tp[cls], tp[cls] + fp + fn), "precision": _div(tp[cls], tp[cls] + fp),
-                     "recall": _div(tp[cls], tp[cls] + fn)}
+            for cls, (cname, d) in enumerate(confusion_scores(acc.cm).items()):
                 if acc.hist is not None and cls != 0:
                     d["AP"] = average_precision_from_hist(acc.hist[cls, 1], acc.hist[cls, 0])
                 r["dataset"][cname] = d
             r["confusion"] = acc.cm.tolist()
             out[view] = r
         return out
+
+
+def confusion_scores(cm) -> dict[str, dict[str, float]]:
+    """Dataset-level IoU, precision and recall per class (by name) from a confusion matrix
+    (rows = truth, columns = prediction); matrices of several runs may be summed first."""
+    cm = np.asarray(cm, dtype=np.float64)
+    tp = np.diag(cm)
+    out = {}
+    for cls, cname in enumerate(CLASS_NAMES):
+        fp = cm[:, cls].sum() - tp[cls]
+        fn = cm[cls, :].sum() - tp[cls]
+        out[cname] = {"IoU": _div(tp[cls], tp[cls] + fp + fn), "precision": _div(tp[cls], tp[cls] + fp),
+                      "recall": _div(tp[cls], tp[cls] + fn)}
+    return out
 
 
 def _div(a: float, b: float) -> float:

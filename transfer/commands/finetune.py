@@ -42,7 +42,7 @@ def register(sub) -> None:
                          "trained with, from its metadata; else TrainConfig's {default})",
         "iou_weight": "weight of the soft-IoU loss (default: the checkpoint's, from its metadata; else "
                       "TrainConfig's {default})"})
-    add_train_flags(p.add_argument_group("synthetic replay"), ["replay", "replay_ratio"], helps={
+    add_train_flags(p.add_argument_group("synthetic replay"), ["replay", "replay_ratio"], default=None, helps={
         "replay": "synthetic RackLay root (e.g. the release set, or `racklay synth` output) whose train split "
                   "is mixed into every epoch, so a fine-tune on a few dozen photos does not forget the "
                   "renders (docs/transfer.md)"})
@@ -58,11 +58,8 @@ def run(args) -> int:
 
     out, name = split_out(args.out)
     kw = train_kwargs(args)
-    for k in ("class_weights", "iou_weight"):
+    for k in ("class_weights", "iou_weight", "replay", "replay_ratio"):   # absent: the checkpoint's / TrainConfig's
         if getattr(args, k) is not None:
-            kw[k] = getattr(args, k)
-    for k in ("replay", "replay_ratio"):   # absent flags leave no attribute (TrainConfig's default)
-        if hasattr(args, k):
             kw[k] = getattr(args, k)
     run_dir = finetune(weights_for_cli(args.init), args.real, out, name=name, seed=args.seed, lr=args.lr,
                        train_split=args.train_split, train_fraction=args.fraction,
