@@ -12,7 +12,10 @@ scored on the held-out group at the photos' own resolution. The table compares t
 and after, per group and pooled over all photos (dataset-level IoU: every photo is scored by a
 model that never saw its source). This is the honest estimate of what a fine-tune on labelled
 photos buys on a new site; it asserts nothing. `--soup` also scores each fold's fine-tune
-averaged with the start model (no training). About 6 minutes per group on 2 CPU cores.
+averaged with the start model (no training); `--onto MODEL` also scores each fold's fine-tune
+*grafted* onto MODEL, a model trained further on renders from the same start: MODEL + a x
+(fine-tune - start) for each `--soup` weight a (racklay.release.graft_update; no training). About
+6 minutes per group on 2 CPU cores.
 """
 from __future__ import annotations
 
@@ -91,6 +94,9 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--soup", default="", help="also score each fold's fine-tune averaged with the start model at "
                     "these weights of the fine-tune, e.g. 0.3,0.5 (racklay.release.average_checkpoints; no training)")
+    ap.add_argument("--onto", default=None, help="also score MODEL + a x (fold fine-tune - start) for each --soup "
+                    "weight a: the fine-tune's change grafted onto MODEL, a model trained on from the same start "
+                    "(racklay.release.graft_update); MODEL must not have seen the photos either")
     ap.add_argument("--out", type=Path, default=None, help="keep the fold runs here (default: a temporary folder)")
     ap.add_argument("--json", default=None, help="also write the numbers here")
     args = ap.parse_args()
@@ -99,7 +105,7 @@ def main() -> int:
     from racklay.checkpoint import load_checkpoint
     from racklay.data import RackLayRoot
     from racklay.evaluate import evaluate
-    from racklay.release import average_checkpoints, resolve_weights
+    from racklay.release import average_checkpoints, graft_update, resolve_weights
     from racklay.train import TrainConfig, train
     from transfer.workflow import checkpoint_config, checkpoint_loss
 
@@ -114,19 +120,27 @@ def main() -> int:
     root = RackLayRoot(export)
     source_of = {sid: (root.read_meta(sid) or {}).get("source_image") for sid in root.ids()}
     groups = photo_groups(args.project, source_of)
-    meta = load_checkpoint(weights).meta
-    seen = set(meta.get("fine_tuned_on_photos", [])) & set(source_of.values())
-    if seen:
-        raise SystemExit(f"{weights}: was fine-tuned on {len(seen)} of these photos, so a cross-validation on "
-                         "them would be in-sample; pass --weights of a model that has not seen them (the model it "
-                         f"was fine-tuned from: {meta.get('fine_tuned_from', 'see docs/model-card.md')})")
+    onto = Path(args.onto).resolve() if args.onto else None
+    for model in (weights, onto):
+        if model is None:
+            continue
+        meta = load_checkpoint(model).meta
+        seen = set(meta.get("fine_tuned_on_photos", [])) & set(source_of.values())
+        if seen:
+            raise SystemExit(f"{model}: was fine-tuned on {len(seen)} of these photos, so a cross-validation on "
+                             "them would be in-sample; pass a model that has not seen them (the model it "
+                             f"was fine-tuned from: {meta.get('fine_tuned_from', 'see docs/model-card.md')})")
     print(f"model {weights}; {sum(map(len, groups.values()))} photos in {len(groups)} source groups: "
           + ", ".join(f"{g} {len(v)}" for g, v in groups.items()), flush=True)
     alphas = [float(a) for a in args.soup.split(",") if a.strip()]
     if any(not 0 < a < 1 for a in alphas):
         raise SystemExit(f"--soup: weights must be in (0, 1), got {args.soup}")
+    if onto is not None and not alphas:
+        raise SystemExit("--onto needs --soup: the weights a of the grafted fine-tune")
     before, after, rows = [], [], []
     soups: dict[float, list] = {a: [] for a in alphas}
+    onto_before: list = []
+    grafts: dict[float, list] = {a: [] for a in alphas}
     for g, test in groups.items():
         train_ids = [s for h, v in groups.items() if h != g for s in v]
         root = fold_root(export, work / f"fold-{g.replace('/', '_')}", train_ids, test)
@@ -147,19 +161,27 @@ def main() -> int:
             soup = average_checkpoints([weights, run / "last.safetensors"], run / f"soup-{a:g}.safetensors",
                                        weights=[1 - a, a])
             soups[a].append(evaluate(str(soup), root, split="test", native=True, progress=False))
+        if onto is not None:
+            onto_before.append(evaluate(str(onto), root, split="test", native=True, progress=False))
+            for a in alphas:
+                g_path = graft_update(onto, weights, run / "last.safetensors", run / f"graft-{a:g}.safetensors", a)
+                grafts[a].append(evaluate(str(g_path), root, split="test", native=True, progress=False))
         rows.append((g, len(test), ious([r0]), ious([r1])))
         print(f"fold {g}: trained on {len(train_ids)} photos, {(time.time() - t0) / 60:.1f} min", flush=True)
     n_all = sum(len(v) for v in groups.values())
     rows.append(("pooled (all photos)", n_all, ious(before), ious(after)))
     for a in alphas:
         rows.append((f"pooled, start + {a:g} x (fine-tune - start)", n_all, ious(before), ious(soups[a])))
+    for a in alphas if onto is not None else ():
+        rows.append((f"pooled, onto + {a:g} x (fine-tune - start)", n_all, ious(onto_before), ious(grafts[a])))
     keys = list(rows[0][2])
     print(f"\n{'held-out source':44s} {'n':>3s}  " + "  ".join(f"{k:>19s}" for k in keys))
     for g, n, a, b in rows:
         print(f"{g:44s} {n:3d}  " + "  ".join(f"{a[k]:6.1f} -> {b[k]:5.1f} ({b[k] - a[k]:+5.1f})" for k in keys))
-    print("(dataset-level IoU %, start model -> fine-tuned on the other sources' photos)")
+    print("(dataset-level IoU %, start model -> fine-tuned on the other sources' photos"
+          + (f"; onto rows: {onto} -> with the fold's fine-tune grafted)" if onto is not None else ")"))
     if args.json:
-        Path(args.json).write_text(json.dumps({"weights": str(weights), "args": {k: str(v) for k, v in vars(args).items()},
+        Path(args.json).write_text(json.dumps({"weights": str(weights), "onto": str(onto) if onto else None, "args": {k: str(v) for k, v in vars(args).items()},
                                                "rows": [{"group": g, "n": n, "before": a, "after": b}
                                                         for g, n, a, b in rows]}, indent=1))
     return 0

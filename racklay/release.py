@@ -68,11 +68,39 @@ def make_release(checkpoint: str | os.PathLike, out: str | os.PathLike, extra: d
     model.load_state_dict(ck.section("model"), strict=True)
     model = model.to(torch.float16)
     meta = {k: ck.meta[k] for k in ("epoch", "val_score", "val", "train_config", "variant", "calibration", "averaged_from",
-                                    "averaged_weights", "fine_tuned_from", "fine_tuned_on_photos")
+                                    "averaged_weights", "grafted", "fine_tuned_from", "fine_tuned_on_photos")
             if k in ck.meta}
     meta.update(extra or {})
     meta["storage"] = "fp16"
     return save_checkpoint(out, model, ck.cfg, extra=meta)
+
+
+def _weighted_sum(checkpoints: list, coefs: list[float], out, meta_from: int, extra: dict) -> Path:
+    """Write sum_i coefs[i] x checkpoints[i] (float tensors, BatchNorm statistics included, in
+    fp64) as a training-style checkpoint: integer counters, the model config and the training facts
+    (`train_config`, whose loss a later fine-tune inherits) from checkpoints[meta_from], plus
+    `extra`. Different configs are refused; BatchNorm variances are kept >= 0."""
+    from .checkpoint import load_checkpoint, save_checkpoint
+    from .model import RackLayNet
+
+    cks = [load_checkpoint(c) for c in checkpoints]
+    ref = cks[meta_from]
+    for ck in cks:
+        if ck.cfg.to_dict() != ref.cfg.to_dict():
+            raise ValueError(f"{ck.path}: model config differs from {ref.path}; only one architecture can be combined")
+    sds = [ck.section("model") for ck in cks]
+    out_sd = {}
+    for k, v in sds[meta_from].items():
+        if v.is_floating_point():
+            v = sum(c * sd[k].double() for c, sd in zip(coefs, sds)).to(v.dtype)
+            if k.endswith("running_var"):
+                v = v.clamp_min(0)
+        out_sd[k] = v
+    model = RackLayNet(ref.cfg)
+    model.load_state_dict(out_sd, strict=True)
+    meta = {k: ref.meta[k] for k in ("train_config", "variant") if k in ref.meta}
+    meta.update(extra)
+    return save_checkpoint(out, model, ref.cfg, extra=meta)
 
 
 def average_checkpoints(checkpoints: list, out: str | os.PathLike, weights: list | None = None) -> Path:
@@ -83,29 +111,28 @@ def average_checkpoints(checkpoints: list, out: str | os.PathLike, weights: list
     model config and the training facts (`train_config`, whose loss a later fine-tune inherits) from
     the last; the sources listed under `averaged_from` (with `averaged_weights`). Different configs
     are refused."""
-    from .checkpoint import load_checkpoint, save_checkpoint
-    from .model import RackLayNet
-
-    cks = [load_checkpoint(c) for c in checkpoints]
-    if len(cks) < 2:
+    if len(checkpoints) < 2:
         raise ValueError("average_checkpoints needs at least two checkpoints")
-    last = cks[-1]
-    for ck in cks[:-1]:
-        if ck.cfg.to_dict() != last.cfg.to_dict():
-            raise ValueError(f"{ck.path}: model config differs from {last.path}; only one architecture can be averaged")
-    w = [1.0] * len(cks) if weights is None else [float(x) for x in weights]
-    if len(w) != len(cks) or min(w) < 0 or not sum(w) > 0:
-        raise ValueError(f"average_checkpoints: need {len(cks)} non-negative weights with a positive sum, got {weights}")
+    w = [1.0] * len(checkpoints) if weights is None else [float(x) for x in weights]
+    if len(w) != len(checkpoints) or min(w) < 0 or not sum(w) > 0:
+        raise ValueError(f"average_checkpoints: need {len(checkpoints)} non-negative weights with a positive sum, got {weights}")
     w = [x / sum(w) for x in w]
-    sds = [ck.section("model") for ck in cks]
-    avg = {k: sum(wi * sd[k].double() for wi, sd in zip(w, sds)).to(v.dtype) if v.is_floating_point() else v
-           for k, v in sds[-1].items()}
-    model = RackLayNet(last.cfg)
-    model.load_state_dict(avg, strict=True)
-    meta = {k: last.meta[k] for k in ("train_config", "variant") if k in last.meta}
-    meta["averaged_from"] = [str(c) for c in checkpoints]
-    meta["averaged_weights"] = w
-    return save_checkpoint(out, model, last.cfg, extra=meta)
+    return _weighted_sum(checkpoints, w, out, -1, {"averaged_from": [str(c) for c in checkpoints], "averaged_weights": w})
+
+
+def graft_update(base: str | os.PathLike, start: str | os.PathLike, finetuned: str | os.PathLike,
+                 out: str | os.PathLike, alpha: float) -> Path:
+    """Write base + alpha x (finetuned - start): the change a fine-tune made to `start`, scaled by
+    `alpha` and added to `base`, another model trained from `start` ("task arithmetic"). With
+    base = start it is the soup `average_checkpoints([start, finetuned], weights=[1 - alpha, alpha])`.
+    Used to keep the real-photo fine-tune of an older release when the synthetic training goes on
+    from that release. Config and training facts from `base`; the three sources and alpha under
+    `grafted`. Different configs are refused."""
+    alpha = float(alpha)
+    if not 0 <= alpha <= 1:
+        raise ValueError(f"graft_update: alpha must be in [0, 1], got {alpha}")
+    rec = {"base": str(base), "start": str(start), "finetuned": str(finetuned), "alpha": alpha}
+    return _weighted_sum([base, start, finetuned], [1.0, -alpha, alpha], out, 0, {"grafted": rec})
 
 
 def add_weights_arg(p, what: str = "model checkpoint (.safetensors) or exported .onnx", flag: str = "--weights") -> None:

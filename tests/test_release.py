@@ -79,6 +79,48 @@ def test_average_checkpoints_writes_the_mean_model_with_its_sources(tmp_path):
         release.average_checkpoints([odd, paths[0]], tmp_path / "bad.safetensors")
 
 
+def test_graft_update_adds_a_fine_tunes_change_to_another_model(tmp_path):
+    """base + alpha x (finetuned - start), config and training facts from base, the recipe recorded
+    (and kept by make_release); with base = start it is the weighted soup; BN variances stay >= 0;
+    alpha outside [0, 1] and another architecture are refused."""
+    import torch
+
+    from racklay.checkpoint import load_checkpoint, save_checkpoint
+    from racklay.model import ModelConfig, RackLayNet
+
+    cfg = ModelConfig(R=2, image_size=64, layout_size=32, encoder="resnet18")
+    paths = {}
+    for i, name in enumerate(("start", "base", "ft")):
+        torch.manual_seed(i)
+        net = RackLayNet(cfg)
+        net.encoder.bn1.running_var.fill_((0.1, 0.1, 1.0)[i])
+        paths[name] = save_checkpoint(tmp_path / f"{name}.safetensors", net, cfg,
+                                      extra={"train_config": {"iou_weight": float(i)}})
+    sds = {n: load_checkpoint(p).section("model") for n, p in paths.items()}
+    out = release.graft_update(paths["base"], paths["start"], paths["ft"], tmp_path / "g.safetensors", alpha=0.3)
+    ck = load_checkpoint(out)
+    k = "decoders.front.convs.1.0.weight"
+    want = sds["base"][k].double() + 0.3 * (sds["ft"][k].double() - sds["start"][k].double())
+    assert torch.allclose(ck.section("model")[k].double(), want, atol=1e-6)
+    assert ck.meta["train_config"] == {"iou_weight": 1.0}
+    assert ck.meta["grafted"] == {"base": str(paths["base"]), "start": str(paths["start"]),
+                                  "finetuned": str(paths["ft"]), "alpha": 0.3}
+    assert load_checkpoint(release.make_release(out, tmp_path / "rel.safetensors")).meta["grafted"]["alpha"] == 0.3
+    same = load_checkpoint(release.graft_update(paths["start"], paths["start"], paths["ft"], tmp_path / "s.safetensors", 0.3))
+    soup = load_checkpoint(release.average_checkpoints([paths["start"], paths["ft"]], tmp_path / "soup.safetensors",
+                                                       weights=[0.7, 0.3]))
+    assert torch.allclose(same.section("model")[k], soup.section("model")[k], atol=1e-6)
+    # 0.1 + 2 x (0.1 - 1.0) < 0 is not a variance: clamped
+    neg = load_checkpoint(release._weighted_sum([paths["base"], paths["ft"], paths["start"]], [1.0, -2.0, 2.0],
+                                                tmp_path / "n.safetensors", 0, {}))
+    assert float(neg.section("model")["encoder.bn1.running_var"].min()) == 0.0
+    with pytest.raises(ValueError, match="alpha must be in"):
+        release.graft_update(paths["base"], paths["start"], paths["ft"], tmp_path / "bad.safetensors", alpha=1.5)
+    other = ModelConfig(R=3, image_size=64, layout_size=32, encoder="resnet18")
+    odd = save_checkpoint(tmp_path / "odd.safetensors", RackLayNet(other), other)
+    with pytest.raises(ValueError, match="odd.safetensors.*config differs"):
+        release.graft_update(paths["base"], odd, paths["ft"], tmp_path / "bad.safetensors", alpha=0.3)
+
 @pytest.mark.slow
 def test_predict_without_weights_uses_the_shipped_model_and_finds_the_shelves(tmp_path):
     out = tmp_path / "pred"
