@@ -7,8 +7,8 @@ where they come from (the `repo` column of the project's SOURCES.tsv: each sourc
 camera and labeller). For each group, the model (`--weights`; it must not have seen these photos,
 so not the shipped v5, which was fine-tuned on them: the bench refuses it) is fine-tuned on the
 photos of every *other* group, with synthetic replay (`--replay`: the release set's train split,
-`--replay-ratio` renders per photo and epoch) and the release recipe's augmentation and loss, and
-scored on the held-out group at the photos' own resolution. The table compares the model before
+`--replay-ratio` renders per photo and epoch) and the model's own augmentation and loss (from
+its metadata), and scored on the held-out group at the photos' own resolution. The table compares the model before
 and after, per group and pooled over all photos (dataset-level IoU: every photo is scored by a
 model that never saw its source). This is the honest estimate of what a fine-tune on labelled
 photos buys on a new site; it asserts nothing. `--soup` also scores each fold's fine-tune
@@ -121,15 +121,15 @@ def main() -> int:
     source_of = {sid: (root.read_meta(sid) or {}).get("source_image") for sid in root.ids()}
     groups = photo_groups(args.project, source_of)
     onto = Path(args.onto).resolve() if args.onto else None
-    for model in (weights, onto):
-        if model is None:
-            continue
-        meta = load_checkpoint(model).meta
+    metas = {model: load_checkpoint(model).meta for model in (weights, onto) if model is not None}
+    for model, meta in metas.items():
         seen = set(meta.get("fine_tuned_on_photos", [])) & set(source_of.values())
         if seen:
             raise SystemExit(f"{model}: was fine-tuned on {len(seen)} of these photos, so a cross-validation on "
                              "them would be in-sample; pass a model that has not seen them (the model it "
                              f"was fine-tuned from: {meta.get('fine_tuned_from', 'see docs/model-card.md')})")
+    # the model's own augmentation (the release recipe's `strong` for files that do not record it)
+    augment = (metas[weights].get("train_config") or {}).get("augment") or "strong"
     print(f"model {weights}; {sum(map(len, groups.values()))} photos in {len(groups)} source groups: "
           + ", ".join(f"{g} {len(v)}" for g, v in groups.items()), flush=True)
     alphas = [float(a) for a in args.soup.split(",") if a.strip()]
@@ -148,7 +148,7 @@ def main() -> int:
         cfg = TrainConfig(data=str(root), out=str(work / "runs"), name=g.replace("/", "_"), init=str(weights),
                           epochs=args.epochs, lr=args.lr, warmup_steps=20, image_size=mcfg.image_size,
                           layout_size=mcfg.layout_size, R=mcfg.R, views=tuple(mcfg.views), decoder=mcfg.decoder,
-                          encoder=mcfg.encoder, letterbox=mcfg.letterbox, disc=mcfg.disc, augment="strong",
+                          encoder=mcfg.encoder, letterbox=mcfg.letterbox, disc=mcfg.disc, augment=augment,
                           replay=str(args.replay), replay_ratio=args.replay_ratio, seed=args.seed, patience=None,
                           checkpoint_every=0, progress=False, **checkpoint_loss(weights))
         cfg.resume = (cfg.run_dir() / "last.safetensors").is_file()   # --out kept: continue / reuse
