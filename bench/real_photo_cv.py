@@ -105,6 +105,7 @@ def main() -> int:
     from racklay.checkpoint import load_checkpoint
     from racklay.data import RackLayRoot
     from racklay.evaluate import evaluate
+    from racklay.predict import Predictor
     from racklay.release import average_checkpoints, graft_update, resolve_weights
     from racklay.train import TrainConfig, train
     from transfer.workflow import checkpoint_config, checkpoint_loss
@@ -137,6 +138,9 @@ def main() -> int:
         raise SystemExit(f"--soup: weights must be in (0, 1), got {args.soup}")
     if onto is not None and not alphas:
         raise SystemExit("--onto needs --soup: the weights a of the grafted fine-tune")
+    # the start model and the graft base are the same in every fold: load each once
+    start_pred = Predictor(str(weights))
+    onto_pred = Predictor(str(onto)) if onto is not None else None
     before, after, rows = [], [], []
     soups: dict[float, list] = {a: [] for a in alphas}
     onto_before: list = []
@@ -153,7 +157,7 @@ def main() -> int:
                           checkpoint_every=0, progress=False, **checkpoint_loss(weights))
         cfg.resume = (cfg.run_dir() / "last.safetensors").is_file()   # --out kept: continue / reuse
         run = train(cfg)
-        r0 = evaluate(str(weights), root, split="test", native=True, progress=False)
+        r0 = evaluate(start_pred, root, split="test", native=True, progress=False)
         r1 = evaluate(str(run / "last.safetensors"), root, split="test", native=True, progress=False)
         before.append(r0)
         after.append(r1)
@@ -162,7 +166,7 @@ def main() -> int:
                                        weights=[1 - a, a])
             soups[a].append(evaluate(str(soup), root, split="test", native=True, progress=False))
         if onto is not None:
-            onto_before.append(evaluate(str(onto), root, split="test", native=True, progress=False))
+            onto_before.append(evaluate(onto_pred, root, split="test", native=True, progress=False))
             for a in alphas:
                 g_path = graft_update(onto, weights, run / "last.safetensors", run / f"graft-{a:g}.safetensors", a)
                 grafts[a].append(evaluate(str(g_path), root, split="test", native=True, progress=False))

@@ -106,9 +106,7 @@ def main() -> int:
     if "real photos" in out:
         r = out["real photos"]["result"]
         print(f"\nhand-labelled real photos ({args.real_photos}), {r['top']['images']} images, their own resolution")
-        from racklay.checkpoint import load_checkpoint
-
-        seen = load_checkpoint(weights).meta.get("fine_tuned_on_photos", [])
+        seen = pred.meta.get("fine_tuned_on_photos", [])
         if seen:
             print(f"IN-SAMPLE: this model was fine-tuned on {len(seen)} labelled photos ({', '.join(seen[:3])}, ...); "
                   "bench/real_photo_cv.py gives the estimate for photos from a source it has not seen")

@@ -138,12 +138,10 @@ class TrainConfig:
             v = getattr(self, name)
             if v is not None and v < lo:
                 raise ValueError(f"{name} must be >= {lo}, got {v}")
-        for name in ("lr", "disc_lr", "max_minutes"):
+        for name in ("lr", "disc_lr", "max_minutes", "replay_ratio"):
             v = getattr(self, name)
             if v is not None and not v > 0:
                 raise ValueError(f"{name} must be > 0, got {v}")
-        if not self.replay_ratio > 0:
-            raise ValueError(f"replay_ratio must be > 0, got {self.replay_ratio}")
         if self.weight_decay < 0 or self.disc_weight < 0 or self.iou_weight < 0:
             raise ValueError("weight_decay, disc_weight and iou_weight must be >= 0")
         self.model_config()  # validates views, sizes, R
