@@ -4,8 +4,10 @@ the authors' `paper` decoder) at the shipped input and layout size and the same 
 
     nice -n 5 .venv/bin/python bench/release_speed.py [--weights FILE] [--precision auto|fp32|bf16]
 
-Both models run both views; the reference is randomly initialised (weights do not change the
-cost). Calls are interleaved in rounds so that load from other processes hits both alike; the
+Both models run both views, in the memory format given (default channels_last, as `racklay
+predict` runs a model; `--memory-format contiguous` gives the default PyTorch layout); the
+reference is randomly initialised (weights do not change the cost). With a `fast`-decoder model
+the same weights also run as `light` (what the decoder arrangement buys). Calls are interleaved in rounds so that load from other processes hits both alike; the
 table gives median (min) wall ms and median process CPU ms. Prints numbers only.
 """
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from dataclasses import replace
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import add_common_args, ensure_malloc_env, interleaved, markdown_table, start, summarise  # noqa: E402
@@ -23,6 +26,8 @@ def main(argv=None) -> int:
     ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
     ap.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
                     help="both models at this precision (default auto: bf16 only on CPUs with native bf16)")
+    ap.add_argument("--memory-format", choices=("channels_last", "contiguous"), default="channels_last",
+                    help="both models in this layout (default channels_last: what racklay predict uses)")
     add_common_args(ap, rounds=3, calls=5, warmup=2)
     args = ap.parse_args(argv)
     start(args)
@@ -42,8 +47,12 @@ def main(argv=None) -> int:
     h, w = cfg.input_hw
     x = torch.randn(1, 3, h, w)
     bf16 = prec == "bf16"
-    models = {"shipped (EfficientNet-Lite0 + light)": shipped.eval(), "reference (ResNet-18 + paper)": reference}
-    if bf16:
+    models = {f"shipped (EfficientNet-Lite0 + {cfg.decoder})": shipped.eval(), "reference (ResNet-18 + paper)": reference}
+    if cfg.decoder == "fast":   # the same tensors in light's order (v5's decoder): what the decoder change bought
+        as_light = RackLayNet(replace(cfg, decoder="light")).eval()
+        as_light.load_state_dict(shipped.state_dict())
+        models["shipped weights, light decoder"] = as_light
+    if args.memory_format == "channels_last":
         x = x.contiguous(memory_format=torch.channels_last)
         models = {k: m.to(memory_format=torch.channels_last) for k, m in models.items()}
 
@@ -56,11 +65,20 @@ def main(argv=None) -> int:
     times = interleaved({k: runner(m) for k, m in models.items()}, args)
     st = {k: summarise(v, 1000.0) for k, v in times.items()}
     names = list(models)
-    rows = [[k, f"{st[k]['wall_median']:.1f} ({st[k]['wall_min']:.1f})", f"{st[k]['cpu_median']:.1f}"] for k in names]
-    a, b = st[names[1]], st[names[0]]
-    rows.append(["**reference / shipped**", f"**{a['wall_median'] / b['wall_median']:.2f}x** (min "
-                 f"{a['wall_min'] / b['wall_min']:.2f}x)", f"{a['cpu_median'] / b['cpu_median']:.2f}x"])
-    print(f"\nbatch 1, both views, input {w}x{h} -> layouts {cfg.layout_size}, {prec}, "
+    b = st[names[0]]
+
+    def row(k):
+        return [k, f"{st[k]['wall_median']:.1f} ({st[k]['wall_min']:.1f})", f"{st[k]['cpu_median']:.1f}"]
+
+    def ratio(k, label):
+        c = st[k]
+        return [label, f"**{c['wall_median'] / b['wall_median']:.2f}x** (min {c['wall_min'] / b['wall_min']:.2f}x)",
+                f"{c['cpu_median'] / b['cpu_median']:.2f}x"]
+
+    rows = [row(names[0]), row(names[1]), ratio(names[1], "**reference / shipped**")]
+    for k in names[2:]:
+        rows += [row(k), ratio(k, f"{k} / shipped")]
+    print(f"\nbatch 1, both views, input {w}x{h} -> layouts {cfg.layout_size}, {prec}, {args.memory_format}, "
           f"{args.rounds}x{args.calls} interleaved calls per model (target: reference >= 4x slower):")
     print(markdown_table(["model", "wall ms median (min)", "CPU ms median"], rows))
     return 0

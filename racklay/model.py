@@ -27,6 +27,12 @@ Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3,
   (layout rows), the "image column -> map column" idea of dense-transformer BEV decoders. The
   map's last layer starts at zero, so a `light` checkpoint grows into a `columns` model that
   first computes exactly what it did (`GROWABLE_DECODERS`, `racklay train --init`).
+- `fast`: `light`'s layers (the same tensors) with its last conv3x3-BN-ReLU and 1x1 head run at
+  the 1/2-input resolution of the last stage; only the 3·R logits are resized to S x S (bilinear,
+  as segmentation heads do). At the release size (160x256 in, 256 out) that conv is 10x cheaper
+  and the decoder ~2.5x faster (docs/benchmarks.md). Its tensors are `light`'s, so a `light`
+  checkpoint initialises it (`SAME_TENSOR_DECODERS`); it then needs fine-tuning, because the
+  conv sees a wider context than it did at S x S.
 
 The encoder uses torchvision's ResNet-18 parameter names (conv1, bn1, layer1.0.conv1, ...; no fc)
 so a user's local torchvision weight file loads with `load_imagenet_weights`.
@@ -44,10 +50,13 @@ import torch.nn.functional as F
 
 from .layout import DEFAULT_EXTENT_M, DEFAULT_R, NUM_CLASSES, VIEWS
 
-DECODERS = ("light", "paper", "columns")
+DECODERS = ("light", "paper", "columns", "fast")
 #: a checkpoint with decoder K can initialise a model with decoder V when (K, V) is listed: V is K
 #: plus branches whose last layer starts at zero, so the grown model computes what K computed
 GROWABLE_DECODERS = {("light", "columns")}
+#: a checkpoint with decoder K can initialise a model with decoder V when (K, V) is listed: both have
+#: the same tensors arranged differently, so V starts close to K, not equal to it (fine-tune)
+SAME_TENSOR_DECODERS = {("light", "fast"), ("fast", "light")}
 ENCODERS = ("resnet18", "efficientnet-lite0")
 #: the encoder of configs written before the encoder was a choice (checkpoints, ONNX files)
 LEGACY_ENCODER = "resnet18"
@@ -65,7 +74,7 @@ class ModelConfig:
     image_size: int | tuple = 256       # network input: S (square) or (H, W); photos are resized to it
     layout_size: int = 256              # S: output layout grid S x S
     views: tuple = ("top", "front")     # one view -> RackLay-S, both -> RackLay-D
-    decoder: str = "light"              # "light" | "paper"
+    decoder: str = "light"              # "light" | "fast" | "columns" | "paper" (module docstring)
     disc: bool = False                  # trained with patch discriminators ("-disc")
     extent: float = DEFAULT_EXTENT_M    # metres covered by the layout grid (for consumers)
     encoder: str = "efficientnet-lite0"  # "efficientnet-lite0" (ImageNet weights ship) | "resnet18" (the paper's)
@@ -471,6 +480,18 @@ class ColumnsDecoder(LightDecoder):
         return self.head(self.final(x))
 
 
+class FastDecoder(LightDecoder):
+    """`LightDecoder` with its last conv and head at the last stage's resolution (1/2 of the
+    input): only the logits are resized to S x S."""
+
+    def forward(self, feats):
+        x = self.stem(feats[-1])
+        for conv in self.convs:
+            x = conv(F.interpolate(x, scale_factor=2, mode="nearest"))
+        S = self.layout_size
+        return F.interpolate(self.head(self.final(x)), size=(S, S), mode="bilinear", align_corners=False)
+
+
 def grown_tensor_names(model: nn.Module) -> set[str]:
     """State-dict names of the branches a grown decoder adds to the one it grows from (the
     `GROWN` submodules of every `ColumnsDecoder` in `model`)."""
@@ -498,6 +519,8 @@ class RackLayNet(nn.Module):
                 return PaperDecoder(out, cfg.layout_size, cin)
             if cfg.decoder == "columns":
                 return ColumnsDecoder(out, cfg.layout_size, cin, self.encoder.channels[-2], cfg.input_hw[0] // 16)
+            if cfg.decoder == "fast":
+                return FastDecoder(out, cfg.layout_size, cin)
             return LightDecoder(out, cfg.layout_size, cin)
 
         self.decoders = nn.ModuleDict({v: make() for v in cfg.views})
@@ -601,5 +624,5 @@ def count_parameters(module: nn.Module) -> int:
 
 __all__ = ["ModelConfig", "RackLayNet", "Discriminators", "PatchDiscriminator", "ResNet18Encoder",
            "EfficientNetLite0Encoder", "load_lite0_weights", "lite0_weights_path", "ENCODERS",
-           "PaperDecoder", "LightDecoder", "ColumnsDecoder", "GROWABLE_DECODERS", "grown_tensor_names", "load_imagenet_weights", "build_model", "one_hot_layouts",
+           "PaperDecoder", "LightDecoder", "FastDecoder", "ColumnsDecoder", "GROWABLE_DECODERS", "SAME_TENSOR_DECODERS", "grown_tensor_names", "load_imagenet_weights", "build_model", "one_hot_layouts",
            "lsgan_generator_loss", "lsgan_discriminator_loss", "DECODERS", "count_parameters"]

@@ -88,10 +88,13 @@ class Predictor:
     `racklay export` (backend "onnx" is implied by the suffix). With backend="onnx" and a
     checkpoint, the model is exported in memory and run by onnxruntime.
     threads: torch / onnxruntime intra-op threads (default: library default).
-    precision: "fp32" (default), "bf16" (torch backend: bfloat16 autocast + channels_last;
-    about 2x faster on CPUs with native bf16, see docs/benchmarks.md; logits differ slightly
-    from fp32, argmax agreement in docs/benchmarks.md) or "auto" (bf16 where the CPU has native
-    bf16 and the backend is torch, else fp32; the command-line default).
+    precision: "fp32" (default), "bf16" (torch backend: bfloat16 autocast; about 2x faster on
+    CPUs with native bf16, see docs/benchmarks.md; logits differ slightly from fp32, argmax
+    agreement in docs/benchmarks.md) or "auto" (bf16 where the CPU has native bf16 and the
+    backend is torch, else fp32; the command-line default).
+    The torch backend runs the model it loads in channels_last memory format (oneDNN's native
+    layout on CPU: 1.2-1.5x faster than the default layout, same logits to ~1e-5,
+    docs/benchmarks.md).
     """
 
     def __init__(self, weights, backend: str = "torch", threads: int | None = None, precision: str = "fp32"):
@@ -115,10 +118,10 @@ class Predictor:
             from .checkpoint import load_model
 
             model, self.cfg, self.meta = load_model(self.weights, map_location="cpu")
-            self._set_model(model)
             if backend == "onnx":
-                data = export_onnx_bytes(self.model, self.cfg)
+                data = export_onnx_bytes(model.eval(), self.cfg)
                 self.session, _ = onnx_session(data, threads=threads, source=str(self.weights))
+            self._set_model(model, channels_last=True)
         if threads and backend == "torch":
             import torch
 
@@ -126,20 +129,21 @@ class Predictor:
 
     @classmethod
     def from_model(cls, model, cfg, precision: str = "fp32") -> "Predictor":
-        """Wrap an in-memory model (e.g. during training) without a checkpoint file."""
+        """Wrap an in-memory model (e.g. during training) without a checkpoint file. Its memory
+        format is left as it is (channels_last only with bf16), so training is not disturbed."""
         self = cls.__new__(cls)
         self.weights, self.backend, self.threads, self.session, self.meta = None, "torch", None, None, {}
         self.cfg, self.precision = cfg, resolve_precision(precision)
-        self._set_model(model)
+        self._set_model(model, channels_last=self.precision == "bf16")
         return self
 
-    def _set_model(self, model) -> None:
+    def _set_model(self, model, channels_last: bool) -> None:
         model.eval()
-        if self.precision == "bf16":
+        if channels_last:
             import torch
 
             model = model.to(memory_format=torch.channels_last)
-        self.model = model
+        self.model, self.channels_last = model, channels_last
 
     # --- model facts ---
     @property
@@ -174,7 +178,7 @@ class Predictor:
 
         t = x if isinstance(x, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
         bf16 = self.precision == "bf16"
-        if bf16:
+        if self.channels_last:
             t = t.contiguous(memory_format=torch.channels_last)
         with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             out = self.model(t)

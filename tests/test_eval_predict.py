@@ -158,6 +158,29 @@ def test_predictor_any_size_and_bad_weights(ckpt, tmp_path):
         Predictor(bad_onnx)
 
 
+def test_predictor_runs_channels_last_with_the_models_own_logits(ckpt):
+    """The loaded model runs in oneDNN's layout (faster on CPU) and gives the logits the model gives
+    in PyTorch's default layout; a wrapped in-training model keeps its layout in fp32."""
+    from racklay.checkpoint import load_model
+    from racklay.predict import Predictor
+
+    def conv3x3(net):   # a weight whose two layouts differ
+        return next(m.weight for m in net.modules() if isinstance(m, torch.nn.Conv2d) and m.kernel_size == (3, 3)
+                    and m.groups == 1 and m.in_channels > 1)
+
+    p = Predictor(ckpt)
+    assert conv3x3(p.model).is_contiguous(memory_format=torch.channels_last)
+    model, cfg, _ = load_model(ckpt)
+    x = torch.randn(2, 3, IMG, IMG)
+    with torch.inference_mode():
+        want = model.eval()(x)
+    got = p.logits(x)
+    for v in cfg.views:
+        np.testing.assert_allclose(got[v], want[v].numpy(), atol=1e-4)
+    Predictor.from_model(model, cfg)
+    assert conv3x3(model).is_contiguous() and not conv3x3(model).is_contiguous(memory_format=torch.channels_last)
+
+
 def test_onnx_parity_and_backend(ckpt, onnx_file, toy, capsys):
     from racklay.checkpoint import load_model
     from racklay.export import parity

@@ -27,7 +27,7 @@ def _x(n=2, seed=0):
     return torch.randn(n, 3, IMG, IMG, generator=torch.Generator().manual_seed(seed))
 
 
-@pytest.mark.parametrize("decoder", ["light", "paper", "columns"])
+@pytest.mark.parametrize("decoder", ["light", "paper", "columns", "fast"])
 @pytest.mark.parametrize("views", [("top",), ("front",), ("top", "front")])
 @pytest.mark.parametrize("disc", [False, True])
 def test_output_shapes_of_every_variant(decoder, views, disc):
@@ -53,6 +53,7 @@ def test_columns_decoder_grows_from_light_and_learns_per_column():
     refused with a message naming the built height."""
     from racklay.train import load_grown
 
+    torch.manual_seed(0)   # the init must not depend on which tests ran before (ratio 2.8-4.3 over seeds 0-9)
     light = ModelConfig(R=2, image_size=(64, 128), layout_size=32, views=("top",), encoder="resnet18")
     cols = ModelConfig.from_dict({**light.to_dict(), "decoder": "columns"})
     a = RackLayNet(light).eval()
@@ -66,7 +67,7 @@ def test_columns_decoder_grows_from_light_and_learns_per_column():
         x2 = x.clone()
         x2[..., :16] = torch.randn(2, 3, 64, 16, generator=torch.Generator().manual_seed(2))   # left image columns
         d = (b(x2)["top"] - y0).abs().mean((0, 1, 2, 3))           # change per layout column
-    assert d[:8].mean() > 3 * d[-8:].mean()
+    assert d[:8].mean() > 2 * d[-8:].mean()
     with pytest.raises(ValueError, match="built for 4 rows"):
         b(torch.randn(1, 3, 96, 128))
     with pytest.raises(ValueError, match="no place in a columns model"):
@@ -74,6 +75,35 @@ def test_columns_decoder_grows_from_light_and_learns_per_column():
     cut = {k: v for k, v in a.state_dict().items() if not k.startswith("decoders.top.final")}
     with pytest.raises(ValueError, match="lacks tensors.*decoders.top.final"):
         load_grown(b, cut, "light", "light.safetensors")
+
+
+def test_fast_decoder_is_light_with_its_last_conv_before_the_resize():
+    """`fast` has exactly `light`'s tensors (a light checkpoint loads into it strictly, both ways),
+    computes the logits at the last stage's resolution and only then resizes them to S, so it
+    matches light's layouts closely (same weights, different order of conv and resize) at a
+    fraction of the full-resolution work; the train CLI offers every decoder the model has."""
+    from racklay.commands.train import FLAGS
+    from racklay.model import DECODERS, SAME_TENSOR_DECODERS
+    from racklay.train import load_grown
+
+    torch.manual_seed(0)
+    light = ModelConfig(R=2, image_size=(64, 128), layout_size=96, views=("top",), encoder="resnet18")
+    fast = ModelConfig.from_dict({**light.to_dict(), "decoder": "fast"})
+    a = RackLayNet(light).eval()
+    b = RackLayNet(fast).eval()
+    assert ("light", "fast") in SAME_TENSOR_DECODERS and set(a.state_dict()) == set(b.state_dict())
+    load_grown(b, a.state_dict(), "light", "light.safetensors")
+    seen = {}
+    b.decoders["top"].head.register_forward_hook(lambda m, i, o: seen.update(head=o.shape))
+    x = torch.randn(2, 3, 64, 128, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        ya, yb = a(x)["top"], b(x)["top"]
+    assert seen["head"][-2:] == (32, 64)                      # 1/2 of the input, not 96 x 96
+    assert yb.shape == ya.shape == (2, 2, 3, 96, 96)
+    assert not torch.equal(ya, yb)
+    assert torch.corrcoef(torch.stack([ya.flatten(), yb.flatten()]))[0, 1] > 0.9
+    choices = next(o for o in FLAGS if o[0] == "decoder")[2]["choices"]
+    assert set(choices) == set(DECODERS)
 
 
 def test_layout_size_independent_of_image_size():

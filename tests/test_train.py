@@ -198,6 +198,67 @@ def test_fine_tune_grows_a_light_checkpoint_into_columns(tmp_path, toy):
     assert model.decoders["top"].col_map.weight.abs().sum() > 0
 
 
+def test_fine_tune_a_light_checkpoint_into_the_fast_decoder(tmp_path, toy):
+    """--init a light checkpoint with --decoder fast (same tensors, last conv before the resize):
+    every tensor is loaded, the run fine-tunes it, and the result is a fast checkpoint."""
+    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32, disc=False)
+    src = RackLayNet(cfg0)
+    init = save_checkpoint(tmp_path / "light.safetensors", src, cfg0)
+    cfg = TrainConfig(data=str(toy), out=str(tmp_path), name="fast", init=str(init), decoder="fast", epochs=1,
+                      disc=False, freeze_encoder_epochs=1, patience=None, checkpoint_every=0, **TINY)
+    model, mcfg, _ = load_model(train(cfg) / "last.safetensors")
+    assert mcfg.decoder == "fast"
+    for (k, a), b in zip(src.encoder.state_dict().items(), model.encoder.state_dict().values()):
+        assert torch.equal(a, b), k
+    assert not torch.equal(src.decoders["top"].final[0].weight, model.decoders["top"].final[0].weight)
+
+
+def test_distillation_moves_the_model_to_its_teacher(tmp_path, toy):
+    """--teacher with --label-weight 0 (and --freeze-bn: trained as it predicts): the model learns
+    the teacher's layout probabilities (the distillation loss to the teacher falls; a model equal
+    to its teacher has loss 0; BN statistics stay the start's), the epoch
+    log has the loss (train_kd); a teacher that gives other layouts, or no teacher and no label
+    loss, is a one-line error."""
+    from racklay.torchdata import RackLayDataset
+    from racklay.train import distill_loss
+
+    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32)
+    torch.manual_seed(3)
+    teacher = RackLayNet(cfg0)
+    ds = RackLayDataset(toy, split="train", image_size=64, layout_size=32, R=4)
+    x = torch.stack([ds[i]["image"] for i in range(8)])
+    with torch.no_grad():                                     # BN statistics of the data, as a trained model has
+        for _ in range(30):
+            teacher(x)
+    tpath = save_checkpoint(tmp_path / "teacher.safetensors", teacher.eval(), cfg0)
+    start = RackLayNet(cfg0)                                  # another model, far from the teacher
+    with torch.no_grad():
+        for _ in range(30):
+            start(x)
+    start.eval()
+    init = save_checkpoint(tmp_path / "start.safetensors", start, cfg0)
+
+    def kd(model):
+        with torch.no_grad():
+            a, b = model.eval()(x), teacher(x)
+        return float(sum(distill_loss(a[v], b[v]) for v in a))
+
+    assert kd(teacher) == pytest.approx(0.0, abs=1e-6) and kd(start) > 0.1
+    cfg = TrainConfig(data=str(toy), out=str(tmp_path), name="kd", init=str(init), teacher=str(tpath), label_weight=0,
+                      epochs=2, freeze_bn=True, disc=False, lr=1e-3, patience=None, checkpoint_every=0, **TINY)
+    run = train(cfg)
+    student, _, _ = load_model(run / "last.safetensors")
+    assert kd(student) < 0.5 * kd(start)
+    assert torch.equal(student.decoders["top"].final[1].running_mean, start.decoders["top"].final[1].running_mean)
+    assert float(_rows(run)[-1]["train_kd"]) < float(_rows(run)[0]["train_kd"])
+    other = ModelConfig(R=4, image_size=64, layout_size=16)
+    bad = save_checkpoint(tmp_path / "small.safetensors", RackLayNet(other), other)
+    with pytest.raises(ValueError, match="small.safetensors: cannot be the teacher.*layout_size 16"):
+        train(TrainConfig(data=str(toy), out=str(tmp_path), name="bad", teacher=str(bad), **TINY))
+    with pytest.raises(ValueError, match="label_weight 0 leaves nothing"):
+        TrainConfig(label_weight=0)
+
+
 def test_cli_config_yaml_and_flag_precedence(tmp_path, toy):
     from racklay.cli import build_parser
     from racklay.commands.train import config_from_args

