@@ -29,8 +29,8 @@ Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3,
   first computes exactly what it did (`GROWABLE_DECODERS`, `racklay train --init`).
 - `fast`: `light`'s layers (the same tensors) with its last conv3x3-BN-ReLU and 1x1 head run at
   the 1/2-input resolution of the last stage; only the 3·R logits are resized to S x S (bilinear,
-  as segmentation heads do). At the release size (160x256 in, 256 out) that conv is 10x cheaper
-  and the decoder ~2.5x faster (docs/benchmarks.md). Its tensors are `light`'s, so a `light`
+  as segmentation heads do). At the release size (160x256 in, 256 out) that conv is 10x cheaper,
+  the decoder ~3x faster and the network 1.13-1.22x faster on CPU (docs/benchmarks.md). Its tensors are `light`'s, so a `light`
   checkpoint initialises it (`SAME_TENSOR_DECODERS`); it then needs fine-tuning, because the
   conv sees a wider context than it did at S x S.
 
