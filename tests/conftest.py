@@ -10,11 +10,25 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 #: the 21 real photos (an annotation project with their labels)
 REAL_PHOTOS = REPO / "datasets" / "real-photos"
 #: glibc's allocator settings the Makefile uses (they halve torch step times on this kind of VM)
 ENV = {**os.environ, "MALLOC_MMAP_THRESHOLD_": "4294967296", "MALLOC_TRIM_THRESHOLD_": "4294967296"}
+
+
+@pytest.fixture(autouse=True)
+def _seeded_global_rngs():
+    """Every test starts from the same global torch / numpy random state, so what it builds at
+    random (an initialised model, a noise image) does not depend on which tests ran before it or
+    on a `-k` selection."""
+    import numpy as np
+    import torch
+
+    torch.manual_seed(0)
+    np.random.seed(0)
 
 
 def make_toy(tmp_path_factory, n: int, seed: int, name: str = "toy", **kw) -> Path:
