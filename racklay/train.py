@@ -366,6 +366,17 @@ def distill_loss(logits: torch.Tensor, teacher_logits: torch.Tensor) -> torch.Te
     return F.kl_div(logits.float().log_softmax(2), t, log_target=True, reduction="none").sum(2).mean()
 
 
+def _mismatches(ckpt_cfg: ModelConfig, run, keys, views) -> list[str]:
+    """What a checkpoint's config has that the run (a ModelConfig or TrainConfig) needs otherwise:
+    one phrase per differing key in `keys`, and the run's views the checkpoint lacks."""
+    problems = [f"{k} {getattr(ckpt_cfg, k)} (run: {getattr(run, k)})" for k in keys
+                if getattr(ckpt_cfg, k) != getattr(run, k)]
+    missing = [v for v in views if v not in ckpt_cfg.views]
+    if missing:
+        problems.append(f"views {list(ckpt_cfg.views)} lack {missing}")
+    return problems
+
+
 def load_teacher(cfg: TrainConfig, device) -> RackLayNet:
     """The distillation teacher in eval mode without gradients; it must see the same input (size,
     letterboxing) and give the run's layouts (R, layout size, views)."""
@@ -373,13 +384,9 @@ def load_teacher(cfg: TrainConfig, device) -> RackLayNet:
 
     teacher, tc, _ = load_model(cfg.teacher, map_location=device)
     mc = cfg.model_config()
-    problems = [f"{k} {getattr(tc, k)} (run: {getattr(mc, k)})" for k in ("R", "layout_size", "letterbox")
-                if getattr(tc, k) != getattr(mc, k)]
+    problems = _mismatches(tc, mc, ("R", "layout_size", "letterbox"), cfg.views)
     if tc.input_hw != mc.input_hw:
         problems.append(f"input {tc.input_hw} (run: {mc.input_hw})")
-    missing = [v for v in cfg.views if v not in tc.views]
-    if missing:
-        problems.append(f"views {list(tc.views)} lack {missing}")
     if problems:
         raise ValueError(f"{cfg.teacher}: cannot be the teacher of this run: it has " + "; ".join(problems))
     return teacher.requires_grad_(False)
@@ -566,16 +573,12 @@ def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
 
 def _check_init(ck, cfg: TrainConfig) -> None:
     c = ck.cfg
-    problems = [f"{k} {getattr(c, k)} (run: {getattr(cfg, k)})" for k in ("R", "layout_size", "encoder")
-                if getattr(c, k) != getattr(cfg, k)]
+    problems = _mismatches(c, cfg, ("R", "layout_size", "encoder"), cfg.views)
     pair = (c.decoder, cfg.decoder)
     if c.decoder != cfg.decoder and pair not in GROWABLE_DECODERS and pair not in SAME_TENSOR_DECODERS:
         problems.append(f"decoder {c.decoder} (run: {cfg.decoder})")
     if pair in GROWABLE_DECODERS and c.input_hw != cfg.model_config().input_hw:
         problems.append(f"image_size {c.image_size} (run: {cfg.image_size}; a grown decoder keeps the input size)")
-    missing = [v for v in cfg.views if v not in c.views]
-    if missing:
-        problems.append(f"views {list(c.views)} lack {missing}")
     if problems:
         raise ValueError(f"{ck.path}: cannot fine-tune from this checkpoint: it has " + "; ".join(problems))
 
