@@ -7,8 +7,9 @@ the authors' `paper` decoder) at the shipped input and layout size and the same 
 Both models run both views, in the memory format given (default channels_last, as `racklay
 predict` runs a model; `--memory-format contiguous` gives the default PyTorch layout); the
 reference is randomly initialised (weights do not change the cost). With a `fast`-decoder model
-the same weights also run as `light` (what the decoder arrangement buys). Calls are interleaved in rounds so that load from other processes hits both alike; the
-table gives median (min) wall ms and median process CPU ms. Prints numbers only.
+the same weights also run as `light` (what the decoder arrangement buys). Calls are interleaved
+in rounds so that load from other processes hits both alike; the table gives median (min) wall
+ms and median process CPU ms. Prints numbers only.
 """
 from __future__ import annotations
 

@@ -436,12 +436,16 @@ class LightDecoder(nn.Module):
         self.final = conv_bn_relu(cin, cin)
         self.head = nn.Conv2d(cin, out_channels, 1)
 
-    def forward(self, feats):
+    def stages(self, feats):
+        """The 1x1 stem and the four upsampling stages: features at 1/2 of the input."""
         x = self.stem(feats[-1])
         for conv in self.convs:
             x = conv(F.interpolate(x, scale_factor=2, mode="nearest"))
+        return x
+
+    def forward(self, feats):
         S = self.layout_size
-        x = F.interpolate(x, size=(S, S), mode="bilinear", align_corners=False)
+        x = F.interpolate(self.stages(feats), size=(S, S), mode="bilinear", align_corners=False)
         return self.head(self.final(x))
 
 
@@ -485,11 +489,9 @@ class FastDecoder(LightDecoder):
     input): only the logits are resized to S x S."""
 
     def forward(self, feats):
-        x = self.stem(feats[-1])
-        for conv in self.convs:
-            x = conv(F.interpolate(x, scale_factor=2, mode="nearest"))
         S = self.layout_size
-        return F.interpolate(self.head(self.final(x)), size=(S, S), mode="bilinear", align_corners=False)
+        return F.interpolate(self.head(self.final(self.stages(feats))), size=(S, S), mode="bilinear",
+                             align_corners=False)
 
 
 def grown_tensor_names(model: nn.Module) -> set[str]:

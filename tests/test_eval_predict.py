@@ -162,7 +162,6 @@ def test_predictor_runs_channels_last_with_the_models_own_logits(ckpt):
     """The loaded model runs in oneDNN's layout (faster on CPU) and gives the logits the model gives
     in PyTorch's default layout; a wrapped in-training model keeps its layout in fp32."""
     from racklay.checkpoint import load_model
-    from racklay.predict import Predictor
 
     def conv3x3(net):   # a weight whose two layouts differ
         return next(m.weight for m in net.modules() if isinstance(m, torch.nn.Conv2d) and m.kernel_size == (3, 3)

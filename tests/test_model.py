@@ -53,7 +53,6 @@ def test_columns_decoder_grows_from_light_and_learns_per_column():
     refused with a message naming the built height."""
     from racklay.train import load_grown
 
-    torch.manual_seed(0)   # the init must not depend on which tests ran before (ratio 2.8-4.3 over seeds 0-9)
     light = ModelConfig(R=2, image_size=(64, 128), layout_size=32, views=("top",), encoder="resnet18")
     cols = ModelConfig.from_dict({**light.to_dict(), "decoder": "columns"})
     a = RackLayNet(light).eval()
@@ -67,7 +66,7 @@ def test_columns_decoder_grows_from_light_and_learns_per_column():
         x2 = x.clone()
         x2[..., :16] = torch.randn(2, 3, 64, 16, generator=torch.Generator().manual_seed(2))   # left image columns
         d = (b(x2)["top"] - y0).abs().mean((0, 1, 2, 3))           # change per layout column
-    assert d[:8].mean() > 2 * d[-8:].mean()
+    assert d[:8].mean() > 2 * d[-8:].mean()                    # 2.8-4.3 over init seeds 0-9
     with pytest.raises(ValueError, match="built for 4 rows"):
         b(torch.randn(1, 3, 96, 128))
     with pytest.raises(ValueError, match="no place in a columns model"):
@@ -86,7 +85,6 @@ def test_fast_decoder_is_light_with_its_last_conv_before_the_resize():
     from racklay.model import DECODERS, SAME_TENSOR_DECODERS
     from racklay.train import load_grown
 
-    torch.manual_seed(0)
     light = ModelConfig(R=2, image_size=(64, 128), layout_size=96, views=("top",), encoder="resnet18")
     fast = ModelConfig.from_dict({**light.to_dict(), "decoder": "fast"})
     a = RackLayNet(light).eval()
