@@ -99,6 +99,9 @@ def run(parser: argparse.ArgumentParser, argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    from racklay.runtime import tune_allocator
+
+    tune_allocator()
     try:
         rc = args.func(args)
     except KeyboardInterrupt:
