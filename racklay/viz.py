@@ -76,6 +76,7 @@ def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.nd
             ax.imshow(colorize(stack[i, lo:hi, lo:hi]), extent=extent, interpolation="nearest")
             ax.set_title(f"shelf {i + 1} {name}", fontsize=9)
             ax.tick_params(labelsize=6)
+            ax.locator_params(nbins=5)     # at most ~5 ticks: labels never touch
             if i == 0:
                 ax.set_ylabel("y (m, far up)" if name == "top" else "z (m, up)", fontsize=7)
             if ri == len(rows) - 1:
