@@ -33,6 +33,11 @@ USER_VARS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES
 _applied: str | None = None
 
 
+def is_glibc() -> bool:
+    """True on Linux with glibc, the allocator `tune_allocator` knows how to tune."""
+    return platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
+
+
 def tune_allocator() -> str:
     """Apply the allocator settings once per process. Returns what happened: 'tuned', or why
     not ('opted out', 'user settings', 'not glibc', 'mallopt refused'). Safe to call repeatedly."""
@@ -43,7 +48,7 @@ def tune_allocator() -> str:
         _applied = "opted out"
     elif any(v in os.environ for v in USER_VARS):
         _applied = "user settings"
-    elif platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+    elif not is_glibc():
         _applied = "not glibc"
     else:
         try:

@@ -3,7 +3,6 @@ once, unless the user opted out or set glibc's own variables."""
 from __future__ import annotations
 
 import argparse
-import platform
 
 import pytest
 
@@ -21,7 +20,7 @@ def fresh(monkeypatch):
 
 
 def test_tunes_glibc_once(fresh):
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+    if not fresh.is_glibc():
         pytest.skip("glibc only")
     assert fresh.tune_allocator() == "tuned"
     assert fresh.tune_allocator() == "tuned"        # a second call does nothing new
