@@ -3,6 +3,7 @@ torchrun (DDP, gloo), fine-tuning checks and config handling. Tiny sizes (64 px 
 from __future__ import annotations
 
 import os
+import platform
 import shutil
 import signal
 import subprocess
@@ -337,12 +338,28 @@ GOLDEN_CFG = dict(epochs=2, disc=True, disc_start=1, freeze_encoder_epochs=1, au
 WALL_CLOCK = ("seconds", "elapsed_min")
 
 
+#: The golden numbers were recorded with PyTorch's AVX2 kernels. AVX-512 kernels (e.g. on an AMD
+#: EPYC Zen 4) round differently, and over two epochs with discriminators the run then drifts by
+#: 0.5-3 % (train loss 0.7864 vs 0.7824 at epoch 2; measured 2026-11-24), far beyond what the test
+#: tolerates. So the golden run pins the kernels: a child process with ATen's and oneDNN's
+#: instruction set capped at AVX2, which every x86-64 CPU this project runs on has.
+GOLDEN_KERNELS = {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2"}
+
+
 def golden_rows(toy, out) -> list[dict]:
-    run = train(TrainConfig(data=str(toy), out=str(out), name="golden", **GOLDEN_CFG))
-    return [{k: (int(v) if k in ("epoch", "step") else float(v)) for k, v in r.items() if k not in WALL_CLOCK}
-            for r in _rows(run)]
+    import json
+
+    cfg = dict(data=str(toy), out=str(out), name="golden", **GOLDEN_CFG)
+    code = "import json, sys; from racklay.train import TrainConfig, train; train(TrainConfig(**json.loads(sys.argv[1])))"
+    r = subprocess.run([sys.executable, "-c", code, json.dumps(cfg)], env={**ENV, **GOLDEN_KERNELS},
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return [{k: (int(v) if k in ("epoch", "step") else float(v)) for k, v in row.items() if k not in WALL_CLOCK}
+            for row in _rows(Path(out) / "golden")]
 
 
+@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"),
+                    reason="the golden numbers are x86-64 AVX2 kernel results")
 def test_golden_run_metrics_unchanged(tmp_path, toy):
     import json
 
