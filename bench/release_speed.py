@@ -71,23 +71,21 @@ def main(argv=None) -> int:
     times = interleaved(runners, args)
     st = {k: summarise(v, 1000.0) for k, v in times.items()}
     names = list(models)
-    b = st[names[0]]
 
     def row(k):
         return [k, f"{st[k]['wall_median']:.1f} ({st[k]['wall_min']:.1f})", f"{st[k]['cpu_median']:.1f}"]
 
-    def ratio(k, label):
-        c = st[k]
-        return [label, f"**{c['wall_median'] / b['wall_median']:.2f}x** (min {c['wall_min'] / b['wall_min']:.2f}x)",
-                f"{c['cpu_median'] / b['cpu_median']:.2f}x"]
+    def ratio(num, den, label, bold=True):
+        """`label`, then st[num] / st[den] as wall median (min) and CPU median."""
+        n, d = st[num], st[den]
+        wall = f"{n['wall_median'] / d['wall_median']:.2f}x"
+        return [label, f"{f'**{wall}**' if bold else wall} (min {n['wall_min'] / d['wall_min']:.2f}x)",
+                f"{n['cpu_median'] / d['cpu_median']:.2f}x"]
 
-    rows = [row(names[0]), row(names[1]), ratio(names[1], "**reference / shipped**")]
+    rows = [row(names[0]), row(names[1]), ratio(names[1], names[0], "**reference / shipped**")]
     for k in names[2:]:
-        rows += [row(k), ratio(k, f"{k} / shipped")]
-    e, r = st[enc_name], st[names[1]]
-    rows += [row(enc_name), ["ceiling: reference / shipped encoder alone",
-                             f"{r['wall_median'] / e['wall_median']:.2f}x (min {r['wall_min'] / e['wall_min']:.2f}x)",
-                             f"{r['cpu_median'] / e['cpu_median']:.2f}x"]]
+        rows += [row(k), ratio(k, names[0], f"{k} / shipped")]
+    rows += [row(enc_name), ratio(names[1], enc_name, "ceiling: reference / shipped encoder alone", bold=False)]
     print(f"\nbatch 1, both views, input {w}x{h} -> layouts {cfg.layout_size}, {prec}, {args.memory_format}, "
           f"{args.rounds}x{args.calls} interleaved calls per model (target: reference >= 4x slower):")
     print(markdown_table(["model", "wall ms median (min)", "CPU ms median"], rows))

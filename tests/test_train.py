@@ -2,6 +2,7 @@
 torchrun (DDP, gloo), fine-tuning checks and config handling. Tiny sizes (64 px in, 32 px out)."""
 from __future__ import annotations
 
+import json
 import os
 import platform
 import shutil
@@ -347,8 +348,6 @@ GOLDEN_KERNELS = {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2"}
 
 
 def golden_rows(toy, out) -> list[dict]:
-    import json
-
     cfg = dict(data=str(toy), out=str(out), name="golden", **GOLDEN_CFG)
     code = "import json, sys; from racklay.train import TrainConfig, train; train(TrainConfig(**json.loads(sys.argv[1])))"
     r = subprocess.run([sys.executable, "-c", code, json.dumps(cfg)], env={**ENV, **GOLDEN_KERNELS},
@@ -361,8 +360,6 @@ def golden_rows(toy, out) -> list[dict]:
 @pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"),
                     reason="the golden numbers are x86-64 AVX2 kernel results")
 def test_golden_run_metrics_unchanged(tmp_path, toy):
-    import json
-
     want = json.loads(GOLDEN.read_text())
     got = golden_rows(toy, tmp_path)
     assert [list(r) for r in got] == [list(r) for r in want]          # same columns, same order
