@@ -640,6 +640,11 @@ class Tool:
             n = int(sum((pred["front"][i] == L.BOX).any() for i in range(pred["front"].shape[0])))
             ann["proposals"] = []
             return f"model ready ({n} shelf channel(s) with boxes): mark the shelves to see its box proposals"
+        # the labeller's rack width is the shelves' known length: it fixes the model's scale, so
+        # proposals keep the predicted shape and land where the rack is (racklay.predict.with_shelf_length)
+        from racklay.predict import with_shelf_length
+
+        pred = with_shelf_length(pred, scene.width)
         probs = pred.get("probs", {}).get("front")
         props = G.front_box_rects(pred["front"], pred.get("top"), pred["grid"], scene.shelf_v, scene.width,
                                   scene.depth, probs_box=None if probs is None else probs[:, L.BOX],

@@ -58,14 +58,20 @@ def split_dataset(pred, data, split: str | None, limit: int | None = None):
 
 def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, backend: str = "torch",
              workers: int = 0, progress: bool = True, limit: int | None = None, native: bool = False,
-             with_probs: bool = True, threads: int | None = None, pred_out: str | os.PathLike | None = None) -> dict:
+             with_probs: bool = True, threads: int | None = None, pred_out: str | os.PathLike | None = None,
+             shelf_length: float | None = None, scale_from_truth: bool = False) -> dict:
     """Score `weights` (checkpoint path, ONNX path, a `Predictor`, or `(model, cfg)`) on the
     `split` of the dataset at `data`. Returns the `LayoutMetrics.result()` dict
     ({view: {"paper", "dataset", "confusion", "images"}}).
 
     limit: score only the first `limit` ids of the split. with_probs: pass softmax probabilities
     so the result carries average precision. pred_out: also write the predicted layouts as a
-    RackLay dataset there (so `racklay score` / `racklay show` can read them)."""
+    RackLay dataset there (so `racklay score` / `racklay show` can read them).
+    shelf_length: every predicted shelf scaled to this known length (metres) before scoring.
+    scale_from_truth: every predicted shelf scaled to its true shelf's length, so the score is of
+    the shape alone (`racklay.layout.rescale_to_length`)."""
+    if shelf_length is not None and scale_from_truth:
+        raise ValueError("give either a shelf length or scale_from_truth, not both")
     import torch
     from torch.utils.data import DataLoader
 
@@ -85,15 +91,17 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
     with torch.inference_mode():
         for batch in loader:
             classes, probs = pred.predict_batch(batch["image"])
+            truth = {v: (np.stack([root.read_layouts(v, sid, R=pred.R) for sid in batch["id"]]) if native
+                         else batch[v].numpy()) for v in views}
+            if shelf_length is not None or scale_from_truth:
+                classes, probs = _rescaled(classes, probs, truth, views, pred.grid, shelf_length)
             for v in views:
                 c, p = classes[v], (probs[v] if with_probs else None)
+                gt = truth[v]
                 if native:
-                    gt = np.stack([root.read_layouts(v, sid, R=pred.R) for sid in batch["id"]])
                     D = gt.shape[-1]
                     c = L.resize_layouts(c, D)
                     p = None if p is None else L.resize_layouts(p, D)
-                else:
-                    gt = batch[v].numpy()
                 metrics.update(v, c, gt, probs=p)
                 if out_root is not None:
                     for sid, lay in zip(batch["id"], c):
@@ -105,13 +113,36 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
     return metrics.result()
 
 
-def eval_report(result: dict, weights, data, split, cfg=None, native: bool = False) -> dict:
+def _rescaled(classes: dict, probs: dict, truth: dict, views, grid: L.Grid, shelf_length: float | None):
+    """A batch's predictions ({view: (N, R, S, S)}, probabilities {view: (N, R, 3, S, S)}) with every
+    shelf scaled to `shelf_length` or, when it is None, to the length of the true shelf in the same
+    channel (channels the truth lacks stay as predicted). One factor per shelf for both views."""
+    classes, probs = dict(classes), dict(probs)
+    bg = np.eye(L.NUM_CLASSES, dtype=np.float32)[L.BACKGROUND]
+    for v in views:
+        classes[v], probs[v] = classes[v].copy(), probs[v].copy()
+    tgrid = L.Grid(size=truth[views[0]].shape[-1], extent=grid.extent)
+    for j in range(len(classes[views[0]])):
+        if shelf_length is None:
+            want = np.max([L.shelf_lengths(truth[v][j], tgrid) for v in views], axis=0)
+            want = np.where(want > 0, want, np.nan)
+        else:
+            want = shelf_length
+        f = L.length_factors([classes[v][j] for v in views], grid, want)
+        for v in views:
+            classes[v][j] = L.scale_about_origin(classes[v][j], f)
+            probs[v][j] = L.scale_about_origin(probs[v][j], f, fill=bg)
+    return classes, probs
+
+
+def eval_report(result: dict, weights, data, split, cfg=None, native: bool = False, scale: str = "model") -> dict:
     """The JSON `racklay eval --json` writes: run description + the metrics dict."""
     views = [v for v in L.VIEWS if v in result]
     return {
         "weights": str(weights), "data": str(Path(data)), "split": split,
         "images": max((result[v]["images"] for v in views), default=0),
         "resolution": "dataset" if native else "model",
+        "scale": scale,
         "model": cfg.to_dict() if cfg is not None else None,
         "metrics": result,
     }

@@ -22,7 +22,7 @@ def export_onnx(model, cfg, out: str | os.PathLike, opset: int = DEFAULT_OPSET) 
 def parity(model, onnx_model, cfg, batch: int = 2, seed: int = 0, image: np.ndarray | None = None) -> dict:
     """Run torch and onnxruntime on the same input; return per view the max |logit difference|,
     the largest |logit| (the scale that difference is relative to), the share of pixels whose
-    argmax class differs, and both latencies (ms per call).
+    argmax class differs, the max |probability difference|, and both latencies (ms per call).
 
     The input is `image` (RGB uint8, any size) if given, else a seeded random normalised batch."""
     import torch
@@ -42,10 +42,13 @@ def parity(model, onnx_model, cfg, batch: int = 2, seed: int = 0, image: np.ndar
     t0 = time.perf_counter()
     got = dict(zip(cfg.views, sess.run(list(cfg.views), {"image": x.numpy()})))
     t_onnx = time.perf_counter() - t0
-    out: dict = {"max_abs_diff": {}, "logit_scale": {}, "class_mismatch": {}, "torch_ms": 1000 * t_torch, "onnx_ms": 1000 * t_onnx,
+    from .predict import softmax_classes
+
+    out: dict = {"max_abs_diff": {}, "logit_scale": {}, "class_mismatch": {}, "max_prob_diff": {}, "torch_ms": 1000 * t_torch, "onnx_ms": 1000 * t_onnx,
                  "batch": int(x.shape[0])}
     for v in cfg.views:
         out["max_abs_diff"][v] = float(np.abs(want[v] - got[v]).max())
         out["logit_scale"][v] = float(np.abs(want[v]).max())
         out["class_mismatch"][v] = float((want[v].argmax(2) != got[v].argmax(2)).mean())
+        out["max_prob_diff"][v] = float(np.abs(softmax_classes(want[v], 2) - softmax_classes(got[v], 2)).max())
     return out

@@ -369,10 +369,62 @@ def layout_area_m2(mask: np.ndarray, grid: Grid) -> float:
     return float(np.count_nonzero(mask)) * grid.pixel_area_m2()
 
 
+def shelf_lengths(layouts: np.ndarray, grid: Grid) -> np.ndarray:
+    """Metric length of each channel's shelf in (R, D, D) class-id layouts of either view: the
+    longest run of adjacent columns holding a shelf or box pixel, times the pixel size (stray
+    pixels beside the shelf do not count; 0 for an empty channel)."""
+    cols = (np.asarray(layouts) > BACKGROUND).any(axis=-2)
+    out = np.zeros(cols.shape[0])
+    for i, c in enumerate(cols):
+        if c.any():
+            edges = np.diff(np.concatenate([[0], c.astype(np.int8), [0]]))
+            out[i] = (np.nonzero(edges < 0)[0] - np.nonzero(edges > 0)[0]).max()
+    return out * grid.res
+
+
+def length_factors(views, grid: Grid, length) -> np.ndarray:
+    """Per shelf channel, the factor that scales it to `length` metres (a number, or one per
+    channel; NaN or 0 leaves that channel): one factor per shelf for both views, from its length
+    measured as the longest of its views' (`shelf_lengths`; the views share the x axis). `views`:
+    an iterable of (R, D, D) class-id layouts of the same shelves. Empty channels get 1."""
+    have = np.max([shelf_lengths(v, grid) for v in views], axis=0)
+    want = np.broadcast_to(np.asarray(length, dtype=np.float64), have.shape)
+    ok = np.isfinite(want) & (want > 0) & (have > 0)
+    return np.where(ok, want / np.where(have > 0, have, 1.0), 1.0)
+
+
+def scale_about_origin(arrays: np.ndarray, factors, fill=None) -> np.ndarray:
+    """Uniformly scale every channel of (R, ..., D, D) layouts (class ids, or per-class
+    probabilities (R, 3, D, D)) about the shelf origin by factors[i] (a known dimension fixing the
+    scale: the shape stays, the metric size changes). Both views are the same operation: columns
+    about x = 0, rows about the centre row boundary (y = 0 in the top view, the board top z = 0 in
+    the front view). Nearest neighbour at pixel centres; what comes from outside the grid is
+    background (or `fill`, e.g. the one-hot background probability, broadcast over the pixels).
+    Factors of 1 (or of empty channels, which stay empty) leave a channel unchanged."""
+    a = np.asarray(arrays)
+    D = a.shape[-1]
+    out = np.empty_like(a)
+    centre = (np.arange(D) + 0.5 - D / 2)
+    for i, k in enumerate(np.broadcast_to(np.asarray(factors, dtype=np.float64), (a.shape[0],))):
+        if not np.isfinite(k) or k <= 0:
+            raise ValueError(f"scale factor for channel {i} must be a positive number, got {k}")
+        src = np.floor(D / 2 + centre / k).astype(np.intp)          # column; rows use the mirrored map
+        src_rows = D - 1 - src[::-1]
+        ok_c, ok_r = (src >= 0) & (src < D), (src_rows >= 0) & (src_rows < D)
+        ch = a[i][..., np.clip(src_rows, 0, D - 1)[:, None], np.clip(src, 0, D - 1)[None, :]]
+        bad = ~(ok_r[:, None] & ok_c[None, :])
+        if fill is None:
+            ch[..., bad] = BACKGROUND
+        else:
+            ch[..., bad] = np.asarray(fill, dtype=a.dtype).reshape(-1, 1)
+        out[i] = ch
+    return out
+
 __all__ = [
     "BACKGROUND", "SHELF", "BOX", "CLASS_NAMES", "NUM_CLASSES", "FILE_VALUES", "DEFAULT_D",
     "DEFAULT_EXTENT_M", "DEFAULT_R", "FRONT_CLEARANCE_PAD_M", "VIEWS", "LayoutError", "Grid",
     "Shelf", "Box", "ShelfLayout", "fill_axis_rect", "oriented_rect_mask", "rasterize_shelf",
     "stack_shelves", "encode", "decode", "check_stack", "hflip_layouts",
-    "visible_shelf_count", "resize_layouts", "layout_area_m2",
+    "visible_shelf_count", "resize_layouts", "layout_area_m2", "shelf_lengths", "length_factors",
+    "scale_about_origin",
 ]

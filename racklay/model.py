@@ -49,8 +49,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .layout import DEFAULT_EXTENT_M, DEFAULT_R, NUM_CLASSES, VIEWS
+from .structure import DEFAULT_T, DEFAULT_TAU_PX, HARD_TAU_PX, rasterize, rescale_structure
 
-DECODERS = ("light", "paper", "columns", "fast")
+DECODERS = ("light", "paper", "columns", "fast", "struct")
 #: a checkpoint with decoder K can initialise a model with decoder V when (K, V) is listed: V is K
 #: plus branches whose last layer starts at zero, so the grown model computes what K computed
 GROWABLE_DECODERS = {("light", "columns")}
@@ -494,6 +495,99 @@ class FastDecoder(LightDecoder):
                              align_corners=False)
 
 
+class StructDecoder(nn.Module):
+    """Structured, scale-explicit decoder (HorizonNet-style 1-D decoding): per shelf it predicts
+    presence, the shelf's metric length and extent (scale) and, at T positions along the shelf,
+    whether a box stands there and its height (front) or depth interval (top) as fractions of the
+    shelf (shape); `racklay.structure.rasterize` draws that as layout log-probabilities, so boxes
+    come out as rectangles standing on their board and a known shelf length rescales the output
+    without changing its shape (`forward(feats, shelf_length=...)`).
+
+    Features per image column: the 1/8, 1/16 and 1/32 maps fused at 1/8. A per-shelf attention
+    over image rows turns them into one 1-D sequence per shelf along the image columns; 1-D convs
+    run along it. Each shelf's position in the image is explicit: a centre and half-width in image
+    widths (it may lie partly outside the frame) place its T positions on the image columns, read
+    with a Gaussian window (differentiable in the placement); 1-D convs along the shelf then give
+    the per-position outputs."""
+
+    def __init__(self, view: str, R: int, layout_size: int, extent: float, enc_channels, T: int = DEFAULT_T,
+                 width: int = 128):
+        super().__init__()
+        self.view, self.R, self.layout_size, self.extent, self.T = view, R, layout_size, extent, T
+        c8, c16, c32 = enc_channels[2], enc_channels[3], enc_channels[4]
+        self.red8 = conv_bn_relu(c8, 64, 1)
+        self.red16 = conv_bn_relu(c16, 64, 1)
+        self.red32 = conv_bn_relu(c32, 128, 1)
+        self.fuse = conv_bn_relu(256, width)
+        self.row_att = nn.Conv2d(width, R, 1)
+        self.shelf_emb = nn.Parameter(torch.zeros(R, width, 1))
+        self.img_seq = nn.Sequential(_conv1d_bn_relu(width, width, 5), _conv1d_bn_relu(width, width, 5))
+        self.glob = nn.Sequential(nn.Linear(3 * width, width), nn.ReLU(inplace=True))
+        # per shelf: presence, log length, log extent, placement centre, log half-width, log window
+        self.shelf_head = nn.Linear(width, 6)
+        n_pos = 4 if view == "front" else 6                  # sin/cos of t at a few frequencies
+        self.n_freq = n_pos // 2
+        self.pos_seq = nn.Sequential(_conv1d_bn_relu(2 * width + n_pos, width, 5), _conv1d_bn_relu(width, width, 5),
+                                     _conv1d_bn_relu(width, width, 5))
+        self.pos_head = nn.Conv1d(width, 2 if view == "front" else 3, 1)
+
+    def structure(self, feats, shelf_length=None) -> dict:
+        f8, f16, f32 = feats[2], feats[3], feats[4]
+        size = f8.shape[-2:]
+        x = torch.cat([self.red8(f8), F.interpolate(self.red16(f16), size=size, mode="bilinear", align_corners=False),
+                       F.interpolate(self.red32(f32), size=size, mode="bilinear", align_corners=False)], 1)
+        x = self.fuse(x)                                                         # (N, C, H8, W8)
+        N, C, _, W = x.shape
+        R, T = self.R, self.T
+        att = self.row_att(x).softmax(2)                                         # (N, R, H8, W8)
+        cols = torch.einsum("nrhw,nchw->nrcw", att, x) + self.shelf_emb          # (N, R, C, W8)
+        cols = self.img_seq(cols.reshape(N * R, C, W)).reshape(N, R, C, W)
+        g = self.glob(torch.cat([cols.mean(-1), cols.amax(-1), x.mean((2, 3)).unsqueeze(1).expand(N, R, C)], -1))
+        pres, log_len, log_ext, centre, log_half, log_win = self.shelf_head(g).float().unbind(-1)
+        t = (torch.arange(T, device=x.device, dtype=torch.float32) + 0.5) / T    # positions along the shelf
+        half = torch.exp(log_half).clamp(0.02, 4.0)
+        mu = (0.5 + centre).unsqueeze(-1) + (2 * t - 1) * half.unsqueeze(-1)    # (N, R, T) image widths
+        u = (torch.arange(W, device=x.device, dtype=torch.float32) + 0.5) / W
+        win = torch.exp(log_win).clamp(0.25, 8.0).unsqueeze(-1).unsqueeze(-1) / W
+        w = (-0.5 * ((u - mu.unsqueeze(-1)) / win) ** 2).softmax(-1)             # (N, R, T, W8)
+        seq = torch.einsum("nrtw,nrcw->nrct", w.to(cols.dtype), cols)          # (N, R, C, T)
+        freqs = torch.arange(1, self.n_freq + 1, device=x.device, dtype=torch.float32) * math.pi
+        pos = torch.cat([torch.sin(freqs[:, None] * t), torch.cos(freqs[:, None] * t)], 0)   # (n_pos, T)
+        seq = torch.cat([seq, g.unsqueeze(-1).expand(N, R, C, T).to(seq.dtype),
+                         pos.to(seq.dtype).expand(N, R, -1, T)], 2)
+        out = self.pos_head(self.pos_seq(seq.reshape(N * R, -1, T))).float().reshape(N, R, -1, T)
+        st = {"presence": pres, "length": torch.exp(log_len.clamp(-4, 3)), "extent": torch.exp(log_ext.clamp(-4, 3)),
+              "box": out[:, :, 0]}
+        if self.view == "front":
+            st["height"] = torch.sigmoid(out[:, :, 1])
+        else:
+            st["near"], st["far"] = torch.sigmoid(out[:, :, 1]), torch.sigmoid(out[:, :, 2])
+        if shelf_length is not None:
+            st = rescale_structure(st, shelf_length)
+        return st
+
+    def forward(self, feats, shelf_length=None, with_structure: bool = False):
+        st = self.structure(feats, shelf_length)
+        tau = DEFAULT_TAU_PX if self.training else HARD_TAU_PX       # soft edges train, hard edges predict
+        y = rasterize(self.view, st, self.layout_size, self.extent, tau).flatten(1, 2)   # (N, 3R, S, S)
+        return (y, st) if with_structure else y
+
+    @torch.no_grad()
+    def init_prior(self) -> None:
+        """Start from a plausible rack: shelf present, 2.3 m long, 0.85 m deep / 0.6 m of free
+        height, filling 80 % of the image width, no boxes."""
+        b = self.shelf_head.bias
+        self.shelf_head.weight.mul_(0.1)
+        b.copy_(torch.tensor([1.0, math.log(2.3), math.log(0.85 if self.view == "top" else 0.6), 0.0,
+                              math.log(0.4), 0.0]))
+        self.pos_head.weight.mul_(0.1)
+        self.pos_head.bias.copy_(torch.tensor([-1.5, 0.0] if self.view == "front" else [-1.5, -1.0, 1.0]))
+
+
+def _conv1d_bn_relu(cin: int, cout: int, k: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv1d(cin, cout, k, 1, k // 2, bias=False), nn.BatchNorm1d(cout), nn.ReLU(inplace=True))
+
+
 def grown_tensor_names(model: nn.Module) -> set[str]:
     """State-dict names of the branches a grown decoder adds to the one it grows from (the
     `GROWN` submodules of every `ColumnsDecoder` in `model`)."""
@@ -525,22 +619,36 @@ class RackLayNet(nn.Module):
                 return FastDecoder(out, cfg.layout_size, cin)
             return LightDecoder(out, cfg.layout_size, cin)
 
-        self.decoders = nn.ModuleDict({v: make() for v in cfg.views})
+        def make_view(v):
+            if cfg.decoder == "struct":
+                return StructDecoder(v, cfg.R, cfg.layout_size, cfg.extent, self.encoder.channels)
+            return make()
+
+        self.decoders = nn.ModuleDict({v: make_view(v) for v in cfg.views})
         init_weights(self)
         with torch.no_grad():   # start from the class prior, not from uniform logits
             for dec in self.decoders.values():
+                if isinstance(dec, StructDecoder):
+                    dec.init_prior()
+                    continue
                 dec.head.bias.view(cfg.R, NUM_CLASSES)[:] = torch.tensor(HEAD_PRIOR_LOGITS)
                 if isinstance(dec, ColumnsDecoder):
                     dec.col_map.weight.zero_()
                     dec.col_map.bias.zero_()
 
-    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, x: torch.Tensor, shelf_length=None, with_structure: bool = False):
+        """{view: (N, R, 3, S, S) logits}. `struct` decoder only: `shelf_length` (metres, a number
+        or (N, R)) fixes every shelf's length and so the scale; `with_structure` also returns
+        {view: structure dict} (racklay.structure) as a second value."""
         feats = self.encoder(x)
-        out = {}
+        out, structs = {}, {}
         for v, dec in self.decoders.items():
-            y = dec(feats)
+            if isinstance(dec, StructDecoder):
+                y, structs[v] = dec(feats, shelf_length, with_structure=True)
+            else:
+                y = dec(feats)
             out[v] = y.reshape(y.shape[0], self.cfg.R, NUM_CLASSES, y.shape[-2], y.shape[-1])
-        return out
+        return (out, structs) if with_structure else out
 
 
 # ----------------------------------------------------------------------------- discriminator
@@ -626,5 +734,5 @@ def count_parameters(module: nn.Module) -> int:
 
 __all__ = ["ModelConfig", "RackLayNet", "Discriminators", "PatchDiscriminator", "ResNet18Encoder",
            "EfficientNetLite0Encoder", "load_lite0_weights", "lite0_weights_path", "ENCODERS",
-           "PaperDecoder", "LightDecoder", "FastDecoder", "ColumnsDecoder", "GROWABLE_DECODERS", "SAME_TENSOR_DECODERS", "grown_tensor_names", "load_imagenet_weights", "build_model", "one_hot_layouts",
+           "PaperDecoder", "LightDecoder", "FastDecoder", "ColumnsDecoder", "StructDecoder", "GROWABLE_DECODERS", "SAME_TENSOR_DECODERS", "grown_tensor_names", "load_imagenet_weights", "build_model", "one_hot_layouts",
            "lsgan_generator_loss", "lsgan_discriminator_loss", "DECODERS", "count_parameters"]

@@ -40,6 +40,28 @@ def add_precision_args(p) -> None:
                    help="same as --precision fp32")
 
 
+def positive_metres(text: str) -> float:
+    """argparse type: a positive, finite length in metres."""
+    import argparse
+
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected metres, got {text!r}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number of metres, got {text!r}")
+    return v
+
+
+def add_shelf_length_arg(p) -> None:
+    """--shelf-length M for commands that run a model on photos."""
+    p.add_argument("--shelf-length", type=positive_metres, default=None, metavar="M",
+                   help="the shelves' known length in metres (beam length, bay width): fixes the metric "
+                        "scale, which one photo cannot; every predicted shelf is scaled about its origin "
+                        "to this length in all its dimensions, its shape unchanged (default: the model's "
+                        "own estimate)")
+
+
 def resolve_precision(precision: str, backend: str = "torch") -> str:
     """"auto" -> "bf16" for the torch backend on a CPU with native bf16, else "fp32"."""
     if precision not in PRECISIONS:
@@ -198,14 +220,37 @@ class Predictor:
         img = prepare_image(as_rgb_uint8(image, source), self.image_size, self.cfg.letterbox)
         return image_to_tensor(img)[None]
 
-    def predict(self, image: np.ndarray) -> dict:
+    def predict(self, image: np.ndarray, shelf_length: float | None = None) -> dict:
         """One RGB uint8 (H, W, 3) photo -> {"top", "front" (views the model has): (R, S, S)
-        class ids; "probs": {view: (R, 3, S, S)}; "grid": Grid}."""
+        class ids; "probs": {view: (R, 3, S, S)}; "grid": Grid}. shelf_length: the shelves' known
+        length in metres; it fixes the scale (every shelf scaled about its origin to that length,
+        `with_shelf_length`), the shape stays as predicted."""
         classes, probs = self.predict_batch(self.prepare(image))
         out: dict = {v: classes[v][0] for v in self.views}
         out["probs"] = {v: probs[v][0] for v in self.views}
         out["grid"] = self.grid
-        return out
+        return with_shelf_length(out, shelf_length) if shelf_length is not None else out
+
+
+def with_shelf_length(pred: dict, shelf_length: float) -> dict:
+    """A prediction ({view: (R, S, S) classes, "probs", "grid"}) with every shelf scaled to a known
+    length in metres: one factor per shelf for all its dimensions and both views, about the shelf
+    origin (`racklay.layout.length_factors`, `scale_about_origin`). Adds "scale": (R,) factors."""
+    if isinstance(shelf_length, bool) or not isinstance(shelf_length, (int, float)) \
+            or not np.isfinite(shelf_length) or shelf_length <= 0:
+        raise ValueError(f"shelf length must be a positive number of metres, got {shelf_length!r}")
+    g = pred["grid"]
+    if shelf_length > g.extent:
+        raise ValueError(f"shelf length {shelf_length:g} m does not fit the {g.extent:g} m layout grid")
+    views = [v for v in L.VIEWS if v in pred]
+    factors = L.length_factors([pred[v] for v in views], g, shelf_length)
+    bg = np.eye(L.NUM_CLASSES, dtype=np.float32)[L.BACKGROUND]
+    out = dict(pred, probs=dict(pred.get("probs", {})), scale=factors)
+    for v in views:
+        out[v] = L.scale_about_origin(pred[v], factors)
+        if v in out["probs"]:
+            out["probs"][v] = L.scale_about_origin(out["probs"][v], factors, fill=bg)
+    return out
 
 
 # --- folders of photos -------------------------------------------------------------------
@@ -295,10 +340,11 @@ def resize_prediction(pred: dict, size: int) -> dict:
 
 def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], out, figure: bool = True,
                    png: bool = True, crop: bool = True, progress: bool = True, log=None,
-                   layout_size: int | None = None) -> PredictReport:
+                   layout_size: int | None = None, shelf_length: float | None = None) -> PredictReport:
     """Predict every input file; a file that cannot be read gets one line via `log` (default:
     stderr) and the rest still run. layout_size: write layouts at this D (nearest resize of the
-    model's S x S output), e.g. a ground-truth dataset's D so `racklay score` can compare."""
+    model's S x S output), e.g. a ground-truth dataset's D so `racklay score` can compare.
+    shelf_length: the shelves' known length in metres (fixes the scale, `Predictor.predict`)."""
     import sys
 
     from .data import read_image
@@ -318,11 +364,13 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
             else:
                 print(msg, file=sys.stderr)
     extra = {"weights": str(predictor.weights) if predictor.weights else None, "backend": predictor.backend}
+    if shelf_length is not None:
+        extra["shelf_length_m"] = float(shelf_length)
     made_out = not Path(out).exists()
     for path, sid in zip(files, ids):
         try:
             image = read_image(path)
-            pred = predictor.predict(image)
+            pred = predictor.predict(image, shelf_length=shelf_length)
             if layout_size:
                 pred = resize_prediction(pred, layout_size)
             write_prediction(out, sid, image, pred, predictor.views, source=str(path), figure=figure,

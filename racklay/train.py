@@ -58,13 +58,14 @@ from .model import (
     one_hot_layouts,
 )
 from .precision import AMP_MODES, resolve_amp
+from .structure import structure_loss
 
 # fields a resumed run must share with the run it continues (others, e.g. epochs or
 # max_minutes, may change on resume)
 _RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder", "encoder",
                  "pretrained", "augment", "letterbox",
                  "disc", "disc_weight", "disc_start", "class_weights", "iou_weight", "seed", "train_split",
-                 "replay", "replay_ratio", "teacher", "distill_weight", "label_weight",
+                 "replay", "replay_ratio", "teacher", "distill_weight", "label_weight", "struct_weight",
                  "val_split", "val_fraction", "train_fraction", "init", "freeze_encoder_epochs", "freeze_bn",
                  "imagenet_weights", "amp", "warmup_steps", "weight_decay", "disc_lr")
 
@@ -97,6 +98,7 @@ class TrainConfig:
     teacher: str | None = None           # distillation: a checkpoint whose layout probabilities the model learns
     distill_weight: float = 1.0          # with teacher: weight of the distillation loss (distill_loss)
     label_weight: float = 1.0            # weight of the label losses (cross-entropy + iou_weight x IoU); 0: teacher only
+    struct_weight: float = 1.0           # struct decoder: weight of the direct structure loss (racklay.structure)
     seed: int = 0
     workers: int = 0                     # DataLoader workers (0 is fastest on 2 cores + cache)
     cache: bool = True                   # keep decoded, resized samples in memory
@@ -147,8 +149,8 @@ class TrainConfig:
             v = getattr(self, name)
             if v is not None and not v > 0:
                 raise ValueError(f"{name} must be > 0, got {v}")
-        if self.weight_decay < 0 or self.disc_weight < 0 or self.iou_weight < 0 or self.label_weight < 0:
-            raise ValueError("weight_decay, disc_weight, iou_weight and label_weight must be >= 0")
+        if min(self.weight_decay, self.disc_weight, self.iou_weight, self.label_weight, self.struct_weight) < 0:
+            raise ValueError("weight_decay, disc_weight, iou_weight, label_weight and struct_weight must be >= 0")
         if self.label_weight == 0 and not self.teacher:
             raise ValueError("label_weight 0 leaves nothing to learn from without a teacher")
         self.model_config()  # validates views, sizes, R
@@ -666,7 +668,8 @@ def train(cfg: TrainConfig, transform=None) -> Path:
             all_batches = epoch_batches(len(train_ds), cfg.batch_size, epoch, cfg.seed, dist.world, dist.rank)
             batches.batches = [[(i, epoch) for i in b] for b in all_batches[st.step:]]
             sums = {"loss": 0.0, "ce": 0.0, "iou": 0.0, "adv": 0.0, "disc": 0.0,
-                    **({"kd": 0.0} if cfg.teacher else {}), **(st.epoch_sums or {})}
+                    **({"kd": 0.0} if cfg.teacher else {}), **({"struct": 0.0} if cfg.decoder == "struct" else {}),
+                    **(st.epoch_sums or {})}
             t_epoch = time.time()
             bar = tqdm(total=len(all_batches), initial=st.step, desc=f"epoch {epoch + 1}/{cfg.epochs}",
                        disable=not (cfg.progress and dist.main), dynamic_ncols=True)
@@ -858,11 +861,19 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
     if run.channels_last:
         x = x.contiguous(memory_format=torch.channels_last)
     targets = {v: batch[v].to(device) for v in cfg.views}
+    structured = cfg.decoder == "struct"
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-        out = gen(x)
+        out = gen(x, with_structure=True) if structured else gen(x)
+    if structured:
+        out, structs = out
     ce = sum(layout_loss(out[v], targets[v], run.weight) for v in cfg.views)
     iou = sum(layout_iou_loss(out[v], targets[v]) for v in cfg.views) if cfg.iou_weight else torch.zeros(())
     loss, adv_loss, d_loss = cfg.label_weight * (ce + cfg.iou_weight * iou), torch.zeros(()), torch.zeros(())
+    sl = {}
+    if structured and cfg.struct_weight:
+        extent = run.mcfg.extent
+        sl["struct"] = sum(structure_loss(v, structs[v], targets[v], extent) for v in cfg.views)
+        loss = loss + cfg.label_weight * cfg.struct_weight * sl["struct"]
     kd = {}
     if run.teacher is not None:
         with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
@@ -896,7 +907,7 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
         d_loss.backward()
         disc_opt.step()
     return {"loss": float(loss.detach()), "ce": float(ce.detach()), "iou": float(iou.detach()), "adv": float(adv_loss.detach()),
-            "disc": float(d_loss.detach()), **{k: float(v.detach()) for k, v in kd.items()}}
+            "disc": float(d_loss.detach()), **{k: float(v.detach()) for k, v in {**kd, **sl}.items()}}
 
 
 def count_step(st: RunState, sums: dict, losses: dict) -> None:

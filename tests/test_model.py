@@ -27,7 +27,7 @@ def _x(n=2, seed=0):
     return torch.randn(n, 3, IMG, IMG, generator=torch.Generator().manual_seed(seed))
 
 
-@pytest.mark.parametrize("decoder", ["light", "paper", "columns", "fast"])
+@pytest.mark.parametrize("decoder", ["light", "paper", "columns", "fast", "struct"])
 @pytest.mark.parametrize("views", [("top",), ("front",), ("top", "front")])
 @pytest.mark.parametrize("disc", [False, True])
 def test_output_shapes_of_every_variant(decoder, views, disc):

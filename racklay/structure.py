@@ -1,0 +1,173 @@
+"""The structured form of a layout: per shelf a few metric numbers (scale) and, per position along
+the shelf, where its boxes are (shape). Torch, differentiable; the `struct` decoder
+(racklay.model.StructDecoder) predicts it and training supervises it (`structure_loss`).
+
+Per shelf channel and view (the layout convention of racklay.layout; grid of S pixels over
+`extent` metres):
+
+- `presence`: the channel holds a shelf.
+- `length` L: the board's length along x (metres); the shelf spans x in [-L/2, L/2).
+- `extent` E: front view: the drawn free space above the board, z in [0, E) (clear height plus
+  WareSynth's 5 cm pad); top view: the board's depth, y in [-E/2, E/2).
+- per relative position t in [0, 1) along the shelf (x = (t - 0.5) L), sampled at T bin centres:
+  `box`: a box occupies that position; front view: `height`, the box top above the board as a
+  fraction of E (boxes stand on the board); top view: `near`, `far`, the box's depth interval as
+  fractions of E measured from the board's front edge.
+
+Shape (the per-position fractions) does not depend on the shelf's metric size; scale is L and E.
+A known dimension (a shelf length) therefore fixes the scale without touching the shape.
+Measured on WareSynth renders, rasterising this form back reproduces front layouts exactly and top
+layouts up to yawed corners and a box behind another in the same column (docs/accuracy.md).
+
+`rasterize` turns the form into (N, R, 3, S, S) log-probabilities with edges softened over `tau`
+pixels (`tau` -> 0: exact rectangles on the convention's pixel-centre rule), so the dense losses
+and every dense consumer (eval, predict, ONNX, calibrate, analyze) work on it unchanged.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from .layout import BOX, NUM_CLASSES
+
+#: positions along a shelf at which the per-position fields are sampled (bin centres (k + 0.5) / T)
+DEFAULT_T = 96
+#: edge softness of `rasterize` while training, in layout pixels: gradients reach the edges' positions
+DEFAULT_TAU_PX = 0.5
+#: edge softness for prediction: effectively hard edges, so the argmax is exact rectangles (soft edges
+#: multiply at corners and can tip a corner pixel to background); class probabilities stay soft
+#: through presence and box confidence
+HARD_TAU_PX = 0.1
+_EPS = 1e-6
+
+
+def pixel_centres(S: int, extent: float, device=None) -> torch.Tensor:
+    """Metric coordinate of column centres (x) and, equally, of row centres read upward (y or z of
+    row S - 1 - r): (c + 0.5 - S/2) * res. As racklay.layout.Grid.centers."""
+    res = extent / S
+    return (torch.arange(S, device=device, dtype=torch.float32) + 0.5 - S / 2) * res
+
+
+def sample_positions(seq: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Linear interpolation of per-position sequences at relative positions t.
+    seq (N, R, C, T) at bin centres (k + 0.5) / T; t (N, R, P) -> (N, R, C, P). Clamped at the ends."""
+    N, R, C, T = seq.shape
+    idx = (t * T - 0.5).clamp(0, T - 1)
+    i0 = idx.floor().long().clamp(max=T - 1)
+    i1 = (i0 + 1).clamp(max=T - 1)
+    w = (idx - i0.to(idx.dtype)).unsqueeze(2)
+    g0 = seq.gather(3, i0.unsqueeze(2).expand(N, R, C, -1))
+    g1 = seq.gather(3, i1.unsqueeze(2).expand(N, R, C, -1))
+    return g0 * (1 - w) + g1 * w
+
+
+def rasterize(view: str, st: dict, S: int, extent: float, tau_px: float = DEFAULT_TAU_PX) -> torch.Tensor:
+    """A structure dict (`presence` logits (N, R); `length`, `extent` metres (N, R); `box` logits and
+    `height` or `near`/`far` fractions (N, R, T)) -> (N, R, 3, S, S) log-probabilities of
+    (background, shelf, box) on the layout grid of `view`."""
+    dev = st["length"].device
+    c = pixel_centres(S, extent, dev)                      # column centres (x), left to right
+    v = c.flip(0)                                          # row centres (y or z), top row first
+    tau = tau_px * extent / S
+    L, E = st["length"].float().unsqueeze(-1), st["extent"].float().unsqueeze(-1)      # (N, R, 1)
+    pres = _sig(st["presence"].float()[..., None, None])                                # (N, R, 1, 1)
+    inside = _sig(((L / 2 - c.abs()) / tau).unsqueeze(2))                               # (N, R, 1, S) columns
+    t = c / L + 0.5
+    if view == "front":
+        fields = torch.stack([st["box"], st["height"]], 2).float()
+        q, h = sample_positions(fields, t).unbind(2)
+        above = _sig((v / tau)[:, None])                                                # (S, 1) above the board
+        band = _sig(((E - v) / tau).unsqueeze(-1))                                      # (N, R, S, 1) rows
+        box_rows = _sig(((h * E).unsqueeze(2) - v[:, None]) / tau)                      # (N, R, S, S)
+    else:
+        fields = torch.stack([st["box"], st["near"], st["far"]], 2).float()
+        q, near, far = sample_positions(fields, t).unbind(2)
+        above = (torch.ones((), device=dev), torch.zeros((), device=dev))
+        band = _sig(((E / 2 - v.abs()) / tau).unsqueeze(-1))
+        y0, y1 = ((near - 0.5) * E).unsqueeze(2), ((far - 0.5) * E).unsqueeze(2)
+        box_rows = _and(_sig((v[:, None] - y0) / tau), _sig((y1 - v[:, None]) / tau))
+    # the board edge (front) multiplies shelf and box alike, so it never tips shelf against box
+    col = _and(_and(pres, inside), above)
+    qb = _and(_sig(q.unsqueeze(2)), box_rows)
+    p_box = col[0] * qb[0]
+    p_shelf = col[0] * band[0] * qb[1]
+    p_bg = col[1] + col[0] * band[1] * qb[1]
+    return torch.stack([p_bg, p_shelf, p_box], 2).clamp_min(_EPS).log()
+
+
+def _sig(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(p, 1 - p) of a sigmoid, each computed directly (no 1 - p cancellation: the background
+    log-probability deep inside a shelf stays accurate)."""
+    return torch.sigmoid(z), torch.sigmoid(-z)
+
+
+def _and(a: tuple, b: tuple) -> tuple:
+    """(p, 1 - p) of the product of two independent events given as (p, 1 - p)."""
+    return a[0] * b[0], a[1] + a[0] * b[1]
+
+def truth_structure(view: str, layouts: torch.Tensor, extent: float, T: int = DEFAULT_T) -> dict:
+    """The structure of ground-truth class-id layouts (N, R, S, S): `presence` (N, R) bool,
+    `length`, `extent` metres (N, R), and per position, sampled at the truth's own length (so shape
+    is compared with shape whatever the predicted scale): `box` (N, R, T) bool and `height` or
+    `near` / `far` fractions (N, R, T). A shelf is the contiguous run its pixels span."""
+    N, R, S, _ = layouts.shape
+    res = extent / S
+    fg = layouts > 0
+    box = layouts == BOX
+    col_fg = fg.any(2)                                     # (N, R, S) over rows
+    present = col_fg.any(-1)
+    length = col_fg.sum(-1).float() * res
+    ext = fg.any(3).sum(-1).float() * res
+    t = (torch.arange(T, device=layouts.device, dtype=torch.float32) + 0.5) / T
+    x = (t - 0.5) * length.unsqueeze(-1)                   # (N, R, T) metres
+    cols = (x / res + S / 2).floor().long().clamp(0, S - 1)
+    box_col = box.any(2).gather(2, cols)
+    out = {"presence": present, "length": length, "extent": ext, "box": box_col}
+    safe_e = ext.clamp_min(res).unsqueeze(-1)
+    if view == "front":
+        heights = box.sum(2).float() * res                # boxes stand on the board: their top
+        out["height"] = (heights.gather(2, cols) / safe_e).clamp(0, 1)
+    else:
+        rows = torch.arange(S, device=layouts.device)
+        big = torch.full_like(box, S, dtype=torch.long)
+        r_first = torch.where(box, rows[None, None, :, None], big).amin(2)           # far edge row
+        r_last = torch.where(box, rows[None, None, :, None], -big).amax(2)           # near edge row
+        y_far = (S / 2 - r_first.float()) * res
+        y_near = (S / 2 - (r_last.float() + 1)) * res
+        half = ext.unsqueeze(-1) / 2
+        out["near"] = ((y_near.gather(2, cols) + half) / safe_e).clamp(0, 1)
+        out["far"] = ((y_far.gather(2, cols) + half) / safe_e).clamp(0, 1)
+    return out
+
+
+def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float) -> torch.Tensor:
+    """Direct supervision of a predicted structure with the truth's: BCE on shelf presence; for
+    shelves that exist, L1 of log length and log extent (scale) and, per position, BCE on box and
+    L1 of the box fractions where a box is (shape, sampled at the true length)."""
+    T = st["box"].shape[-1]
+    tr = truth_structure(view, layouts, extent, T)
+    pres = tr["presence"]
+    loss = F.binary_cross_entropy_with_logits(st["presence"].float(), pres.float())
+    if not pres.any():
+        return loss
+    res = extent / layouts.shape[-1]
+    for k in ("length", "extent"):
+        loss = loss + (st[k].float()[pres].clamp_min(res).log() - tr[k][pres].clamp_min(res).log()).abs().mean()
+    loss = loss + F.binary_cross_entropy_with_logits(st["box"].float()[pres], tr["box"][pres].float())
+    has_box = tr["box"] & pres.unsqueeze(-1)
+    if has_box.any():
+        for k in (("height",) if view == "front" else ("near", "far")):
+            loss = loss + (st[k].float()[has_box] - tr[k][has_box]).abs().mean()
+    return loss
+
+
+def rescale_structure(st: dict, length: float | torch.Tensor) -> dict:
+    """The same structure at a known shelf length: every present shelf's length set to `length`
+    metres and its extent scaled by the same factor (one scale for the whole shelf); shape fields
+    unchanged."""
+    k = torch.as_tensor(length, dtype=st["length"].dtype, device=st["length"].device) / st["length"].clamp_min(_EPS)
+    return {**st, "length": st["length"] * k, "extent": st["extent"] * k}
+
+
+__all__ = ["DEFAULT_T", "DEFAULT_TAU_PX", "HARD_TAU_PX", "NUM_CLASSES", "pixel_centres", "sample_positions", "rasterize",
+           "truth_structure", "structure_loss", "rescale_structure"]

@@ -1,0 +1,230 @@
+"""The structured form of layouts (racklay.structure), the `struct` decoder built on it, and the
+known-dimension scale (racklay.layout.length_factors / scale_about_origin, `--shelf-length`,
+`racklay eval --scale-from-truth`)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import make_toy
+from racklay import layout as L
+from racklay.cli import main as racklay_main
+from racklay.model import ModelConfig, RackLayNet
+from racklay.structure import rasterize, structure_loss, truth_structure
+
+S, EXT = 128, 8.0
+G = L.Grid(S, EXT)
+
+
+def _two_box_shelf(length=2.0, depth=0.8, clear=0.5):
+    """A shelf with two separate boxes (a gap between them) and an empty one above it."""
+    boxes = [L.Box(-0.45 * length / 2, -0.05, 0.3, 0.5, 0.3), L.Box(0.5 * length / 2, 0.1, 0.35, 0.4, 0.45)]
+    lay = L.rasterize_shelf(L.Shelf(length, depth, clear), boxes, G)
+    return L.stack_shelves([lay, L.rasterize_shelf(L.Shelf(length, depth, clear), [], G)], R=3, grid=G)
+
+
+def _runs(row: np.ndarray) -> int:
+    """Number of separate runs of True along a 1-D array."""
+    return int(np.count_nonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])) > 0))
+
+
+def _as_prediction(tr: dict) -> dict:
+    """A ground-truth structure as a confident prediction (bool fields -> +-20 logits)."""
+    return {k: (v.float() * 40 - 20 if v.dtype == torch.bool else v.float()) for k, v in tr.items()}
+
+
+@pytest.mark.parametrize("view", ["front", "top"])
+def test_structure_of_a_layout_draws_it_back_with_its_separate_boxes(view):
+    """truth_structure -> rasterize reproduces layouts of axis-aligned boxes standing on their board:
+    two boxes with a gap stay two boxes, the empty shelf stays empty, the missing channel stays."""
+    top, front = _two_box_shelf()
+    lay = torch.from_numpy(top if view == "top" else front)[None].long()
+    tr = truth_structure(view, lay, EXT, T=S)
+    assert tr["presence"].tolist() == [[True, True, False]]
+    assert tr["length"][0, 0].item() == pytest.approx(2.0, abs=G.res)
+    drawn = rasterize(view, _as_prediction(tr), S, EXT, tau_px=0.01).argmax(2)[0].numpy()
+    truth = lay[0].numpy()
+    assert (drawn == truth).mean() > 0.998
+    assert _runs((drawn[0] == L.BOX).any(0)) == 2
+    assert not (drawn[1] == L.BOX).any() and not drawn[2].any()
+
+
+def test_structure_loss_is_small_for_the_truth_and_large_for_a_wrong_scale():
+    top, front = _two_box_shelf()
+    for view, arr in (("top", top), ("front", front)):
+        lay = torch.from_numpy(arr)[None].long()
+        tr = truth_structure(view, lay, EXT)
+        good = structure_loss(view, _as_prediction(tr), lay, EXT)
+        wrong = _as_prediction(tr)
+        wrong["length"] = wrong["length"] * 2
+        assert good < 1e-3
+        assert structure_loss(view, wrong, lay, EXT) > good + 0.5
+
+
+def _struct_net(R=3, img=64, lay=S):
+    torch.manual_seed(0)
+    net = RackLayNet(ModelConfig(R=R, image_size=img, layout_size=lay, decoder="struct")).eval()
+    for dec in net.decoders.values():       # make boxes likely so the outputs are not all shelf
+        with torch.no_grad():
+            dec.pos_head.bias[0] = 2.0
+            dec.pos_head.weight.normal_(0, 0.05)
+    return net
+
+
+def test_struct_decoder_draws_boxes_as_rectangles_standing_on_their_board():
+    """Front view of a struct model: in every column a box is one run of rows starting at the board
+    (row S/2 - 1 upward), and box pixels lie inside the shelf's free space."""
+    net = _struct_net()
+    with torch.no_grad():
+        out = net(torch.randn(2, 3, 64, 64))
+    front = out["front"].argmax(2).numpy()
+    assert (front == L.BOX).any()
+    for img in front:
+        for ch in img:
+            for col in ch.T:
+                rows = np.nonzero(col == L.BOX)[0]
+                if rows.size:
+                    assert rows.max() == S // 2 - 1 and rows.size == rows.max() - rows.min() + 1
+
+
+def test_struct_decoder_shelf_length_changes_the_scale_and_not_the_shape():
+    net = _struct_net()
+    x = torch.randn(1, 3, 64, 64)
+    with torch.no_grad():
+        base, st = net(x, with_structure=True)
+        known = net(x, shelf_length=1.2)
+    for v in ("top", "front"):
+        lengths = L.shelf_lengths(known[v].argmax(2)[0].numpy(), G)
+        assert lengths[0] == pytest.approx(1.2, abs=2 * G.res)
+        # shape: the fraction of the shelf's columns holding a box is unchanged
+        for a, b in ((base[v], known[v]),):
+            fa = (a.argmax(2)[0, 0] == L.BOX).any(0).sum() / (a.argmax(2)[0, 0] > 0).any(0).sum()
+            fb = (b.argmax(2)[0, 0] == L.BOX).any(0).sum() / (b.argmax(2)[0, 0] > 0).any(0).sum()
+            assert float(fa) == pytest.approx(float(fb), abs=0.05)
+    assert set(st) == {"top", "front"} and st["front"]["height"].shape == (1, 3, st["front"]["box"].shape[-1])
+
+
+def test_struct_structure_loss_trains_every_part_of_the_decoder():
+    net = _struct_net().train()
+    top, front = _two_box_shelf()
+    out, st = net(torch.randn(2, 3, 64, 64), with_structure=True)
+    loss = sum(structure_loss(v, st[v], torch.from_numpy(a)[None].long().expand(2, -1, -1, -1), EXT)
+               for v, a in (("top", top), ("front", front)))
+    loss.backward()
+    for name, p in net.decoders.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), name
+    assert any(p.grad.abs().sum() > 0 for p in net.encoder.parameters())
+
+
+# --- the known-dimension scale of any model's layouts -------------------------------------------
+
+
+def test_scaling_a_shelf_about_its_origin_is_the_shelf_drawn_at_that_size():
+    top, front = _two_box_shelf(length=2.0)
+    f = L.length_factors([top, front], G, 1.0)
+    assert f.tolist() == [0.5, 0.5, 1.0]
+    small_top, small_front = _two_box_shelf(length=1.0, depth=0.4, clear=0.25)
+    for big, small in ((top, small_top), (front, small_front)):
+        got = L.scale_about_origin(big, f)
+        assert (got[0] != small[0]).mean() < 0.005          # edge pixels may round differently
+        assert _runs((got[0] == L.BOX).any(0)) == 2
+        assert not got[2].any()
+    assert np.array_equal(L.scale_about_origin(top, [1.0, 1.0, 1.0]), top)
+    with pytest.raises(ValueError, match="positive"):
+        L.scale_about_origin(top, [0.0, 1.0, 1.0])
+
+
+def test_shelf_length_ignores_stray_pixels_beside_the_shelf():
+    top, _ = _two_box_shelf(length=2.0)
+    top[0, 10, 3:6] = L.BOX                          # a stray blob far to the left
+    assert L.shelf_lengths(top, G)[0] == pytest.approx(2.0, abs=G.res)
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    return make_toy(tmp_path_factory, n=6, seed=5, R=3, D=128)
+
+
+@pytest.fixture(scope="module")
+def struct_ckpt(tmp_path_factory):
+    from racklay.checkpoint import save_checkpoint
+
+    net = _struct_net(R=3, img=64, lay=64)
+    cfg = net.cfg
+    path = tmp_path_factory.mktemp("struct") / "struct.safetensors"
+    save_checkpoint(path, net, cfg)
+    return path
+
+
+def test_predict_shelf_length_rescales_every_shelf_and_says_so(toy, struct_ckpt, tmp_path, capsys):
+    photo = str(toy / "Images" / "000000.png")
+    assert racklay_main(["predict", photo, "--weights", str(struct_ckpt), "--out", str(tmp_path / "a"),
+                         "--no-figure", "--no-png"]) == 0
+    assert racklay_main(["predict", photo, "--weights", str(struct_ckpt), "--out", str(tmp_path / "b"),
+                         "--no-figure", "--no-png", "--shelf-length", "1.5"]) == 0
+    assert "shelves scaled to 1.5 m" in capsys.readouterr().out
+    g = L.Grid(64, EXT)
+    for v in ("top", "front"):
+        a = _layouts(tmp_path / "a", v)
+        b = _layouts(tmp_path / "b", v)
+        have = L.shelf_lengths(b, g)
+        assert all(x == pytest.approx(1.5, abs=2 * g.res) for x, y in zip(have, L.shelf_lengths(a, g)) if y > 0)
+    meta = json.loads((tmp_path / "b" / "meta" / "000000.json").read_text())
+    assert meta["shelf_length_m"] == 1.5
+    with pytest.raises(SystemExit):
+        racklay_main(["predict", photo, "--weights", str(struct_ckpt), "--out", str(tmp_path / "c"),
+                      "--shelf-length", "-2"])
+    assert "--shelf-length" in capsys.readouterr().err
+
+
+def test_eval_scale_from_truth_scores_shape_alone(toy, struct_ckpt, tmp_path, capsys):
+    """A prediction that is the truth at twice its size scores low on the metric IoU and 1 with
+    --scale-from-truth; the JSON says which scale was scored."""
+    from racklay.data import RackLayRoot
+    from racklay.evaluate import evaluate
+    from racklay.predict import Predictor
+
+    fake = Predictor(struct_ckpt)
+    first = RackLayRoot(toy).resolve("test")[:1]
+
+    def twice_the_truth(x):
+        """The truth of the split's first image scaled x2 (probabilities one-hot)."""
+        out_c, out_p = {}, {}
+        for v in fake.views:
+            truth = np.stack([L.resize_layouts(_layouts(toy, v, i), fake.layout_size) for i in first])
+            c = np.stack([L.scale_about_origin(t, [2.0] * 3) for t in truth])
+            out_c[v] = c
+            out_p[v] = np.moveaxis(np.eye(3, dtype=np.float32)[c], -1, 2)
+        return out_c, out_p
+
+    fake.predict_batch = twice_the_truth
+    metric = evaluate(fake, toy, split="test", limit=1, progress=False, batch_size=1)
+    shape = evaluate(fake, toy, split="test", limit=1, progress=False, batch_size=1, scale_from_truth=True)
+    for v in ("top", "front"):
+        assert metric[v]["dataset"]["shelf"]["IoU"] < 0.5
+        assert shape[v]["dataset"]["shelf"]["IoU"] > 0.9
+    out = tmp_path / "e.json"
+    assert racklay_main(["eval", "--weights", str(struct_ckpt), "--data", str(toy), "--split", "test",
+                         "--scale-from-truth", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["scale"] == "from truth"
+    assert "scale from truth" in capsys.readouterr().out
+
+
+def _layouts(root, view, sid="000000"):
+    from racklay.data import RackLayRoot
+
+    return RackLayRoot(root).read_layouts(view, sid, R=3)
+
+
+def test_struct_model_exports_to_onnx_with_the_same_layouts(struct_ckpt, tmp_path):
+    out = tmp_path / "struct.onnx"
+    assert racklay_main(["export", "--weights", str(struct_ckpt), "--onnx", str(out)]) == 0
+    from racklay.predict import Predictor
+
+    x = torch.randn(2, 3, 64, 64)
+    a, b = Predictor(struct_ckpt).predict_batch(x)[0], Predictor(out).predict_batch(x)[0]
+    for v in ("top", "front"):
+        assert (a[v] == b[v]).mean() > 0.999
