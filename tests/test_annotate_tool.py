@@ -124,15 +124,31 @@ def test_invalid_file_is_shown_not_overwritten(proj):
 class StandIn:
     """Follows racklay.predict.Predictor's contract; returns the true scene's layouts."""
 
-    def __init__(self):
-        self.calls = 0
+    def __init__(self, scale: float = 1.0):
+        self.calls, self.scale = 0, scale
 
     def predict(self, rgb):
         assert rgb.dtype == np.uint8 and rgb.ndim == 3
         self.calls += 1
-        top, front = true_layouts()
+        top, front = (L.scale_about_origin(a, [self.scale] * len(a)) for a in true_layouts())
         probs = {v: np.eye(3, dtype=np.float32)[a].transpose(0, 3, 1, 2) for v, a in (("top", top), ("front", front))}
         return {"top": top, "front": front, "probs": probs, "grid": GRID}
+
+
+def test_proposals_take_their_scale_from_the_labellers_rack_width(proj):
+    """A model that gets the rack's shape right but its size 25 % too large (one photo cannot tell):
+    the labeller's rack width fixes the scale, so every proposal lands on its true box."""
+    tool = Tool(proj, predictor=StandIn(scale=1.25))
+    truth = clicks(CAM)
+    truth["boxes"] = []
+    st = label_by_clicks(tool, tool.open("r.png"), truth)
+    props = st.ann["proposals"]
+    assert len(props) == len(BOXES)
+    scene = G.build_scene(st.ann, proj.settings)
+    got = sorted((m.shelf, m.u0, m.u1) for m in (G.metric_box(scene.plane, p, scene.shelf_v, 0.6, 0.6) for p in props))
+    want = sorted((s, x0, x1) for s, x0, x1, *_ in BOXES)
+    assert [g[0] for g in got] == [w[0] for w in want]
+    np.testing.assert_allclose([g[1:] for g in got], [w[1:] for w in want], atol=3 * GRID.res)
 
 
 def test_model_proposals_accept_edit_reject(proj):
