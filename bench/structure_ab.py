@@ -70,10 +70,10 @@ def run_cost(run: Path) -> tuple[float, float]:
         rows = list(csv.DictReader(f))
     if not rows:
         raise SystemExit(f"{run}/metrics.csv: no epochs recorded yet")
-    elapsed = max(float(r.get("elapsed_s") or r.get("elapsed") or 0) for r in rows)
+    minutes = max(float(r["elapsed_min"]) for r in rows)
     threads = int(cfg.get("threads") or 1)
     best = max(float(r["val_score"]) for r in rows if r.get("val_score"))
-    return elapsed / 60 * threads, 100 * best
+    return minutes * threads, 100 * best
 
 
 def scores(res: dict) -> dict:

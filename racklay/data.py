@@ -75,11 +75,14 @@ def max_image_pixels() -> int:
 
 @dataclass(frozen=True)
 class ImageInfo:
-    """What an image file's header says: format ('PNG', 'JPEG', or PIL's name) and size."""
+    """What an image file's header says: format ('PNG', 'JPEG', or PIL's name) and size as the
+    image is shown and decoded, i.e. after its EXIF orientation (`orientation`, 1-8; 5-8 turn the
+    stored image by 90 degrees, so a portrait phone photo stored as 4032x3024 is 3024x4032)."""
 
     format: str
     width: int
     height: int
+    orientation: int = 1
 
 
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
@@ -91,6 +94,7 @@ def _read_header(f, source: str) -> ImageInfo:
     import struct
 
     head = f.read(32)
+    orientation = 1
     if head[:8] == b"\x89PNG\r\n\x1a\n":
         if len(head) < 24 or head[12:16] != b"IHDR":
             raise DataError(f"{source}: not a readable image (PNG without an IHDR header)")
@@ -122,7 +126,11 @@ def _read_header(f, source: str) -> ImageInfo:
                 h, w = struct.unpack(">HH", body[1:5])
                 if not (w and h):
                     break
-                return ImageInfo("JPEG", w, h)
+                return ImageInfo("JPEG", *((h, w) if orientation >= 5 else (w, h)), orientation)
+            if m == 0xE1 and n >= 8:
+                body = f.read(n - 2)
+                orientation = _exif_orientation(body) or orientation
+                continue
             f.seek(n - 2, 1)
         raise DataError(f"{source}: not a readable image (JPEG without a frame header; truncated?)")
     import warnings
@@ -140,6 +148,31 @@ def _read_header(f, source: str) -> ImageInfo:
                         f"{2 * Image.MAX_IMAGE_PIXELS / 1e6:.0f} Mpx (a possible decompression bomb)") from None
     except Exception:  # noqa: BLE001 - PIL raises many types for junk
         raise DataError(f"{source}: not a readable image (corrupt, truncated or not an image)") from None
+
+
+def _exif_orientation(app1: bytes) -> int | None:
+    """The EXIF orientation (1-8) in a JPEG APP1 segment's body, or None (no EXIF, no such tag, or
+    unreadable: the image is then shown as stored, as decoders do)."""
+    import struct
+
+    if app1[:6] != b"Exif\x00\x00":
+        return None
+    t = app1[6:]
+    order = {b"II": "<", b"MM": ">"}.get(bytes(t[:2]))
+    try:
+        if order is None:
+            return None
+        off = struct.unpack(order + "I", t[4:8])[0]
+        (count,) = struct.unpack(order + "H", t[off:off + 2])
+        for k in range(count):
+            e = t[off + 2 + 12 * k: off + 14 + 12 * k]
+            tag, typ = struct.unpack(order + "HH", e[:4])
+            if tag == 0x0112 and typ == 3:
+                v = struct.unpack(order + "H", e[8:10])[0]
+                return v if 1 <= v <= 8 else None
+    except struct.error:
+        return None
+    return None
 
 
 def check_image_pixels(info: ImageInfo, source: str, limit: int | None = None) -> None:
@@ -195,8 +228,9 @@ def decode_image(data: bytes | np.ndarray, source: str, info: ImageInfo | None =
     if img is None:
         raise DataError(f"{source}: not a readable image (corrupt, truncated or not an image)")
     if img.shape[:2] != (info.height, info.width):
+        turned = f" after EXIF orientation {info.orientation}" if info.orientation != 1 else ""
         raise DataError(f"{source}: decoded to {img.shape[1]}x{img.shape[0]} pixels but its header says "
-                        f"{info.width}x{info.height}")
+                        f"{info.width}x{info.height}{turned}")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 

@@ -192,3 +192,28 @@ def test_atomic_writes_get_normal_file_permissions(tmp_path):
         importlib.reload(A)
     assert stat.S_IMODE((tmp_path / "a.txt").stat().st_mode) == 0o644
     assert atomic_write_text  # the module-level import stays usable
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_phone_photos_with_exif_orientation_read_upright_everywhere(tmp_path, orientation):
+    """A JPEG with an EXIF orientation (5-8: the usual portrait phone photo, stored sideways) reads
+    as it is shown: the pixels PIL's exif_transpose gives, the header size turned to match, and
+    the annotator's project reports that size."""
+    from PIL import Image, ImageOps
+
+    from annotate.store import Project
+    from racklay.data import image_info, read_image
+
+    stored = np.zeros((48, 64, 3), np.uint8)
+    stored[:12, :, 0] = 255                        # a red band along the stored top edge
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    path = tmp_path / "phone.jpg"
+    Image.fromarray(stored).save(path, exif=exif.tobytes(), quality=95)
+    got = read_image(path)
+    want = np.asarray(ImageOps.exif_transpose(Image.open(path)).convert("RGB"))
+    assert got.shape == want.shape == ((64, 48, 3) if orientation >= 5 else (48, 64, 3))
+    assert np.abs(got.astype(int) - want).mean() < 1
+    info = image_info(path)
+    assert (info.width, info.height, info.orientation) == (got.shape[1], got.shape[0], orientation)
+    assert Project(tmp_path).image_size("phone.jpg") == (got.shape[1], got.shape[0])
