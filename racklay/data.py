@@ -32,6 +32,8 @@ SYNTH_MANIFEST = "waresynth.json"   # written by racklay synth; marks a generate
 VIEW_DIRS = {"top": TOP_DIR, "front": FRONT_DIR}
 VIEW_PREFIX = {"top": "top", "front": "front"}
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+#: file types read_image decodes: what a folder of photos given to a command is taken to hold
+PHOTO_EXTS = IMAGE_EXTS + (".bmp", ".webp", ".tif", ".tiff")
 SPLIT_NAMES = ("train", "val", "test")
 
 

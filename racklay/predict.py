@@ -270,14 +270,21 @@ class PredictReport:
         return f"{len(self.failed)} of {n} input(s) failed, {len(self.done)} predicted"
 
 
-def list_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
-    """Files named on the command line, and every non-hidden file inside named folders (sorted).
-    A non-image file in a folder is kept: it gets a one-line error, not silence."""
+def list_inputs(inputs: Sequence[str | os.PathLike], skipped: list | None = None) -> list[Path]:
+    """Files named on the command line (whatever their type: a file that is not an image gets a
+    one-line error, not silence), and the photos inside named folders (sorted; `PHOTO_EXTS`).
+    Other files in a folder (a README, annotations) are not photos: they are appended to `skipped`
+    when a list is given, so the caller can say so once."""
+    from .data import PHOTO_EXTS
+
     files: list[Path] = []
     for item in inputs:
         p = Path(item)
         if p.is_dir():
-            files += sorted(q for q in p.iterdir() if q.is_file() and not q.name.startswith("."))
+            inside = sorted(q for q in p.iterdir() if q.is_file() and not q.name.startswith("."))
+            files += [q for q in inside if q.suffix.lower() in PHOTO_EXTS]
+            if skipped is not None:
+                skipped += [q for q in inside if q.suffix.lower() not in PHOTO_EXTS]
         else:
             files.append(p)  # a missing file is reported by the reader, naming it
     return files
@@ -349,7 +356,8 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
 
     from .data import read_image
 
-    files = list_inputs(inputs)
+    skipped: list[Path] = []
+    files = list_inputs(inputs, skipped)
     ids = unique_ids(files)
     rep = PredictReport()
     bar = None
@@ -363,6 +371,9 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
                 bar.write(msg, file=sys.stderr)
             else:
                 print(msg, file=sys.stderr)
+    if skipped:
+        names = ", ".join(q.name for q in skipped[:5]) + (", ..." if len(skipped) > 5 else "")
+        log(f"note: skipped {len(skipped)} file(s) that are not photos ({names})")
     extra = {"weights": str(predictor.weights) if predictor.weights else None, "backend": predictor.backend}
     if shelf_length is not None:
         extra["shelf_length_m"] = float(shelf_length)

@@ -104,15 +104,24 @@ def test_predict_folder_outputs_and_bad_files(toy, ckpt, tmp_path, capsys):
     big = cv2.resize(ds.read_image(ids[1]), (1000, 600))  # another size, as JPEG
     cv2.imwrite(str(src / f"{ids[1]}.jpg"), cv2.cvtColor(big, cv2.COLOR_RGB2BGR))
     (src / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 10)
-    (src / "notes.txt").write_text("not an image")
+    (src / "notes.txt").write_text("not an image")       # not a photo: skipped, said once
+    (src / "labels.json").write_text("{}")
+    (src / "fake.jpg").write_text("not an image")         # a photo's name: read, and its error named
     out = tmp_path / "pred"
     rc = racklay_main(["predict", str(src), "--weights", str(ckpt), "--out", str(out), "--layout-size", "128"])
     cap = capsys.readouterr()
     assert rc == 1
     errors = [line for line in cap.err.splitlines() if line.startswith("error:")]
     assert len(errors) == 2
-    assert any("broken.png" in e for e in errors) and any("notes.txt" in e for e in errors)
+    assert any("broken.png" in e for e in errors) and any("fake.jpg" in e for e in errors)
+    assert "note: skipped 2 file(s) that are not photos (labels.json, notes.txt)" in cap.err
     assert "2 of 4 input(s) failed, 2 predicted" in cap.out
+    # a folder of photos with a README predicts cleanly (exit 0)
+    (src / "broken.png").unlink()
+    (src / "fake.jpg").unlink()
+    assert racklay_main(["predict", str(src), "--weights", str(ckpt), "--out", str(tmp_path / "p2")]) == 0
+    # a non-image named on the command line is still an error, not skipped
+    assert racklay_main(["predict", str(src / "notes.txt"), "--weights", str(ckpt), "--out", str(tmp_path / "p3")]) == 1
     pr = RackLayRoot(out)
     for sid in ids:
         for v in ("top", "front"):
