@@ -796,7 +796,8 @@ def build_app(project: Project, predictor=None, user: str | None = None):
         header = gr.Markdown(elem_id="header")
         with gr.Row():
             filter_dd = gr.Dropdown(choices=list(FILTERS), value="all", label="list", elem_id="filter", scale=1)
-            image_dd = gr.Dropdown(choices=project.images(), label="photo (status)", elem_id="image-select", scale=3)
+            # filled by on_load for a logged-in session: the page served before login must not list the photos
+            image_dd = gr.Dropdown(choices=[], label="photo (status)", elem_id="image-select", scale=3)
             gr.Button("◀ prev (p)", elem_id="btn-prev", size="sm", scale=0)
             gr.Button("next ▶ (n)", elem_id="btn-next", size="sm", scale=0)
             gr.Button("next unfinished (u)", elem_id="btn-next-todo", size="sm", scale=0)

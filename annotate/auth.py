@@ -123,7 +123,8 @@ class Authenticator:
         if not self._users:
             raise AuthError(f"{self.path}: no users (add one with `annotate passwd {self.path} USER`)")
         self._stamp = self._file_stamp()
-        self._fails: OrderedDict[str, tuple[int, float]] = OrderedDict()   # user -> (in a row, locked until)
+        # user -> (failures in a row, locked until, attempts being checked now)
+        self._fails: OrderedDict[str, tuple[int, float, int]] = OrderedDict()
         self._lock = threading.Lock()
 
     def _file_stamp(self):
@@ -143,7 +144,7 @@ class Authenticator:
     def locked(self, user: str) -> float:
         """Seconds left of `user`'s lock-out (0 when not locked)."""
         with self._lock:
-            n, until = self._fails.get(user, (0, 0.0))
+            until = self._fails.get(user, (0, 0.0, 0))[1]
         return max(0.0, until - self.clock())
 
     def _verify(self, user: str, password: str) -> bool:
@@ -154,24 +155,47 @@ class Authenticator:
         return verify_password(password, stored)
 
     async def check(self, username: str, password: str) -> bool:
+        """True when the password is right and the name is not locked out. Atomic under
+        concurrency: each attempt reserves its place among the MAX_FAILS a name may have before it
+        is checked, so a burst of parallel attempts checks at most MAX_FAILS passwords; a lock-out,
+        once set, is never cleared by an attempt that finishes later, and refuses even the right
+        password that was being checked when it was set."""
         user = str(username)
-        if self.locked(user) > 0:
-            self.log(f"login refused for {user!r}: locked out for another {self.locked(user):.0f} s")
-            await self.sleep(1.0)
-            return False
-        ok = await asyncio.to_thread(self._verify, user, str(password))
         with self._lock:
-            if ok:
-                self._fails.pop(user, None)
-                return True
-            n = self._fails.pop(user, (0, 0.0))[0] + 1
-            until = self.clock() + LOCKOUT_S if n >= MAX_FAILS else 0.0
-            self._fails[user] = (0 if until else n, until)
+            n, until, flying = self._fails.pop(user, (0, 0.0, 0))
+            left = until - self.clock()
+            full = n + flying >= MAX_FAILS
+            self._fails[user] = (n, until, flying + (0 if left > 0 or full else 1))
             while len(self._fails) > 10000:                # bounded, whatever names are tried
                 self._fails.popitem(last=False)
-        if until:
+        if left > 0 or full:
+            why = f"locked out for another {left:.0f} s" if left > 0 else f"{MAX_FAILS} attempts already under way"
+            self.log(f"login refused for {user!r}: {why}")
+            await self.sleep(1.0)
+            return False
+        ok, in_a_row = False, 0
+        try:
+            ok = await asyncio.to_thread(self._verify, user, str(password))
+        finally:
+            with self._lock:
+                n, until, flying = self._fails.pop(user, (0, 0.0, 1))
+                flying = max(0, flying - 1)
+                locked = until > self.clock()
+                if ok and not locked:
+                    n = 0
+                elif not ok:
+                    n += 1
+                    in_a_row = n
+                    if n >= MAX_FAILS and not locked:
+                        until, n, locked = self.clock() + LOCKOUT_S, 0, "new"
+                self._fails[user] = (n, until, flying)
+        if ok and not locked:
+            return True
+        if locked == "new":
             self.log(f"{MAX_FAILS} failed logins in a row for {user!r}: locked out for {LOCKOUT_S:.0f} s")
+        elif locked:
+            self.log(f"login refused for {user!r}: locked out while its password was checked")
         else:
             self.log(f"failed login for {user!r} ({n} in a row)")
-        await self.sleep(min(0.25 * 2 ** (n - 1), 4.0))
+        await self.sleep(1.0 if locked is True else min(0.25 * 2 ** (in_a_row - 1), 4.0))
         return False

@@ -68,6 +68,44 @@ def test_failed_logins_are_slowed_then_locked_out(tmp_path):
     assert check("cy", "cy's password") and not check("nobody", "cy's password")
 
 
+def test_parallel_logins_cannot_bypass_the_lock_out(tmp_path):
+    """40 simultaneous attempts for one name (the right password is number 21): at most MAX_FAILS
+    passwords are checked, the right one is refused once the name is locked, and the lock-out stays
+    set when the slower attempts finish (they used to clear it)."""
+    import threading
+    import time
+
+    f = tmp_path / "logins"
+    A.set_password(f, "ana", "correct horse")
+    now, checked, lock = [1000.0], [], threading.Lock()
+
+    async def no_wait(s):
+        pass
+
+    auth = A.Authenticator(f, clock=lambda: now[0], sleep=no_wait, log=lambda m: None)
+    real = auth._verify
+
+    def slow_verify(user, password):
+        with lock:
+            checked.append(password)
+        time.sleep(0.05)                  # a scrypt check takes time: the attempts overlap
+        return real(user, password)
+
+    auth._verify = slow_verify
+
+    async def burst():
+        return await asyncio.gather(*(auth.check("ana", "correct horse" if k == 20 else f"guess {k}")
+                                      for k in range(40)))
+
+    results = asyncio.run(burst())
+    assert len(checked) == A.MAX_FAILS and "correct horse" not in checked
+    assert not any(results)
+    assert auth.locked("ana") == A.LOCKOUT_S
+    assert not asyncio.run(auth.check("ana", "correct horse"))      # still locked after the burst
+    now[0] += A.LOCKOUT_S + 1
+    assert asyncio.run(auth.check("ana", "correct horse"))
+
+
 def test_auth_with_password_on_command_line_refused(tmp_path, capsys):
     rc = annotate_main(["serve", str(tmp_path / "proj"), "--auth", "ana:secret"])
     err = capsys.readouterr().err
@@ -95,3 +133,20 @@ def test_saves_record_the_logged_in_user(tmp_path):
     ben = tool.step(ben, +1)                     # b.png
     tool.click(ben, 50, 60)
     assert proj.load("b.png")["updated_by"] == "ben"
+
+
+def test_the_page_served_before_login_names_no_photo(tmp_path):
+    """gradio serves its config and API description with the login page: the photo list is filled
+    only when a (logged-in) session loads, so no file name is in them."""
+    import json
+
+    import numpy as np
+
+    from annotate.app import build_app
+    from annotate.store import Project
+    from racklay.atomic import encode_png
+
+    (tmp_path / "confidential_customer_site.png").write_bytes(encode_png(np.zeros((32, 48, 3), np.uint8)))
+    demo = build_app(Project(tmp_path))
+    for served in (demo.get_config_file(), demo.get_api_info()):
+        assert "confidential_customer_site" not in json.dumps(served, default=str)
