@@ -475,6 +475,72 @@ class CheckReport:
                 f"{shape}, splits: {sp} -> {status}")
 
 
+def check_samples(root: str | os.PathLike, ids: Sequence[str], views: Sequence[str], R: int | None = None,
+                  passed: dict | None = None, progress: bool = False) -> tuple[list[str], tuple | None]:
+    """What `racklay train` checks before its first step: for these sample ids, the image (header,
+    pixel limit, PNG completeness; not decoded) and every view's layout (present, readable, strict
+    values, R channels), and that all layouts share one size. Returns (problems, (R, D) most
+    layouts have). `passed` ({path: [size, mtime_ns]}) remembers files that passed: they are not
+    read again while unchanged (updated in place), so a restart checks in moments."""
+    ds = RackLayRoot(root)
+    problems: list[str] = []
+    shapes: Counter = Counter()
+    shape_of: dict[str, tuple] = {}
+    passed = {} if passed is None else passed
+
+    def stamp(p: Path):
+        st = p.stat()
+        return [st.st_size, st.st_mtime_ns]
+
+    it = ids
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(ids, desc="checking data", unit="sample", leave=False)
+    for sid in it:
+        img = ds.image_path(sid)
+        try:
+            key = str(img)
+            if passed.get(key) != (stamp(img) if img.is_file() else None):
+                info = image_info(img)
+                if info.format == "PNG":
+                    with open(img, "rb") as f:
+                        f.seek(max(0, img.stat().st_size - 12))
+                        if b"IEND" not in f.read():
+                            raise DataError(f"{img}: truncated PNG (no IEND chunk)")
+                passed[key] = stamp(img)
+        except DataError as e:
+            problems.append(str(e))
+        for view in views:
+            p = ds.layout_path(view, sid)
+            if not p.is_file():
+                problems.append(f"{p}: missing {view} layout for image {img.name}")
+                continue
+            key = str(p)
+            hit = passed.get(key)
+            if hit is not None and hit[:2] == stamp(p):
+                shape = tuple(hit[2])
+            else:
+                try:
+                    arr = load_npy(p)
+                    L.check_stack(arr, R=R, source=str(p))
+                except (L.LayoutError, DataError) as e:
+                    problems.append(str(e))
+                    continue
+                shape = tuple(arr.shape)
+                passed[key] = stamp(p) + [list(shape)]
+            shapes[shape] += 1
+            shape_of[key] = shape
+    common = None
+    if shapes:
+        common = shapes.most_common(1)[0][0]
+        for p, shp in shape_of.items():
+            if shp != common:
+                problems.append(f"{p}: shape {shp} differs from the dataset's {common}")
+                passed.pop(p, None)
+        common = (common[0], common[1])
+    return problems, common
+
+
 def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None = None,
                   progress: bool = False) -> CheckReport:
     """Validate every sample of a dataset; return a report with one line per problem."""

@@ -653,13 +653,15 @@ def train(cfg: TrainConfig, transform=None) -> Path:
             if dist.main:
                 print(f"{run_dir}: run already finished ({st.stop_reason})")
             return run_dir
-        train_ds, loader, batches, val_loader = make_loaders(cfg, transform, dist)
+        train_ds, loader, batches, val_loader, checked = make_loaders(cfg, transform, dist, run_dir)
         steps_per_epoch = len(epoch_batches(len(train_ds), cfg.batch_size, 0, cfg.seed, dist.world, dist.rank))
         total_steps = steps_per_epoch * cfg.epochs
         if dist.main:
             made_dir = not run_dir.exists()
             start_run_dir(run, getattr(train_ds, "n_real", len(train_ds)), len(val_loader.dataset),
                           getattr(train_ds, "n_replay", 0))
+            from .atomic import atomic_write_json
+            atomic_write_json(run_dir / DATA_CHECK, checked)
         run.base_elapsed = st.elapsed_s
         stop = False
         while st.epoch < cfg.epochs and not stop:
@@ -786,13 +788,43 @@ def restore(run: Run, ck) -> RunState:
     return st
 
 
-def make_loaders(cfg: TrainConfig, transform, dist: _Dist):
+#: files of the run's data that passed the check before the first step (racklay.data.check_samples)
+DATA_CHECK = "data-check.json"
+
+
+def check_run_data(cfg: TrainConfig, run_dir: Path, train_ids, val_ids) -> dict:
+    """Every training and validation sample checked before the first step (image header, layouts
+    present with strict values, the run's R, one layout size), as `racklay check-data` would: a bad
+    file fails the run in seconds, naming it, not at step 7 or after an epoch. Files that passed in
+    an earlier start of the run (run_dir/data-check.json) and are unchanged are not read again.
+    Returns the updated record of passed files."""
+    import json
+
+    from .data import DataError, check_samples
+
+    passed = {}
+    cache = run_dir / DATA_CHECK
+    if cache.is_file():
+        try:
+            passed = json.loads(cache.read_text())
+        except (OSError, ValueError):
+            passed = {}
+    ids = list(dict.fromkeys([*train_ids, *val_ids]))
+    problems, _ = check_samples(cfg.data, ids, cfg.views, R=cfg.R, passed=passed, progress=cfg.progress)
+    if problems:
+        more = f" (and {len(problems) - 1} more: racklay check-data {cfg.data})" if len(problems) > 1 else ""
+        raise DataError(f"training data not usable: {problems[0]}{more}")
+    return passed
+
+
+def make_loaders(cfg: TrainConfig, transform, dist: _Dist, run_dir: Path | None = None):
     """(training dataset, its loader, the loader's batch sampler, validation loader (rank 0 only))."""
     from torch.utils.data import DataLoader
 
     from .torchdata import RackLayDataset, ReplayMix
 
     train_ids, val_ids = split_ids(cfg)
+    checked = check_run_data(cfg, run_dir or cfg.run_dir(), train_ids, val_ids)
     kw = dict(image_size=cfg.image_size, layout_size=cfg.layout_size, views=cfg.views, R=cfg.R, cache=cfg.cache)
     if transform is None and cfg.augment != "none":
         from .augment import make_augment
@@ -808,7 +840,7 @@ def make_loaders(cfg: TrainConfig, transform, dist: _Dist):
                         persistent_workers=cfg.workers > 0)
     val_loader = (DataLoader(val_ds, batch_size=cfg.batch_size, shuffle=False, num_workers=cfg.workers)
                   if dist.main else None)
-    return train_ds, loader, batches, val_loader
+    return train_ds, loader, batches, val_loader, checked
 
 
 def start_run_dir(run: Run, n_train: int, n_val: int, n_replay: int = 0) -> None:

@@ -435,3 +435,47 @@ def test_replay_mixes_fresh_synthetic_samples_into_every_epoch(tmp_path, toy):
     assert r.returncode != 0
     err = r.stderr.strip().splitlines()[-1]
     assert "replay" in err and "R=2" in err and str(two) in err, err
+
+
+@pytest.mark.parametrize("split", ["train", "val"])
+def test_bad_data_fails_the_run_before_its_first_step(tmp_path, toy, split, monkeypatch):
+    """A stray layout value in the last sample of the train split, or in the val split, is found
+    before the first step (it used to fail at the last step of the epoch, or after a whole epoch),
+    naming the file; a layout of another size is refused, not silently resized."""
+    import racklay.train as T
+
+    data = tmp_path / "ds"
+    shutil.copytree(toy, data)
+    root = RackLayRoot(data)
+    sid = root.resolve(split)[-1]
+    bad = root.layout_path("front", sid)
+    arr = np.load(bad)
+    arr[0, 0, 0] = 7
+    np.save(bad, arr)
+    steps = []
+    monkeypatch.setattr(T, "train_step", lambda *a: steps.append(1) or {})
+    cfg = TrainConfig(data=str(data), out=str(tmp_path / "runs"), name="bad", epochs=1, **TINY)
+    with pytest.raises(ValueError, match=rf"{bad.name}.*stray value.*7"):
+        train(cfg)
+    assert steps == [] and not (tmp_path / "runs" / "bad").exists()
+    np.save(bad, np.zeros((4, 32, 32), np.uint8))            # the set is 64 px: a 32 px layout
+    with pytest.raises(ValueError, match=rf"{bad.name}: shape \(4, 32, 32\) differs"):
+        train(cfg)
+    assert steps == []
+
+
+def test_the_data_check_is_remembered_for_unchanged_files(tmp_path, toy, monkeypatch):
+    import racklay.data as D
+
+    root = RackLayRoot(toy)
+    ids = root.resolve("train")
+    passed = {}
+    assert D.check_samples(toy, ids, ("top", "front"), R=4, passed=passed)[0] == []
+    reads = []
+    real = D.load_npy
+    monkeypatch.setattr(D, "load_npy", lambda p: reads.append(p) or real(p))
+    assert D.check_samples(toy, ids, ("top", "front"), R=4, passed=passed) == ([], (4, 64))
+    assert reads == []                                        # nothing read again
+    os.utime(root.layout_path("top", ids[0]), ns=(1, 1))       # touched: read again
+    D.check_samples(toy, ids, ("top", "front"), R=4, passed=passed)
+    assert [Path(p).name for p in reads] == [root.layout_path("top", ids[0]).name]
