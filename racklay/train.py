@@ -70,6 +70,10 @@ _RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "
                  "imagenet_weights", "amp", "warmup_steps", "weight_decay", "disc_lr")
 
 
+#: options that name files or folders: kept as absolute paths (config.yaml, resume checks)
+PATH_FIELDS = ("data", "replay", "init", "teacher", "imagenet_weights")
+
+
 @dataclass
 class TrainConfig:
     data: str = ""                       # RackLay-format dataset root
@@ -123,6 +127,10 @@ class TrainConfig:
 
     def __post_init__(self):
         self._check_types()
+        for name in PATH_FIELDS:     # stored absolute: a run resumed from another folder reads the same files
+            v = getattr(self, name)
+            if v:
+                setattr(self, name, os.path.abspath(os.fspath(v)))
         self.views = tuple(self.views)
         self.class_weights = tuple(float(w) for w in self.class_weights)
         if len(self.class_weights) != len(CLASS_NAMES):
@@ -726,7 +734,7 @@ def open_resume(cfg: TrainConfig, run_dir: Path, main: bool):
         raise FileNotFoundError(f"{last_path}: nothing to resume (no last checkpoint)")
     ck = load_checkpoint(last_path)
     saved = ck.meta.get("train_config", {})
-    diff = [k for k in _RUN_DEFINING if k in saved and _norm(saved[k]) != _norm(getattr(cfg, k))]
+    diff = [k for k in _RUN_DEFINING if k in saved and not _same_setting(k, saved[k], getattr(cfg, k))]
     if diff:
         raise ValueError(f"{last_path}: resume must keep the run's settings; differs in "
                          + ", ".join(f"{k} ({saved[k]!r} vs {getattr(cfg, k)!r})" for k in diff))
@@ -1011,6 +1019,13 @@ def save_last(run: Run, st: RunState) -> None:
         meta = {**asdict(st), "train_config": run.cfg.to_dict(), "variant": run.mcfg.variant()}
         save_checkpoint(run.dir / "last.safetensors", run.model, run.mcfg, optimizer=run.optimizers,
                         extra=meta, disc=run.disc)
+
+
+def _same_setting(key: str, saved, now) -> bool:
+    """A run-defining setting unchanged? Paths compare as the files they name (resolved)."""
+    if key in PATH_FIELDS and saved and now:
+        return Path(saved).resolve() == Path(now).resolve()
+    return _norm(saved) == _norm(now)
 
 
 def _norm(v):

@@ -9,6 +9,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -479,3 +480,32 @@ def test_the_data_check_is_remembered_for_unchanged_files(tmp_path, toy, monkeyp
     os.utime(root.layout_path("top", ids[0]), ns=(1, 1))       # touched: read again
     D.check_samples(toy, ids, ("top", "front"), R=4, passed=passed)
     assert [Path(p).name for p in reads] == [root.layout_path("top", ids[0]).name]
+
+
+def test_resume_from_another_folder_trains_on_the_same_data(tmp_path, monkeypatch):
+    """--data as typed (relative) is stored absolute in config.yaml, so `--resume` from another
+    working folder reads the run's data, not whatever `ds` is there; paths given again compare as
+    the folders they name."""
+    from racklay.commands.train import config_from_args
+    from racklay.train import open_resume, write_config
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    (a / "ds").mkdir(parents=True)
+    (b / "ds").mkdir(parents=True)
+    monkeypatch.chdir(a)
+    cfg = TrainConfig(data="ds", out=str(tmp_path / "runs"), name="r", **TINY)
+    assert cfg.data == str(a / "ds")
+    cfg.run_dir().mkdir(parents=True)
+    write_config(cfg.run_dir(), cfg)
+    monkeypatch.chdir(b)
+    args = types.SimpleNamespace(config=None, out=str(tmp_path / "runs"), name="r", resume=True)
+    assert config_from_args(args).data == str(a / "ds")
+    # a checkpoint that recorded the data relative to the folder it was started in still resumes
+    net = RackLayNet(cfg.model_config())
+    saved = {**cfg.to_dict(), "data": os.path.relpath(a / "ds", b)}
+    save_checkpoint(cfg.run_dir() / "last.safetensors", net, cfg.model_config(), extra={"train_config": saved})
+    again = TrainConfig(**{**cfg.to_dict(), "resume": True})
+    assert open_resume(again, cfg.run_dir(), main=True) is not None
+    other = TrainConfig(**{**cfg.to_dict(), "resume": True, "data": str(b / "ds")})
+    with pytest.raises(ValueError, match="differs in data"):
+        open_resume(other, cfg.run_dir(), main=True)
