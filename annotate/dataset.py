@@ -113,9 +113,10 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
 
     Every annotation, its layouts and its photo are checked before anything is written: the photo
     must be readable, and the annotation must fit it (schema.photo_problems: same name and size,
-    every point inside it, no box without area) and give layouts (annotate.geometry). The first
-    that does not stops the export with one line naming it, or, with `skip_invalid`, is left out
-    and listed in the summary's "skipped". The geometry's warnings for the exported photos (which
+    every point inside it, no box without area) and give layouts (annotate.geometry); an annotation
+    file that cannot be read (truncated, invalid JSON or schema) is a problem like the others. Any
+    problem stops the export with one line naming every bad file, or, with `skip_invalid`, those
+    annotations are left out and listed in the summary's "skipped". The geometry's warnings for the exported photos (which
     also go into meta/*.json) are in its "warnings". The dataset is then built in a hidden
     temporary folder beside `out` and renamed to `out` at the end, so a failure (or a kill) never
     leaves a half-written dataset at `out`."""
@@ -133,11 +134,15 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
     skipped: list[tuple[str, str]] = []
     warnings: list[str] = []
     for name in project.images():
-        ann = project.read_annotation(name)  # a bad file stops the export, naming itself
+        p = project.annotation_path(name)
+        try:
+            ann = project.read_annotation(name)  # a truncated or invalid file names itself
+        except ValueError as e:
+            skipped.append((str(p), str(e)))
+            continue
         if ann is None:
             unannotated += 1
             continue
-        p = project.annotation_path(name)
         if ann["status"] not in only_status:
             other_status[ann["status"]] = other_status.get(ann["status"], 0) + 1
             continue
@@ -153,12 +158,15 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
                 raise ValueError(f"{p}: cannot export ({e})") from None
             project.read_image(name)  # an unreadable photo stops the export, naming itself
         except ValueError as e:       # StoreError, DataError, SchemaError: one line naming the file
-            if not skip_invalid:
-                raise
             skipped.append((str(p), str(e)))
             continue
         warnings += [f"{name}: {msg}" for msg in scene.warnings]
         chosen.append((name, ann, scene))   # the scene is kept (small); layouts are drawn when written
+    if skipped and not skip_invalid:
+        if len(skipped) == 1:
+            raise ValueError(skipped[0][1])
+        raise ValueError(f"{len(skipped)} annotations cannot be exported (--skip-invalid exports the rest): "
+                         + " | ".join(msg for _, msg in skipped))
     if not chosen:
         why = f" ({len(skipped)} invalid, first: {skipped[0][1]})" if skipped else ""
         raise ValueError(f"{project.root}: no annotation with status {', '.join(only_status)} to export{why}")

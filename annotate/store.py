@@ -224,9 +224,13 @@ class Project:
     def save(self, ann: dict, user: str | None = None) -> dict:
         """Save `ann`, which was edited starting from version ann['version']. Returns the saved
         annotation (version + 1). Raises ConflictError if the file moved on meanwhile, SchemaError
-        if `ann` or the file on disk is invalid (the file is then left alone)."""
+        if `ann` or the file on disk is invalid (the file is then left alone), StoreError if the
+        photo is no longer in the project."""
         name = ann["image"]
         p = self.annotation_path(name)
+        if not self.image_path(name).is_file():   # deleted while the server runs: refuse before writing
+            raise StoreError(f"{name}: the photo is no longer in the project {self.root} (moved or deleted?); "
+                             "not saved")
         new = dict(ann)
         with self._lock(name):
             on_disk = S.load_annotation(p) if p.exists() else None
@@ -247,11 +251,7 @@ class Project:
     def _check_fits_photo(self, name: str, new: dict, old: dict | None) -> None:
         """Refuse an edit that makes the annotation stop fitting its photo (schema.photo_problems:
         points outside the photo, boxes without area, wrong image_size). Problems the file on
-        disk already had do not block saving, so a bad file can be fixed one item at a time.
-        Nothing to check against while the photo is missing."""
-        p = self.image_path(name)
-        if not p.is_file():
-            return
+        disk already had do not block saving, so a bad file can be fixed one item at a time."""
         w, h = self.image_size(name)
         before = set(S.photo_problems(old, w, h, name)) if old else set()
         fresh = [m for m in S.photo_problems(new, w, h, name) if m not in before]

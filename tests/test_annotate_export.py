@@ -233,9 +233,10 @@ def _edit(proj, name, fn):
 
 def test_export_refuses_annotations_that_do_not_fit_their_photo(tmp_path, capsys):
     """Absurd annotations exported silently before (phantom shelf channels, shifted channels,
-    dropped boxes): now the first stops the export with one line naming it, --skip-invalid lists
-    each one left out, and every geometry warning written to meta/ is printed."""
-    proj = make_project(tmp_path, 8)
+    dropped boxes): now they stop the export with one line naming every bad file (a truncated JSON
+    file among them: it used to block even --skip-invalid), --skip-invalid lists each one left out,
+    and every geometry warning written to meta/ is printed."""
+    proj = make_project(tmp_path, 9)
     bad = {
         "p0.png": (lambda a: a["rack"]["corners"].__setitem__(0, [1e12, -1e12]),
                    "rack corner 1 at (1e+12, -1e+12) is outside the 640x480 photo"),
@@ -255,15 +256,21 @@ def test_export_refuses_annotations_that_do_not_fit_their_photo(tmp_path, capsys
     paths = {name: _edit(proj, name, fn) for name, (fn, _) in bad.items()}
     # p7 is fine but a box sticks out of the rack's depth: a warning, written to meta/ and printed
     _edit(proj, "p7.png", lambda a: a["boxes"][0].update(front_offset=0.5, depth=0.5))
+    truncated = proj.annotation_path("p8.png")
+    truncated.write_text(truncated.read_text()[:40])
     out = tmp_path / "ds"
     rc = annotate_main(["export", str(proj.root), "--out", str(out)])
     err = one_line_error(capsys)
-    assert rc == 2 and f"{paths['p0.png']}: cannot export ({bad['p0.png'][1]})" in err, err
+    assert rc == 2 and "8 annotations cannot be exported" in err, err
+    for name, (_, why) in bad.items():
+        assert f"{paths[name]}: cannot export ({why})" in err, (name, err)
+    assert str(truncated) in err
     assert not out.exists()
     rc = annotate_main(["export", str(proj.root), "--out", str(out), "--skip-invalid"])
     cap = capsys.readouterr()
-    assert rc == 0 and "exported 1 image(s)" in cap.out and "skipped 7 invalid annotation(s)" in cap.out
+    assert rc == 0 and "exported 1 image(s)" in cap.out and "skipped 8 invalid annotation(s)" in cap.out
     lines = cap.err.splitlines()
+    assert any(line.startswith(f"annotate export: skipped: {truncated}") for line in lines), lines
     for name, (_, why) in bad.items():
         assert f"annotate export: skipped: {paths[name]}: cannot export ({why})" in lines, (name, lines)
     warned = [l for l in lines if "warning" in l]

@@ -480,3 +480,14 @@ def test_scene_built_at_most_once_per_event(proj, monkeypatch):
     assert builds({"kind": "status", "value": "needs review"}) == 0
     assert builds({"kind": "act", "name": "undo"}) == 0        # back to a geometry seen a moment ago
     assert proj.load("r.png")["status"] == "in progress" and len(proj.load("r.png")["boxes"]) == 1
+
+
+def test_a_photo_deleted_while_open_is_not_annotated(proj):
+    """The photo is removed while a labeller has it open: the next edit is refused with one line
+    saying so (it used to save an annotation for the missing photo, then fail with '[Errno 2] ...')."""
+    tool = Tool(proj)
+    st = tool.open("r.png")
+    (proj.root / "r.png").unlink()
+    st = tool.click(st, 100.0, 100.0)
+    assert st.msg.startswith("⚠ not saved: r.png: the photo is no longer in the project")
+    assert not proj.annotation_path("r.png").exists()
