@@ -21,14 +21,23 @@ def _file_mode() -> int:
 
 _FILE_MODE = _file_mode()
 
+
+class WriteError(OSError):
+    """An output file could not be written (disk full, read-only, no permission): an OSError that
+    names the file, so the message says which output failed. Commands stop on it: the next file
+    would fail the same way."""
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, fsync: bool = True, mode: int | None = None) -> Path:
     """Write `data` to a temporary file beside `path`, then rename it over `path`. With
     fsync=False the data is not forced to disk before the rename: readers and interrupted
     processes still never see half a file, but a power loss may (bulk generators use it).
     `mode`: the file's permissions (default: what a plain open() gives, 0666 minus the umask)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:
+        raise WriteError(e.errno, e.strerror or str(e), str(path)) from None
     try:
         with os.fdopen(fd, "wb") as f:
             os.fchmod(f.fileno(), _FILE_MODE if mode is None else mode)
@@ -37,11 +46,13 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, fsync: bool = True,
             if fsync:
                 os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        if isinstance(e, OSError) and not isinstance(e, WriteError):
+            raise WriteError(e.errno, e.strerror or str(e), str(path)) from None
         raise
     return path
 

@@ -25,6 +25,8 @@ from .onnx import export_onnx_bytes, onnx_session
 from .precision import native_bf16  # noqa: F401  (resolve_precision uses it; tests patch it here)
 
 BACKENDS = ("torch", "onnx")
+#: photos with a shorter side than this are predicted with a warning (upscaled, they hold no rack)
+MIN_PHOTO_SIDE = 32
 PRECISIONS = ("fp32", "bf16", "auto")
 
 
@@ -354,6 +356,7 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
     shelf_length: the shelves' known length in metres (fixes the scale, `Predictor.predict`)."""
     import sys
 
+    from .atomic import WriteError
     from .data import read_image
 
     skipped: list[Path] = []
@@ -381,12 +384,22 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
     for path, sid in zip(files, ids):
         try:
             image = read_image(path)
+            if min(image.shape[:2]) < MIN_PHOTO_SIDE:
+                h, w = predictor.image_size
+                log(f"warning: {path}: {image.shape[1]}x{image.shape[0]} pixels is far smaller than the model's "
+                    f"{w}x{h} input; its layouts say little about a rack")
             pred = predictor.predict(image, shelf_length=shelf_length)
             if layout_size:
                 pred = resize_prediction(pred, layout_size)
             write_prediction(out, sid, image, pred, predictor.views, source=str(path), figure=figure,
                              png=png, crop=crop, extra_meta=extra)
             rep.done.append(sid)
+        except WriteError:
+            # the output cannot be written (disk full, read-only): every next photo would fail the
+            # same way, so stop here; the error names the file
+            if bar is not None:
+                bar.close()
+            raise
         except (ValueError, OSError, MemoryError) as e:  # DataError is a ValueError and names the file
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
             if isinstance(e, MemoryError):

@@ -120,6 +120,11 @@ def test_predict_folder_outputs_and_bad_files(toy, ckpt, tmp_path, capsys):
     (src / "broken.png").unlink()
     (src / "fake.jpg").unlink()
     assert racklay_main(["predict", str(src), "--weights", str(ckpt), "--out", str(tmp_path / "p2")]) == 0
+    # a 1x1 photo is predicted, with a warning naming it
+    tiny = tmp_path / "tiny.png"
+    cv2.imwrite(str(tiny), np.zeros((1, 1, 3), np.uint8))
+    assert racklay_main(["predict", str(tiny), "--weights", str(ckpt), "--out", str(tmp_path / "p4")]) == 0
+    assert f"warning: {tiny}: 1x1 pixels is far smaller than the model's" in capsys.readouterr().err
     # a non-image named on the command line is still an error, not skipped
     assert racklay_main(["predict", str(src / "notes.txt"), "--weights", str(ckpt), "--out", str(tmp_path / "p3")]) == 1
     pr = RackLayRoot(out)
@@ -323,3 +328,25 @@ def test_shape_errors_name_the_file_that_is_wrong(toy, ckpt, tmp_path, capsys):
     assert racklay_main(["eval", "--weights", str(r3), "--data", str(toy), "--split", "all"]) == 2
     err = capsys.readouterr().err
     assert f"{r3}: the model predicts R=3 shelves but the layouts in {toy} have R=4" in err, err
+
+
+def test_a_full_disk_stops_predict_naming_the_file(toy, ckpt, tmp_path, capsys, monkeypatch):
+    """Disk full while writing: one error naming the output file, and predict stops instead of
+    trying (and failing) every remaining photo."""
+    import errno
+
+    import racklay.atomic as atomic
+
+    calls = []
+
+    def full(fd):
+        calls.append(fd)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomic.os, "fsync", full)
+    out = tmp_path / "pred"
+    rc = racklay_main(["predict", str(toy / "Images"), "--weights", str(ckpt), "--out", str(out), "--no-figure"])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(calls) == 1
+    line = [x for x in err.splitlines() if "error" in x]
+    assert len(line) == 1 and str(out) in line[0] and "no space left on device" in line[0], err
