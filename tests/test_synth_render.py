@@ -65,6 +65,14 @@ def test_user_texture_folder(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="holds no images"):
         build_bank("warehouse", 0, str(tmp_path / "empty"))
+    # an empty texture folder is refused with the recipe, before `racklay synth` makes its output
+    # folder (a skeleton left behind used to make the corrected re-run refuse it)
+    from racklay.cli import main as racklay_main
+
+    out = tmp_path / "synth"
+    assert racklay_main(["synth", "--recipe", "complex", "--n", "1", "--out", str(out),
+                         "--set", f"texture_dir={tmp_path / 'empty'}", "--no-progress"]) == 2
+    assert not out.exists()
 
 
 def test_proxy_real_distortion_keeps_maps_aligned(tmp_path):

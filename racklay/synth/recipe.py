@@ -216,6 +216,12 @@ def recipe_from_dict(data: dict, src: str = "recipe") -> Recipe:
         raise RecipeError(f"{src}: key 'layout_size' must be even, got {r.layout_size}")
     if r.texture_dir and not Path(os.path.expanduser(r.texture_dir)).is_dir():
         raise RecipeError(f"{src}: key 'texture_dir': folder {r.texture_dir} not found")
+    if r.texture_dir:        # an empty folder is refused here, before any output folder exists
+        from .textures import texture_files
+        try:
+            texture_files(r.texture_dir)
+        except ValueError as e:
+            raise RecipeError(f"{src}: key 'texture_dir': {e}") from None
     return r
 
 

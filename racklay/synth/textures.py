@@ -237,6 +237,20 @@ _CRATE_COLORS = {"warehouse": [(0.12, 0.32, 0.75), (0.78, 0.12, 0.1)],
 _BANK_CACHE: dict = {}
 
 
+def texture_files(folder: str) -> list[Path]:
+    """The images in a `texture_dir` (sorted by name), checked before anything is generated: a
+    missing or empty folder is a one-line error naming it."""
+    from ..data import PHOTO_EXTS
+
+    d = Path(folder).expanduser()
+    if not d.is_dir():
+        raise ValueError(f"{folder}: texture_dir is not a folder")
+    files = sorted(p for p in d.iterdir() if p.suffix.lower() in PHOTO_EXTS and not p.name.startswith("."))
+    if not files:
+        raise ValueError(f"{folder}: texture_dir holds no images ({'/'.join(PHOTO_EXTS)})")
+    return files
+
+
 def load_user_textures(folder: str) -> list[np.ndarray]:
     """Images in `folder` (sorted by name), resized to 256 x 256 RGB. Unreadable files are an
     error naming the file."""
@@ -244,13 +258,7 @@ def load_user_textures(folder: str) -> list[np.ndarray]:
 
     from ..data import read_image
 
-    out = []
-    for p in sorted(Path(folder).expanduser().iterdir()):
-        if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp", ".webp") and not p.name.startswith("."):
-            out.append(cv2.resize(read_image(p), (TEX, TEX), interpolation=cv2.INTER_AREA))
-    if not out:
-        raise ValueError(f"{folder}: texture_dir holds no images (.png/.jpg/.jpeg/.bmp/.webp)")
-    return out
+    return [cv2.resize(read_image(p), (TEX, TEX), interpolation=cv2.INTER_AREA) for p in texture_files(folder)]
 
 
 def build_bank(family: str = "warehouse", seed: int = 0, texture_dir: str = "") -> TextureBank:
