@@ -217,12 +217,25 @@ def recipe_from_dict(data: dict, src: str = "recipe") -> Recipe:
     if r.texture_dir and not Path(os.path.expanduser(r.texture_dir)).is_dir():
         raise RecipeError(f"{src}: key 'texture_dir': folder {r.texture_dir} not found")
     if r.texture_dir:        # an empty folder is refused here, before any output folder exists
-        from .textures import texture_files
         try:
             texture_files(r.texture_dir)
         except ValueError as e:
             raise RecipeError(f"{src}: key 'texture_dir': {e}") from None
     return r
+
+
+def texture_files(folder: str) -> list[Path]:
+    """The images in a `texture_dir` (sorted by name), checked before anything is generated: a
+    missing or empty folder is a one-line error naming it."""
+    from ..data import PHOTO_EXTS
+
+    d = Path(folder).expanduser()
+    if not d.is_dir():
+        raise ValueError(f"{folder}: texture_dir is not a folder")
+    files = sorted(p for p in d.iterdir() if p.suffix.lower() in PHOTO_EXTS and not p.name.startswith("."))
+    if not files:
+        raise ValueError(f"{folder}: texture_dir holds no images ({'/'.join(PHOTO_EXTS)})")
+    return files
 
 
 def parse_override(text: str) -> tuple[str, object]:

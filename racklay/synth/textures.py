@@ -10,10 +10,10 @@ layer indices and shading parameters. It depends only on (family, seed, texture_
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
+from .recipe import texture_files
 from .scene import CATEGORY_NAMES
 
 TEX = 256
@@ -235,20 +235,6 @@ _CRATE_COLORS = {"warehouse": [(0.12, 0.32, 0.75), (0.78, 0.12, 0.1)],
                  "proxy": [(0.15, 0.55, 0.25), (0.95, 0.75, 0.1)]}
 
 _BANK_CACHE: dict = {}
-
-
-def texture_files(folder: str) -> list[Path]:
-    """The images in a `texture_dir` (sorted by name), checked before anything is generated: a
-    missing or empty folder is a one-line error naming it."""
-    from ..data import PHOTO_EXTS
-
-    d = Path(folder).expanduser()
-    if not d.is_dir():
-        raise ValueError(f"{folder}: texture_dir is not a folder")
-    files = sorted(p for p in d.iterdir() if p.suffix.lower() in PHOTO_EXTS and not p.name.startswith("."))
-    if not files:
-        raise ValueError(f"{folder}: texture_dir holds no images ({'/'.join(PHOTO_EXTS)})")
-    return files
 
 
 def load_user_textures(folder: str) -> list[np.ndarray]:
