@@ -644,7 +644,11 @@ class Tool:
         # proposals keep the predicted shape and land where the rack is (racklay.predict.with_shelf_length)
         from racklay.predict import with_shelf_length
 
-        pred = with_shelf_length(pred, scene.width)
+        try:
+            pred = with_shelf_length(pred, scene.width)
+        except ValueError as e:          # a rack wider than the layout grid
+            ann["proposals"] = []
+            return f"no model proposals: {e}"
         probs = pred.get("probs", {}).get("front")
         props = G.front_box_rects(pred["front"], pred.get("top"), pred["grid"], scene.shelf_v, scene.width,
                                   scene.depth, probs_box=None if probs is None else probs[:, L.BOX],

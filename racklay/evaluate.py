@@ -69,7 +69,7 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
     RackLay dataset there (so `racklay score` / `racklay show` can read them).
     shelf_length: every predicted shelf scaled to this known length (metres) before scoring.
     scale_from_truth: every predicted shelf scaled to its true shelf's length, so the score is of
-    the shape alone (`racklay.layout.rescale_to_length`)."""
+    the shape alone (`racklay.layout.scale_shelves`)."""
     if shelf_length is not None and scale_from_truth:
         raise ValueError("give either a shelf length or scale_from_truth, not both")
     import torch
@@ -116,23 +116,19 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
 def _rescaled(classes: dict, probs: dict, truth: dict, views, grid: L.Grid, shelf_length: float | None):
     """A batch's predictions ({view: (N, R, S, S)}, probabilities {view: (N, R, 3, S, S)}) with every
     shelf scaled to `shelf_length` or, when it is None, to the length of the true shelf in the same
-    channel (channels the truth lacks stay as predicted). One factor per shelf for both views."""
-    classes, probs = dict(classes), dict(probs)
-    bg = np.eye(L.NUM_CLASSES, dtype=np.float32)[L.BACKGROUND]
-    for v in views:
-        classes[v], probs[v] = classes[v].copy(), probs[v].copy()
+    channel (channels the truth lacks stay as predicted): `racklay.layout.scale_shelves` per image."""
+    out_c = {v: np.empty_like(classes[v]) for v in views}
+    out_p = {v: np.empty_like(probs[v]) for v in views}
     tgrid = L.Grid(size=truth[views[0]].shape[-1], extent=grid.extent)
     for j in range(len(classes[views[0]])):
-        if shelf_length is None:
+        want = shelf_length
+        if want is None:
             want = np.max([L.shelf_lengths(truth[v][j], tgrid) for v in views], axis=0)
             want = np.where(want > 0, want, np.nan)
-        else:
-            want = shelf_length
-        f = L.length_factors([classes[v][j] for v in views], grid, want)
+        c, p, _ = L.scale_shelves({v: classes[v][j] for v in views}, grid, want, {v: probs[v][j] for v in views})
         for v in views:
-            classes[v][j] = L.scale_about_origin(classes[v][j], f)
-            probs[v][j] = L.scale_about_origin(probs[v][j], f, fill=bg)
-    return classes, probs
+            out_c[v][j], out_p[v][j] = c[v], p[v]
+    return out_c, out_p
 
 
 def eval_report(result: dict, weights, data, split, cfg=None, native: bool = False, scale: str = "model") -> dict:

@@ -420,11 +420,28 @@ def scale_about_origin(arrays: np.ndarray, factors, fill=None) -> np.ndarray:
         out[i] = ch
     return out
 
+def scale_shelves(layouts: dict, grid: Grid, length, probs: dict | None = None):
+    """Every shelf of a prediction scaled to a known length: `layouts` {view: (R, D, D) class ids},
+    `probs` {view: (R, 3, D, D)} (optional), `length` in metres (a number, or one per channel; NaN
+    leaves a channel). One factor per shelf for both views and all its dimensions
+    (`length_factors`), applied about the shelf origin (`scale_about_origin`; what comes from
+    outside the grid is background). Returns (layouts, probs, factors)."""
+    want = np.asarray(length, dtype=np.float64)
+    if np.any(want[np.isfinite(want)] > grid.extent):
+        raise ValueError(f"shelf length {length} m does not fit the {grid.extent:g} m layout grid")
+    views = [v for v in VIEWS if v in layouts]
+    f = length_factors([layouts[v] for v in views], grid, length)
+    bg = np.eye(NUM_CLASSES, dtype=np.float32)[BACKGROUND]
+    out = {v: scale_about_origin(layouts[v], f) for v in views}
+    out_p = {v: scale_about_origin(p, f, fill=bg) for v, p in (probs or {}).items()}
+    return out, out_p, f
+
+
 __all__ = [
     "BACKGROUND", "SHELF", "BOX", "CLASS_NAMES", "NUM_CLASSES", "FILE_VALUES", "DEFAULT_D",
     "DEFAULT_EXTENT_M", "DEFAULT_R", "FRONT_CLEARANCE_PAD_M", "VIEWS", "LayoutError", "Grid",
     "Shelf", "Box", "ShelfLayout", "fill_axis_rect", "oriented_rect_mask", "rasterize_shelf",
     "stack_shelves", "encode", "decode", "check_stack", "hflip_layouts",
     "visible_shelf_count", "resize_layouts", "layout_area_m2", "shelf_lengths", "length_factors",
-    "scale_about_origin",
+    "scale_about_origin", "scale_shelves",
 ]

@@ -236,23 +236,14 @@ class Predictor:
 
 def with_shelf_length(pred: dict, shelf_length: float) -> dict:
     """A prediction ({view: (R, S, S) classes, "probs", "grid"}) with every shelf scaled to a known
-    length in metres: one factor per shelf for all its dimensions and both views, about the shelf
-    origin (`racklay.layout.length_factors`, `scale_about_origin`). Adds "scale": (R,) factors."""
+    length in metres (`racklay.layout.scale_shelves`: one factor per shelf for all its dimensions
+    and both views, about the shelf origin). Adds "scale": (R,) factors applied."""
     if isinstance(shelf_length, bool) or not isinstance(shelf_length, (int, float)) \
             or not np.isfinite(shelf_length) or shelf_length <= 0:
         raise ValueError(f"shelf length must be a positive number of metres, got {shelf_length!r}")
-    g = pred["grid"]
-    if shelf_length > g.extent:
-        raise ValueError(f"shelf length {shelf_length:g} m does not fit the {g.extent:g} m layout grid")
-    views = [v for v in L.VIEWS if v in pred]
-    factors = L.length_factors([pred[v] for v in views], g, shelf_length)
-    bg = np.eye(L.NUM_CLASSES, dtype=np.float32)[L.BACKGROUND]
-    out = dict(pred, probs=dict(pred.get("probs", {})), scale=factors)
-    for v in views:
-        out[v] = L.scale_about_origin(pred[v], factors)
-        if v in out["probs"]:
-            out["probs"][v] = L.scale_about_origin(out["probs"][v], factors, fill=bg)
-    return out
+    layouts, probs, factors = L.scale_shelves({v: pred[v] for v in L.VIEWS if v in pred}, pred["grid"],
+                                              shelf_length, pred.get("probs"))
+    return {**pred, **layouts, "probs": probs, "scale": factors}
 
 
 # --- folders of photos -------------------------------------------------------------------
