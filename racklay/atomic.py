@@ -27,6 +27,7 @@ class WriteError(OSError):
     names the file, so the message says which output failed. Commands stop on it: the next file
     would fail the same way."""
 
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, fsync: bool = True, mode: int | None = None) -> Path:
     """Write `data` to a temporary file beside `path`, then rename it over `path`. With
     fsync=False the data is not forced to disk before the rename: readers and interrupted
