@@ -476,12 +476,14 @@ class CheckReport:
 
 
 def check_samples(root: str | os.PathLike, ids: Sequence[str], views: Sequence[str], R: int | None = None,
-                  passed: dict | None = None, progress: bool = False) -> tuple[list[str], tuple | None]:
+                  passed: dict | None = None, progress: bool = False,
+                  sizes: dict | None = None) -> tuple[list[str], tuple | None]:
     """What `racklay train` checks before its first step: for these sample ids, the image (header,
     pixel limit, PNG completeness; not decoded) and every view's layout (present, readable, strict
     values, R channels), and that all layouts share one size. Returns (problems, (R, D) most
     layouts have). `passed` ({path: [size, mtime_ns]}) remembers files that passed: they are not
-    read again while unchanged (updated in place), so a restart checks in moments."""
+    read again while unchanged (updated in place), so a restart checks in moments. `sizes`, when
+    given, collects the image paths by (width, height): {(w, h): [path, ...]}."""
     ds = RackLayRoot(root)
     problems: list[str] = []
     shapes: Counter = Counter()
@@ -500,14 +502,17 @@ def check_samples(root: str | os.PathLike, ids: Sequence[str], views: Sequence[s
         img = ds.image_path(sid)
         try:
             key = str(img)
-            if passed.get(key) != (stamp(img) if img.is_file() else None):
+            hit = passed.get(key)
+            if not (img.is_file() and hit is not None and hit[:2] == stamp(img)):
                 info = image_info(img)
                 if info.format == "PNG":
                     with open(img, "rb") as f:
                         f.seek(max(0, img.stat().st_size - 12))
                         if b"IEND" not in f.read():
                             raise DataError(f"{img}: truncated PNG (no IEND chunk)")
-                passed[key] = stamp(img)
+                hit = passed[key] = stamp(img) + [[info.width, info.height]]
+            if sizes is not None:
+                sizes.setdefault(tuple(hit[2]), []).append(key)
         except DataError as e:
             problems.append(str(e))
         for view in views:

@@ -818,10 +818,17 @@ def check_run_data(cfg: TrainConfig, run_dir: Path, train_ids, val_ids) -> dict:
         except (OSError, ValueError):
             passed = {}
     ids = list(dict.fromkeys([*train_ids, *val_ids]))
-    problems, _ = check_samples(cfg.data, ids, cfg.views, R=cfg.R, passed=passed, progress=cfg.progress)
+    sizes: dict = {}
+    problems, _ = check_samples(cfg.data, ids, cfg.views, R=cfg.R, passed=passed, progress=cfg.progress,
+                                sizes=sizes)
     if problems:
         more = f" (and {len(problems) - 1} more: racklay check-data {cfg.data})" if len(problems) > 1 else ""
         raise DataError(f"training data not usable: {problems[0]}{more}")
+    if len(sizes) > 1:     # allowed (photos vary), never silent: each is resized to the input
+        (w, h), common = max(sizes.items(), key=lambda kv: len(kv[1]))
+        odd = [(p, wh) for wh, paths in sizes.items() if wh != (w, h) for p in paths]
+        print(f"warning: {len(odd)} image(s) are not {w}x{h} like the other {len(common)} (e.g. {odd[0][0]}: "
+              f"{odd[0][1][0]}x{odd[0][1][1]}); every image is resized to the model's input", flush=True)
     return passed
 
 

@@ -465,6 +465,24 @@ def test_bad_data_fails_the_run_before_its_first_step(tmp_path, toy, split, monk
     assert steps == []
 
 
+def test_an_image_of_another_size_is_said_not_silent(tmp_path, toy, capsys):
+    """Images of several sizes may train (photos vary; each is resized to the input), but the run
+    says so before its first step, naming one."""
+    import cv2
+
+    from racklay.train import check_run_data, split_ids
+
+    data = tmp_path / "ds"
+    shutil.copytree(toy, data)
+    root = RackLayRoot(data)
+    odd = root.image_path(root.resolve("train")[0])
+    cv2.imwrite(str(odd), np.zeros((30, 50, 3), np.uint8))
+    cfg = TrainConfig(data=str(data), out=str(tmp_path / "runs"), name="sizes", **TINY)
+    check_run_data(cfg, cfg.run_dir(), *split_ids(cfg))
+    out = capsys.readouterr().out
+    assert "warning: 1 image(s) are not" in out and f"{odd}: 50x30" in out
+
+
 def test_the_data_check_is_remembered_for_unchanged_files(tmp_path, toy, monkeypatch):
     import racklay.data as D
 
