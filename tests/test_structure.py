@@ -100,10 +100,9 @@ def test_struct_decoder_shelf_length_changes_the_scale_and_not_the_shape():
         lengths = L.shelf_lengths(known[v].argmax(2)[0].numpy(), G)
         assert lengths[0] == pytest.approx(1.2, abs=2 * G.res)
         # shape: the fraction of the shelf's columns holding a box is unchanged
-        for a, b in ((base[v], known[v]),):
-            fa = (a.argmax(2)[0, 0] == L.BOX).any(0).sum() / (a.argmax(2)[0, 0] > 0).any(0).sum()
-            fb = (b.argmax(2)[0, 0] == L.BOX).any(0).sum() / (b.argmax(2)[0, 0] > 0).any(0).sum()
-            assert float(fa) == pytest.approx(float(fb), abs=0.05)
+        fa, fb = ((a.argmax(2)[0, 0] == L.BOX).any(0).sum() / (a.argmax(2)[0, 0] > 0).any(0).sum()
+                  for a in (base[v], known[v]))
+        assert float(fa) == pytest.approx(float(fb), abs=0.05)
     assert set(st) == {"top", "front"} and st["front"]["height"].shape == (1, 3, st["front"]["box"].shape[-1])
 
 
