@@ -476,14 +476,16 @@ class CheckReport:
 
 
 def check_samples(root: str | os.PathLike, ids: Sequence[str], views: Sequence[str], R: int | None = None,
-                  passed: dict | None = None, progress: bool = False,
-                  sizes: dict | None = None) -> tuple[list[str], tuple | None]:
-    """What `racklay train` checks before its first step: for these sample ids, the image (header,
-    pixel limit, PNG completeness; not decoded) and every view's layout (present, readable, strict
-    values, R channels), and that all layouts share one size. Returns (problems, (R, D) most
-    layouts have). `passed` ({path: [size, mtime_ns]}) remembers files that passed: they are not
-    read again while unchanged (updated in place), so a restart checks in moments. `sizes`, when
-    given, collects the image paths by (width, height): {(w, h): [path, ...]}."""
+                  D: int | None = None, passed: dict | None = None, progress: bool = False,
+                  sizes: dict | None = None, decode: bool = False) -> tuple[list[str], tuple | None]:
+    """The per-sample checks of `check_dataset` (which decodes every image: `decode`) and of
+    `racklay train` before its first step (which reads the image's header, pixel limit and PNG
+    completeness only): for these sample ids, the image and every view's layout (present,
+    readable, strict values, R channels, D pixels), and that all layouts share one size. Returns
+    (problems, (R, D) most layouts have). `passed` ({path: [size, mtime_ns, shape]}) remembers
+    files that passed: they are not read again while unchanged (updated in place), so a restart
+    checks in moments. `sizes`, when given, collects the image paths by (width, height):
+    {(w, h): [path, ...]}."""
     ds = RackLayRoot(root)
     problems: list[str] = []
     shapes: Counter = Counter()
@@ -497,13 +499,16 @@ def check_samples(root: str | os.PathLike, ids: Sequence[str], views: Sequence[s
     it = ids
     if progress:
         from tqdm import tqdm
-        it = tqdm(ids, desc="checking data", unit="sample", leave=False)
+        it = tqdm(ids, desc="check-data", unit="img", leave=False)
     for sid in it:
         img = ds.image_path(sid)
         try:
             key = str(img)
             hit = passed.get(key)
-            if not (img.is_file() and hit is not None and hit[:2] == stamp(img)):
+            if decode:
+                h, w = read_image(img).shape[:2]
+                hit = passed[key] = stamp(img) + [[w, h]]
+            elif not (img.is_file() and hit is not None and hit[:2] == stamp(img)):
                 info = image_info(img)
                 if info.format == "PNG":
                     with open(img, "rb") as f:
@@ -527,7 +532,7 @@ def check_samples(root: str | os.PathLike, ids: Sequence[str], views: Sequence[s
             else:
                 try:
                     arr = load_npy(p)
-                    L.check_stack(arr, R=R, source=str(p))
+                    L.check_stack(arr, R=R, D=D, source=str(p))
                 except (L.LayoutError, DataError) as e:
                     problems.append(str(e))
                     continue
@@ -566,31 +571,11 @@ def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None =
     for sid, n in stems.items():
         if n > 1:
             rep.problems.append(f"{ds.root / IMAGES_DIR}: {n} image files share the id {sid}")
-    shapes: Counter = Counter()
-    shape_of: dict[Path, tuple] = {}
-    it = ids
-    if progress:
-        from tqdm import tqdm
-        it = tqdm(ids, desc="check-data", unit="img", leave=False)
-    for sid in it:
-        try:
-            ds.read_image(sid)
-        except DataError as e:
-            rep.problems.append(str(e))
-        for view in rep.views:
-            p = ds.layout_path(view, sid)
-            if not p.exists():
-                rep.problems.append(f"{p}: missing {view} layout for image {ds.image_path(sid).name}")
-                continue
-            try:
-                arr = load_npy(p)
-                L.check_stack(arr, R=R, D=D, source=str(p))
-                shapes[arr.shape] += 1
-                shape_of[p] = arr.shape
-            except (L.LayoutError, DataError) as e:
-                rep.problems.append(str(e))
-            except Exception as e:
-                rep.problems.append(f"{p}: not a readable .npy array ({type(e).__name__})")
+    problems, common = check_samples(ds.root, ids, rep.views, R=R, D=D, progress=progress, decode=True)
+    rep.problems += problems
+    if common is not None:
+        rep.R, rep.D = common
+    for sid in ids:
         mp = ds.meta_path(sid)
         if mp.exists():
             try:
@@ -607,12 +592,6 @@ def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None =
                 rep.problems.append(f"{p}: unexpected file name (expected {VIEW_PREFIX[view]}NNNNNN.npy)")
             elif sid not in idset:
                 rep.problems.append(f"{p}: {view} layout has no image {IMAGES_DIR}/{sid}.png")
-    if shapes:
-        common = shapes.most_common(1)[0][0]
-        for p, shp in shape_of.items():
-            if shp != common:
-                rep.problems.append(f"{p}: shape {shp} differs from the dataset's {common}")
-        rep.R, rep.D = common[0], common[1]
     # splits
     seen: dict[str, str] = {}
     for name in ds.splits():
