@@ -173,29 +173,28 @@ class Authenticator:
             self.log(f"login refused for {user!r}: {why}")
             await self.sleep(1.0)
             return False
-        ok, in_a_row = False, 0
+        ok, in_a_row, new_lock = False, 0, False
         try:
             ok = await asyncio.to_thread(self._verify, user, str(password))
         finally:
             with self._lock:
                 n, until, flying = self._fails.pop(user, (0, 0.0, 1))
-                flying = max(0, flying - 1)
-                locked = until > self.clock()
+                locked = until > self.clock()          # set by another attempt while this one was checked
                 if ok and not locked:
                     n = 0
                 elif not ok:
                     n += 1
                     in_a_row = n
                     if n >= MAX_FAILS and not locked:
-                        until, n, locked = self.clock() + LOCKOUT_S, 0, "new"
-                self._fails[user] = (n, until, flying)
+                        until, n, new_lock = self.clock() + LOCKOUT_S, 0, True
+                self._fails[user] = (n, until, max(0, flying - 1))
         if ok and not locked:
             return True
-        if locked == "new":
+        if new_lock:
             self.log(f"{MAX_FAILS} failed logins in a row for {user!r}: locked out for {LOCKOUT_S:.0f} s")
         elif locked:
             self.log(f"login refused for {user!r}: locked out while its password was checked")
         else:
             self.log(f"failed login for {user!r} ({n} in a row)")
-        await self.sleep(1.0 if locked is True else min(0.25 * 2 ** (in_a_row - 1), 4.0))
+        await self.sleep(1.0 if locked else min(0.25 * 2 ** (in_a_row - 1), 4.0))
         return False

@@ -420,6 +420,7 @@ def scale_about_origin(arrays: np.ndarray, factors, fill=None) -> np.ndarray:
         out[i] = ch
     return out
 
+
 def scale_shelves(layouts: dict, grid: Grid, length, probs: dict | None = None):
     """Every shelf of a prediction scaled to a known length: `layouts` {view: (R, D, D) class ids},
     `probs` {view: (R, 3, D, D)} (optional), `length` in metres (a number, or one per channel; NaN

@@ -42,22 +42,11 @@ def add_precision_args(p) -> None:
                    help="same as --precision fp32")
 
 
-def positive_metres(text: str) -> float:
-    """argparse type: a positive, finite length in metres."""
-    import argparse
-
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected metres, got {text!r}") from None
-    if not (np.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number of metres, got {text!r}")
-    return v
-
-
 def add_shelf_length_arg(p) -> None:
     """--shelf-length M for commands that run a model on photos."""
-    p.add_argument("--shelf-length", type=positive_metres, default=None, metavar="M",
+    from .cli import positive_float
+
+    p.add_argument("--shelf-length", type=positive_float, default=None, metavar="M",
                    help="the shelves' known length in metres (beam length, bay width): fixes the metric "
                         "scale, which one photo cannot; every predicted shelf is scaled about its origin "
                         "to this length in all its dimensions, its shape unchanged (default: the model's "

@@ -28,7 +28,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from .layout import BOX, NUM_CLASSES
+from .layout import BOX, NUM_CLASSES, Grid
 
 #: positions along a shelf at which the per-position fields are sampled (bin centres (k + 0.5) / T)
 DEFAULT_T = 96
@@ -43,9 +43,8 @@ _EPS = 1e-6
 
 def pixel_centres(S: int, extent: float, device=None) -> torch.Tensor:
     """Metric coordinate of column centres (x) and, equally, of row centres read upward (y or z of
-    row S - 1 - r): (c + 0.5 - S/2) * res. As racklay.layout.Grid.centers."""
-    res = extent / S
-    return (torch.arange(S, device=device, dtype=torch.float32) + 0.5 - S / 2) * res
+    row S - 1 - r): racklay.layout.Grid.centers as a float32 tensor."""
+    return torch.as_tensor(Grid(S, extent).centers(), dtype=torch.float32, device=device)
 
 
 def sample_positions(seq: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -104,6 +103,7 @@ def _sig(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def _and(a: tuple, b: tuple) -> tuple:
     """(p, 1 - p) of the product of two independent events given as (p, 1 - p)."""
     return a[0] * b[0], a[1] + a[0] * b[1]
+
 
 def truth_structure(view: str, layouts: torch.Tensor, extent: float, T: int = DEFAULT_T) -> dict:
     """The structure of ground-truth class-id layouts (N, R, S, S): `presence` (N, R) bool,

@@ -832,14 +832,15 @@ def check_run_data(cfg: TrainConfig, run_dir: Path, train_ids, val_ids) -> dict:
     return passed
 
 
-def make_loaders(cfg: TrainConfig, transform, dist: _Dist, run_dir: Path | None = None):
-    """(training dataset, its loader, the loader's batch sampler, validation loader (rank 0 only))."""
+def make_loaders(cfg: TrainConfig, transform, dist: _Dist, run_dir: Path):
+    """(training dataset, its loader, the loader's batch sampler, validation loader (rank 0 only), the
+    record of checked files), after `check_run_data`."""
     from torch.utils.data import DataLoader
 
     from .torchdata import RackLayDataset, ReplayMix
 
     train_ids, val_ids = split_ids(cfg)
-    checked = check_run_data(cfg, run_dir or cfg.run_dir(), train_ids, val_ids)
+    checked = check_run_data(cfg, run_dir, train_ids, val_ids)
     kw = dict(image_size=cfg.image_size, layout_size=cfg.layout_size, views=cfg.views, R=cfg.R, cache=cfg.cache)
     if transform is None and cfg.augment != "none":
         from .augment import make_augment

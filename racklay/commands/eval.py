@@ -1,11 +1,11 @@
 """racklay eval --weights W --data ROOT --split test [--json out.json]"""
 from __future__ import annotations
 
-from racklay.cli import at_least
+from racklay.cli import at_least, positive_float
 
 
 def register(sub) -> None:
-    from racklay.predict import add_precision_args, positive_metres
+    from racklay.predict import add_precision_args
     from racklay.release import add_weights_arg
 
     p = sub.add_parser(
@@ -30,7 +30,7 @@ def register(sub) -> None:
     scale.add_argument("--scale-from-truth", action="store_true",
                        help="scale every predicted shelf to its true shelf's length before scoring: the "
                             "score of the shape alone, which a known dimension (--shelf-length) would give")
-    scale.add_argument("--shelf-length", type=positive_metres, default=None, metavar="M",
+    scale.add_argument("--shelf-length", type=positive_float, default=None, metavar="M",
                        help="scale every predicted shelf to this known length in metres before scoring")
     p.add_argument("--workers", type=at_least(0), default=0, help="DataLoader worker processes (default 0)")
     add_precision_args(p)
