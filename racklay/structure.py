@@ -25,6 +25,8 @@ and every dense consumer (eval, predict, ONNX, calibrate, analyze) work on it un
 """
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -60,24 +62,43 @@ def sample_positions(seq: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return g0 * (1 - w) + g1 * w
 
 
-def rasterize(view: str, st: dict, S: int, extent: float, tau_px: float = DEFAULT_TAU_PX) -> torch.Tensor:
+#: `rasterize` draws only the window where a shelf can be: beyond this many `tau` from every shelf's
+#: extent a sigmoid is below 2e-9, so each class probability there is its far-field value to fp32
+#: precision (background 1, shelf and box the floor `_EPS`); the rest of the grid is filled with that
+_WINDOW_TAUS = 20.0
+
+
+def rasterize(view: str, st: dict, S: int, extent: float, tau_px: float = DEFAULT_TAU_PX,
+              window: bool = True) -> torch.Tensor:
     """A structure dict (`presence` logits (N, R); `length`, `extent` metres (N, R); `box` logits and
     `height` or `near`/`far` fractions (N, R, T)) -> (N, R, 3, S, S) log-probabilities of
-    (background, shelf, box) on the layout grid of `view`."""
+    (background, shelf, box) on the layout grid of `view`.
+
+    Only the window of rows and columns that the batch's longest and deepest shelf can reach is
+    computed (a shelf is a few percent of the grid); the rest is the far-field value: the same
+    numbers as drawing the whole grid (`window=False`; to ~1e-6 in log-probability, the same
+    argmax). While exporting or tracing the whole grid is drawn (no data-dependent shapes)."""
     dev = st["length"].device
     c = pixel_centres(S, extent, dev)                      # column centres (x), left to right
     v = c.flip(0)                                          # row centres (y or z), top row first
     tau = tau_px * extent / S
     L, E = st["length"].float().unsqueeze(-1), st["extent"].float().unsqueeze(-1)      # (N, R, 1)
+    (c0, c1), (r0, r1) = (0, S), (0, S)
+    if window and not (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()) and L.numel():
+        m = _WINDOW_TAUS * tau
+        half_l, e_max = float(L.detach().amax()) / 2 + m, float(E.detach().amax())
+        c0, c1 = _span(c.abs() < half_l)
+        r0, r1 = _span((v > -m) & (v < e_max + m) if view == "front" else v.abs() < e_max / 2 + m)
+    c, v = c[c0:c1], v[r0:r1]
     pres = _sig(st["presence"].float()[..., None, None])                                # (N, R, 1, 1)
-    inside = _sig(((L / 2 - c.abs()) / tau).unsqueeze(2))                               # (N, R, 1, S) columns
+    inside = _sig(((L / 2 - c.abs()) / tau).unsqueeze(2))                               # (N, R, 1, w) columns
     t = c / L + 0.5
     if view == "front":
         fields = torch.stack([st["box"], st["height"]], 2).float()
         q, h = sample_positions(fields, t).unbind(2)
-        above = _sig((v / tau)[:, None])                                                # (S, 1) above the board
-        band = _sig(((E - v) / tau).unsqueeze(-1))                                      # (N, R, S, 1) rows
-        box_rows = _sig(((h * E).unsqueeze(2) - v[:, None]) / tau)                      # (N, R, S, S)
+        above = _sig((v / tau)[:, None])                                                # (h, 1) above the board
+        band = _sig(((E - v) / tau).unsqueeze(-1))                                      # (N, R, h, 1) rows
+        box_rows = _sig(((h * E).unsqueeze(2) - v[:, None]) / tau)                      # (N, R, h, w)
     else:
         fields = torch.stack([st["box"], st["near"], st["far"]], 2).float()
         q, near, far = sample_positions(fields, t).unbind(2)
@@ -91,7 +112,23 @@ def rasterize(view: str, st: dict, S: int, extent: float, tau_px: float = DEFAUL
     p_box = col[0] * qb[0]
     p_shelf = col[0] * band[0] * qb[1]
     p_bg = col[1] + col[0] * band[1] * qb[1]
-    return torch.stack([p_bg, p_shelf, p_box], 2).clamp_min(_EPS).log()
+    win = torch.stack([p_bg, p_shelf, p_box], 2).clamp_min(_EPS).log()
+    if (c0, c1, r0, r1) == (0, S, 0, S):
+        return win
+    out = win.new_empty(*win.shape[:3], S, S)
+    out[:, :, 0] = 0.0                                     # the far field: background 1, shelf and box _EPS
+    out[:, :, 1:] = math.log(_EPS)
+    out[..., r0:r1, c0:c1] = win
+    return out
+
+
+def _span(mask: torch.Tensor) -> tuple[int, int]:
+    """[first, last + 1) of the True entries of a 1-D mask whose True entries are contiguous (at
+    least one index, so that the window is never empty)."""
+    idx = torch.nonzero(mask).flatten()
+    if idx.numel() == 0:
+        return 0, 1
+    return int(idx[0]), int(idx[-1]) + 1
 
 
 def _sig(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -13,7 +13,7 @@ from conftest import make_toy
 from racklay import layout as L
 from racklay.cli import main as racklay_main
 from racklay.model import ModelConfig, RackLayNet
-from racklay.structure import rasterize, structure_loss, truth_structure
+from racklay.structure import DEFAULT_TAU_PX, HARD_TAU_PX, rasterize, structure_loss, truth_structure
 
 S, EXT = 128, 8.0
 G = L.Grid(S, EXT)
@@ -50,6 +50,33 @@ def test_structure_of_a_layout_draws_it_back_with_its_separate_boxes(view):
     assert (drawn == truth).mean() > 0.998
     assert _runs((drawn[0] == L.BOX).any(0)) == 2
     assert not (drawn[1] == L.BOX).any() and not drawn[2].any()
+
+
+@pytest.mark.parametrize("view", ["front", "top"])
+@pytest.mark.parametrize("tau", [DEFAULT_TAU_PX, HARD_TAU_PX])
+def test_rasterize_draws_the_same_layouts_in_its_window_as_on_the_whole_grid(view, tau):
+    """Drawing only the window the shelves can reach (the default, for speed) gives the whole
+    grid's log-probabilities and argmax, for shelves of different sizes in one batch, and with the
+    training edge softness the same gradients (the prediction softness has next to none)."""
+    g = torch.Generator().manual_seed(3)
+    N, R, T = 2, 3, 24
+    st = {"presence": torch.randn(N, R, generator=g), "length": torch.rand(N, R, generator=g) * 3 + 0.3,
+          "extent": torch.rand(N, R, generator=g) + 0.2, "box": torch.randn(N, R, T, generator=g) * 3}
+    if view == "front":
+        st["height"] = torch.rand(N, R, T, generator=g)
+    else:
+        st["near"], st["far"] = torch.rand(N, R, T, generator=g) * 0.5, 0.5 + torch.rand(N, R, T, generator=g) * 0.5
+    drawn, grads = [], []
+    for window in (True, False):
+        leaves = {k: v.clone().requires_grad_() for k, v in st.items()}
+        y = rasterize(view, leaves, S, EXT, tau, window=window)
+        drawn.append(y.detach())
+        grads.append(torch.autograd.grad(y[:, :, 1:].exp().sum() + y[:, :, 0].sum(), list(leaves.values())))
+    assert torch.allclose(drawn[0], drawn[1], atol=1e-5)
+    assert torch.equal(drawn[0].argmax(2), drawn[1].argmax(2))
+    if tau == DEFAULT_TAU_PX:
+        for a, b in zip(*grads):
+            assert torch.allclose(a, b, rtol=1e-3, atol=1e-3 * b.abs().max().item())
 
 
 def test_structure_loss_is_small_for_the_truth_and_large_for_a_wrong_scale():
