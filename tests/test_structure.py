@@ -4,6 +4,7 @@ known-dimension scale (racklay.layout.length_factors / scale_about_origin, `--sh
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -131,6 +132,25 @@ def test_struct_decoder_shelf_length_changes_the_scale_and_not_the_shape():
                   for a in (base[v], known[v]))
         assert float(fa) == pytest.approx(float(fb), abs=0.05)
     assert set(st) == {"top", "front"} and st["front"]["height"].shape == (1, 3, st["front"]["box"].shape[-1])
+
+
+def test_struct_views_agree_on_which_shelves_exist_their_length_and_where_boxes_stand():
+    """Top and front view are one board seen twice: a struct RackLay-D model draws each shelf
+    channel over the same columns in both views and boxes in the same columns, even where the
+    two views' heads alone would not (here: 1.5 m against 3 m, boxes mostly against rarely)."""
+    net = _struct_net()
+    with torch.no_grad():
+        for v, length, box in (("top", 1.5, 2.0), ("front", 3.0, -1.0)):
+            dec = net.decoders[v]
+            dec.shelf_head.bias[1] = math.log(length)
+            dec.pos_head.bias[0] = box
+            dec.pos_head.weight.normal_(0, 0.5)
+        out = net(torch.randn(2, 3, 64, 64))
+    top, front = (out[v].argmax(2).numpy() for v in ("top", "front"))
+    assert (front == L.BOX).any()
+    for cls in (L.SHELF, L.BOX):           # shelf: any non-background pixel in the column
+        cols = [((a > 0) if cls == L.SHELF else (a == L.BOX)).any(2) for a in (top, front)]
+        assert np.array_equal(*cols)
 
 
 def test_struct_structure_loss_trains_every_part_of_the_decoder():
