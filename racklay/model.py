@@ -505,7 +505,7 @@ class StructDecoder(nn.Module):
     whether a box stands there and its height (front) or depth interval (top) as fractions of the
     shelf (shape); `racklay.structure.rasterize` draws that as layout log-probabilities, so boxes
     come out as rectangles standing on their board and a known shelf length rescales the output
-    without changing its shape (`forward(feats, shelf_length=...)`).
+    without changing its shape (`RackLayNet.forward(x, shelf_length=...)`).
 
     Features per image column: the 1/8, 1/16 and 1/32 maps fused at 1/8. A per-shelf attention
     over image rows turns them into one 1-D sequence per shelf along the image columns; 1-D convs
@@ -574,12 +574,10 @@ class StructDecoder(nn.Module):
         tau = DEFAULT_TAU_PX if self.training else HARD_TAU_PX
         return rasterize(self.view, st, self.layout_size, self.extent, tau)
 
-    def forward(self, feats, shelf_length=None, with_structure: bool = False):
-        st = self.structure(feats)
-        if shelf_length is not None:
-            st = rescale_structure(st, shelf_length)
-        y = self.draw(st).flatten(1, 2)                                   # (N, 3R, S, S)
-        return (y, st) if with_structure else y
+    def forward(self, feats) -> torch.Tensor:
+        """(N, R, 3, S, S) layout log-probabilities of this view alone (RackLayNet.forward ties the
+        two views' structures and applies a known shelf length before drawing)."""
+        return self.draw(self.structure(feats))
 
     @torch.no_grad()
     def init_prior(self) -> None:
