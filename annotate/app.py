@@ -257,7 +257,9 @@ class Tool:
     def apply_one(self, st: Session, a: dict) -> Session:
         kind = a["kind"]
         img = a.get("image")
-        if kind in ("click", "box", "field") and img is not None and img != st.name:
+        # an action that asked for a second key press is armed for the very next action only
+        armed, st.confirm = st.confirm, None
+        if kind in ("click", "box", "drag", "field") and img is not None and img != st.name:
             st.msg = f"a {kind} made on {img} was not applied: {st.name} is open now"
             return st
         if kind == "click":
@@ -267,12 +269,16 @@ class Tool:
             p1 = [_finite(a["p1"][0]), _finite(a["p1"][1])]
             st.pending = None
             return self.add_box(st, p0, p1)
+        if kind == "drag":
+            p0 = [_finite(a["p0"][0]), _finite(a["p0"][1])]
+            p1 = [_finite(a["p1"][0]), _finite(a["p1"][1])]
+            return self.drag(st, p0, p1, zoom=_finite(a.get("z", 1.0)))
         if kind == "mode":
             if a["mode"] not in MODES:
                 raise ValueError(f"unknown mode {a['mode']!r}")
             if a["mode"] in ("depth", "offset") and st.mode not in ("depth", "offset"):
                 st.mode_before = st.mode
-            st.mode, st.pending = a["mode"], None
+            st.mode, st.pending, st.grab = a["mode"], None, None
             st.msg = ""
             return st
         if kind == "field":
@@ -295,19 +301,21 @@ class Tool:
             return st
         if kind == "act":
             fn = {"undo": self.undo, "redo": lambda s: self.undo(s, redo=True), "delete": self.delete,
-                  "save": self.save_now, "done": lambda s: self.set_status(s, "done"), "accept": self.accept,
+                  "save": self.save_now, "done": lambda s: self.mark_done(s, armed), "accept": self.accept,
                   "reject": self.reject, "accept_all": lambda s: self.accept(s, all_=True), "cancel": self.cancel,
                   "next": lambda s: self.step(s, +1), "prev": lambda s: self.step(s, -1),
                   "next_unfinished": lambda s: self.step(s, +1, unfinished=True),
-                  "confirm_size": self.confirm_size, "toggle_on_board": self.toggle_on_board}.get(a["name"])
+                  "confirm_size": self.confirm_size, "toggle_on_board": self.toggle_on_board,
+                  "size_from_box": self.size_from_box}.get(a["name"])
             if fn is None:
                 raise ValueError(f"unknown action {a['name']!r}")
             return fn(st)
         raise ValueError(f"unknown kind {kind!r}")
 
     def cancel(self, st: Session) -> Session:
-        st.pending = None
-        st.msg = "box cancelled"
+        """Esc: drop a half-drawn box or a grabbed corner."""
+        st.msg = "box cancelled" if st.pending is not None or st.grab is None else "corner let go"
+        st.pending = st.grab = None
         return st
 
     # --- clicks (photo pixels: x right, y down, pixel centres at integers) -------------------
@@ -333,14 +341,22 @@ class Tool:
             p0, st.pending = st.pending, None
             return self.add_box(st, p0, pt)
         if mode == "select":
-            st.sel = self.pick(st, pt, zoom)
+            st.sel, st.grab = self.pick(st, pt, zoom), None
             st.msg = f"selected {st.sel[0]} {st.sel[1]}" if st.sel else "nothing here"
             return st
         if mode in ("move", "resize"):
             if not st.sel:
                 st.msg = "select something first (mode 4)"
                 return st
-            return self.act(st, lambda a: self._move(st, a, pt, resize=mode == "resize"))
+            if mode == "resize" and st.sel[0] in ("box", "proposal"):
+                # two clicks: the first grabs the box corner nearest to it, the second puts it
+                if st.grab is None:
+                    st.grab = pt
+                    st.msg = "corner grabbed: click where it should go (Esc: let go)"
+                    return st
+                grab, st.grab = st.grab, None
+                return self.act(st, lambda a: self._resize(st.sel, a, grab, pt))
+            return self.act(st, lambda a: self._move(st, a, pt))
         if mode in ("depth", "offset"):
             return self._depth_click(st, pt, mode)
         return st
@@ -410,7 +426,87 @@ class Tool:
         c[k] = pt
         return f"corner {k + 1} moved"
 
-    def _move(self, st: Session, a, pt, resize=False):
+    def drag(self, st: Session, p0, p1, zoom: float = 1.0) -> Session:
+        """A drag on the photo from p0 to p1 (photo pixels). `boxes`: a new box with these
+        opposite corners; `select`: takes the item under p0 along (a box grabbed near one of its
+        corners is resized by that corner, otherwise moved by the drag); `move`: moves the
+        selected item by the drag; `resize`: moves the selected box's corner nearest to p0 to
+        p1. Other modes take it as a click at p0."""
+        if st.ann is None:
+            return st
+        p0 = [round(float(p0[0]), 2), round(float(p0[1]), 2)]
+        p1 = [round(float(p1[0]), 2), round(float(p1[1]), 2)]
+        mode = st.mode
+        if mode == "boxes":
+            st.pending = None
+            return self.add_box(st, p0, p1)
+        if mode == "select":
+            st.sel, st.grab = self.pick(st, p0, zoom), None
+            if not st.sel:
+                st.msg = "nothing here"
+                return st
+            if st.sel[0] in ("box", "proposal") and self._near_corner(st, p0, zoom):
+                return self.act(st, lambda a: self._resize(st.sel, a, p0, p1))
+            return self.act(st, lambda a: self._shift(st.sel, a, p1[0] - p0[0], p1[1] - p0[1]))
+        if mode in ("move", "resize"):
+            if not st.sel:
+                st.msg = "select something first (mode 4)"
+                return st
+            st.grab = None
+            if mode == "resize" and st.sel[0] in ("box", "proposal"):
+                return self.act(st, lambda a: self._resize(st.sel, a, p0, p1))
+            return self.act(st, lambda a: self._shift(st.sel, a, p1[0] - p0[0], p1[1] - p0[1]))
+        return self.click(st, p0[0], p0[1], zoom)
+
+    def _near_corner(self, st: Session, pt, zoom: float) -> bool:
+        """Whether `pt` is within picking distance of a corner of the selected box's rectangle."""
+        a = st.ann
+        items = a["boxes"] if st.sel[0] == "box" else a.get("proposals", [])
+        b = next((b for b in items if b["id"] == st.sel[1]), None)
+        if b is None:
+            return False
+        W, H = a["image_size"]
+        tol = max(W, H) / 50 / max(1.0, float(zoom or 1.0))
+        return any(np.hypot(x - pt[0], y - pt[1]) <= tol for x in (b["p0"][0], b["p1"][0]) for y in (b["p0"][1], b["p1"][1]))
+
+    @staticmethod
+    def _resize(sel, a, grab, to):
+        """Move the corner of the selected box (or proposal) nearest to `grab` to `to`; the
+        opposite corner stays."""
+        kind, key = sel
+        for b in a["boxes"] if kind == "box" else a.get("proposals", []):
+            if b["id"] == key:
+                for ax in (0, 1):
+                    k = "p0" if abs(b["p0"][ax] - grab[ax]) <= abs(b["p1"][ax] - grab[ax]) else "p1"
+                    b[k] = list(b[k])
+                    b[k][ax] = to[ax]
+                return f"{kind} {key} resized"
+        return "the selected item is gone"
+
+    @staticmethod
+    def _shift(sel, a, dx: float, dy: float):
+        """Move the selected item by (dx, dy) photo pixels."""
+        kind, key = sel
+
+        def by(p):
+            return [round(p[0] + dx, 2), round(p[1] + dy, 2)]
+        if kind == "corner" and key < len(a["rack"]["corners"]):
+            a["rack"]["corners"][key] = by(a["rack"]["corners"][key])
+            return f"corner {key + 1} moved"
+        for items, k in ((a["shelves"], "shelf"), (a["boxes"], "box"), (a.get("proposals", []), "proposal")):
+            if k != kind:
+                continue
+            for it in items:
+                if it["id"] == key:
+                    if k == "shelf":
+                        it["point"] = by(it["point"])
+                    else:
+                        it["p0"], it["p1"] = by(it["p0"]), by(it["p1"])
+                    return f"{kind} {key} moved"
+        return "the selected item is gone"
+
+    def _move(self, st: Session, a, pt):
+        """Move the selected item to `pt` (a box: its centre)."""
         kind, key = st.sel
         if kind == "corner" and key < len(a["rack"]["corners"]):
             a["rack"]["corners"][key] = pt
@@ -421,20 +517,10 @@ class Tool:
                     s["point"] = pt
                     return "shelf moved"
         if kind in ("box", "proposal"):
-            items = a["boxes"] if kind == "box" else a["proposals"]
-            for b in items:
+            for b in a["boxes"] if kind == "box" else a["proposals"]:
                 if b["id"] == key:
-                    if resize:
-                        for ax in (0, 1):
-                            k = "p0" if abs(b["p0"][ax] - pt[ax]) <= abs(b["p1"][ax] - pt[ax]) else "p1"
-                            b[k] = list(b[k])
-                            b[k][ax] = pt[ax]
-                        return f"{kind} {key} resized"
-                    dx = pt[0] - (b["p0"][0] + b["p1"][0]) / 2
-                    dy = pt[1] - (b["p0"][1] + b["p1"][1]) / 2
-                    b["p0"] = [round(b["p0"][0] + dx, 2), round(b["p0"][1] + dy, 2)]
-                    b["p1"] = [round(b["p1"][0] + dx, 2), round(b["p1"][1] + dy, 2)]
-                    return f"{kind} {key} moved"
+                    return self._shift(st.sel, a, pt[0] - (b["p0"][0] + b["p1"][0]) / 2,
+                                       pt[1] - (b["p0"][1] + b["p1"][1]) / 2)
         return "the selected item is gone"
 
     def pick(self, st: Session, pt, zoom: float = 1.0) -> list | None:
@@ -526,6 +612,75 @@ class Tool:
             return f"rack size {r['width']:g} × {r['height']:g} × {r['depth']:g} m" if r != before_rack else ""
         return self.act(st, upd)
 
+    def size_from_box(self, st: Session) -> Session:
+        """`g`: the rack's width and height from the selected box, an object of known size on the
+        rack's front plane (a pallet, a carton, a beam label): the box spans du × dv of the rack
+        plane, so the rack is (ref width / du) × (ref height / dv) times its current size. A
+        dimension whose reference is not given stays; the depth stays."""
+        sel, ref = st.sel, st.ref
+        if not sel or sel[0] not in ("box", "proposal"):
+            st.msg = "select the box of the reference object first (mode 4), then press g"
+            return st
+        if not any(ref):
+            st.msg = "type the reference object's width and/or height (metres) first"
+            return st
+        scene = self.scene(st.ann)
+        if scene is None:
+            st.msg = "mark the rack's 4 corners (and its size, any guess) first"
+            return st
+        b = next((b for b in (st.ann["boxes"] if sel[0] == "box" else st.ann.get("proposals", []))
+                  if b["id"] == sel[1]), None)
+        if b is None:
+            st.msg = "the selected item is gone"
+            return st
+        uv = scene.plane.to_plane([b["p0"], b["p1"]])
+        du, dv = abs(uv[1, 0] - uv[0, 0]), abs(uv[1, 1] - uv[0, 1])
+        new = {}
+        for k, r, d, cur in (("width", ref[0], du, scene.plane.width), ("height", ref[1], dv, scene.plane.height)):
+            if r:
+                if d < 1e-6:
+                    st.msg = f"⚠ the selected box has no {k} on the photo"
+                    return st
+                new[k] = round(cur * r / d, 3)
+        st = self.set_rack(st, **new)
+        if st.msg.startswith("⚠"):
+            return st
+        kept = "; height unchanged (type the reference's height too)" if "height" not in new else (
+            "; width unchanged (type the reference's width too)" if "width" not in new else "")
+        st.msg = (f"rack size from {sel[0]} {sel[1]} ({_fmt_ref(ref)}): "
+                  + " × ".join(f"{k} {v:g} m" for k, v in new.items()) + f"{kept}; depth unchanged")
+        return st
+
+    def mark_done(self, st: Session, armed: str | None = None) -> Session:
+        """`d`: mark the photo done. While model proposals wait, the first press asks and the
+        second (the very next action) rejects them all, then marks done."""
+        waiting = len((st.ann or {}).get("proposals") or [])
+        if waiting and armed != "reject_proposals":
+            st.confirm = "reject_proposals"
+            st.msg = (f"⚠ {waiting} model proposal(s) wait: press d again to reject them all and mark done "
+                      "(a / A accepts)")
+            return st
+        if waiting:
+            st = self.act(st, lambda a: self._reject_all(a))
+        return self.set_status(st, "done")
+
+    def _reject_all(self, a) -> str:
+        scene = self.scene(a)
+        for p in a.get("proposals", []):
+            self._remember_rejected(a, scene, p)
+        n = len(a.get("proposals", []))
+        a["proposals"] = []
+        return f"{n} proposal(s) rejected"
+
+    @staticmethod
+    def _remember_rejected(a, scene, p) -> None:
+        """Record a rejected proposal's metric rectangle: it is not proposed again."""
+        if scene is None:
+            return
+        mb = G.metric_box(scene.plane, p, scene.shelf_v, scene.depth, scene.depth)
+        if mb.shelf is not None:
+            a.setdefault("rejected", []).append([mb.shelf, round(mb.u0, 4), round(mb.u1, 4), round(mb.v0, 4), round(mb.v1, 4)])
+
     def set_status(self, st: Session, status: str) -> Session:
         """Set the photo's status; `done` and `approved` are refused (one line saying what to
         fix) while done_problems() finds anything."""
@@ -615,6 +770,15 @@ class Tool:
             return self.set_rack(st, **{field: value})
         if field in ("box_depth", "box_offset"):
             return self.set_box_field(st, "depth" if field == "box_depth" else "front_offset", value)
+        if field in ("ref_width", "ref_height"):
+            if value is not None and not 0 < value <= 100:
+                st.msg = f"⚠ reference {field[4:]} must be between 0 and 100 m"
+                return st
+            st.ref = list(st.ref)
+            st.ref[0 if field == "ref_width" else 1] = value
+            st.msg = (f"reference object {_fmt_ref(st.ref)}: select its box and press g (rack size from it)"
+                      if any(st.ref) else "no reference object")
+            return st
         raise ValueError(f"unknown field {field!r}")
 
     # --- proposals ---------------------------------------------------------------------------
@@ -678,7 +842,9 @@ class Tool:
                 b = dict(p, id=_next_id(a["boxes"]), source="model")
                 a["boxes"].append(b)
             a["proposals"] = [p for p in a.get("proposals", []) if p not in take]
-            return f"accepted {len(take)} proposal(s)"
+            # one accepted proposal stays selected, as the box it became, ready to be edited
+            st.sel = ["box", a["boxes"][-1]["id"]] if len(take) == 1 and not all_ else None
+            return f"accepted {len(take)} proposal(s)" + (f": box {st.sel[1]} selected" if st.sel else "")
         st.sel = None
         return self.act(st, upd)
 
@@ -692,11 +858,7 @@ class Tool:
             scene = self.scene(a)
             for p in a.get("proposals", []):
                 if p["id"] == sel[1]:
-                    if scene is not None:
-                        mb = G.metric_box(scene.plane, p, scene.shelf_v, scene.depth, scene.depth)
-                        if mb.shelf is not None:
-                            a.setdefault("rejected", []).append(
-                                [mb.shelf, round(mb.u0, 4), round(mb.u1, 4), round(mb.v0, 4), round(mb.v1, 4)])
+                    self._remember_rejected(a, scene, p)
                     a["proposals"] = [q for q in a["proposals"] if q["id"] != sel[1]]
                     return "proposal rejected"
         st.sel = None
@@ -749,6 +911,11 @@ class Tool:
         if st.ann is None:
             return D.Frame(st, self.project)
         return D.Frame(st, self.project, *self.layouts(st.ann))
+
+
+def _fmt_ref(ref) -> str:
+    w, h = ref
+    return " × ".join(x for x in (f"{w:g} m wide" if w else "", f"{h:g} m high" if h else "") if x)
 
 
 def _finite(v) -> float:
@@ -828,6 +995,10 @@ def build_app(project: Project, predictor=None, user: str | None = None):
                     gr.Number(label="height m", elem_id="rack-height", elem_classes="rl-field", minimum=0)
                     gr.Number(label="depth m", elem_id="rack-depth", elem_classes="rl-field", minimum=0)
                 gr.Button("confirm size (c)", elem_id="btn-confirm-size", size="sm")
+                with gr.Row():
+                    gr.Number(label="reference width m", elem_id="ref-width", elem_classes="rl-field", minimum=0)
+                    gr.Number(label="reference height m", elem_id="ref-height", elem_classes="rl-field", minimum=0)
+                    gr.Button("rack size from selected box (g)", elem_id="btn-size-from-box", size="sm")
             with gr.Column():
                 gr.Markdown("**Selection**")
                 gr.HTML('<div id="selection" class="rl-text"></div>')
@@ -880,7 +1051,7 @@ def build_app(project: Project, predictor=None, user: str | None = None):
             view = {"ack": st.ack, "name": name, "image_size": a.get("image_size"), "mode": st.mode,
                     "overlay": D.overlay(f), "sel": st.sel,
                     "fields": {"width": rack.get("width"), "height": rack.get("height"), "depth": rack.get("depth"),
-                               "box_depth": bd, "box_offset": bo},
+                               "box_depth": bd, "box_offset": bo, "ref_width": st.ref[0], "ref_height": st.ref[1]},
                     "text": {"message": D.md_html(st.msg), "summary": D.md_html(D.summary(f)),
                              "selection": D.md_html(sel_txt),
                              "mode-help": D.md_html(f"**{st.mode}**: {MODE_HELP.get(st.mode, '')}")}}

@@ -21,9 +21,10 @@ MODE_HELP = {
     "corners": "click the 4 corners of the rack's front face (any order); a 5th click moves the nearest corner",
     "shelves": "click once on each shelf board's front edge",
     "boxes": "click two opposite corners of a box's (or stack's) front face, or drag from one to the other",
-    "select": "click a corner, shelf line, box or proposal to select it",
-    "move": "click where the selected item should go (a box moves its centre there)",
-    "resize": "click where the nearest corner of the selected box should go",
+    "select": "click a corner, shelf line, box or proposal to select it; drag it to move it (a box grabbed "
+              "by a corner: resize it)",
+    "move": "click where the selected item should go (a box moves its centre there), or drag to move it by the drag",
+    "resize": "drag a corner of the selected box to where it should go, or click near the corner, then where it goes",
     "depth": "click the top-back edge of the selected box: its depth (then back to the previous mode)",
     "offset": "click the board where the selected box's front stands: its front offset (then back)",
 }
@@ -34,12 +35,13 @@ SHORTCUTS = [
     ("u", "next unfinished photo"),
     ("z / Ctrl+Z", "undo"), ("y / Ctrl+Y", "redo"),
     ("Del / Backspace / x", "delete selected (a proposal: reject)"),
-    ("s / Ctrl+S", "save now"), ("d", "mark done (refused while the photo has warnings)"),
-    ("c", "confirm the rack size"), ("f", "selected box: stands on its board / floats (on something)"),
+    ("s / Ctrl+S", "save now"),
+    ("d", "mark done (refused while the photo has warnings; while model proposals wait, d again rejects them)"),
+    ("c", "confirm the rack size"), ("g", "rack size from the selected box (a reference object of the typed size)"), ("f", "selected box: stands on its board / floats (on something)"),
     ("a / r", "accept / reject selected proposal"), ("A", "accept all proposals"),
     ("wheel, + / - / 0", "zoom at the cursor / reset; right-drag or Space+drag pans"),
     ("Enter", "leave a number field (its value is applied)"),
-    ("Esc", "cancel a half-drawn box"),
+    ("Esc", "cancel a half-drawn box or a grabbed corner"),
 ]
 #: page element id -> action; 'mode:X' and 'view:X' are handled in the page (view: no server)
 BUTTONS = {f"mode-{m}": f"mode:{m}" for m in MODES}
@@ -47,7 +49,7 @@ BUTTONS.update({
     "btn-next": "next", "btn-prev": "prev", "btn-next-todo": "next_unfinished", "btn-undo": "undo",
     "btn-redo": "redo", "btn-delete": "delete", "btn-save": "save", "btn-done": "done",
     "btn-accept": "accept", "btn-reject": "reject", "btn-accept-all": "accept_all", "btn-cancel": "cancel",
-    "btn-confirm-size": "confirm_size", "btn-on-board": "toggle_on_board",
+    "btn-confirm-size": "confirm_size", "btn-on-board": "toggle_on_board", "btn-size-from-box": "size_from_box",
     "btn-zoom-in": "view:in", "btn-zoom-out": "view:out", "btn-zoom-reset": "view:reset",
 })
 KEYMAP = {str(i + 1): f"mode:{m}" for i, m in enumerate(MODES)}
@@ -55,12 +57,12 @@ KEYMAP.update({
     "n": "next", "ArrowRight": "next", "p": "prev", "ArrowLeft": "prev", "u": "next_unfinished",
     "z": "undo", "Ctrl+z": "undo", "y": "redo", "Ctrl+y": "redo", "Ctrl+Z": "redo",
     "Delete": "delete", "Backspace": "delete", "x": "delete", "s": "save", "Ctrl+s": "save",
-    "d": "done", "c": "confirm_size", "f": "toggle_on_board", "a": "accept", "r": "reject", "A": "accept_all",
+    "d": "done", "c": "confirm_size", "g": "size_from_box", "f": "toggle_on_board", "a": "accept", "r": "reject", "A": "accept_all",
     "+": "view:in", "=": "view:in", "-": "view:out", "0": "view:reset", "Escape": "cancel",
 })
 #: number fields (elem_id -> action field); the page sends the text as typed when it changes
 FIELDS = {"rack-width": "width", "rack-height": "height", "rack-depth": "depth",
-          "box-depth": "box_depth", "box-offset": "box_offset"}
+          "box-depth": "box_depth", "box-offset": "box_offset", "ref-width": "ref_width", "ref-height": "ref_height"}
 
 VIEWER_HTML = """<div id="rl-viewer">
 <div id="rl-banner" hidden></div>
@@ -267,6 +269,8 @@ VIEWER_JS = r"""
     const z = rl.s / rl.fit;
     if (moved && rl.view.mode === 'boxes' && inside(p0) && inside(p1))
       return rl.enqueue({kind: 'box', p0: p0, p1: p1, image: rl.view.name}, d.t);
+    if (moved && ['select', 'move', 'resize'].includes(rl.view.mode) && inside(p0) && inside(p1))
+      return rl.enqueue({kind: 'drag', p0: p0, p1: p1, z: z, image: rl.view.name}, d.t);
     if (!inside(p0)) return;
     rl.enqueue({kind: 'click', x: p0[0], y: p0[1], z: z, image: rl.view.name}, d.t);
   }

@@ -19,7 +19,11 @@ class Session:
 
     `sel` is the selected item as [kind, key]: ["corner", index], ["shelf", id], ["box", id] or
     ["proposal", id] (a list, as the page receives it). `pending` is the first corner of a
-    half-drawn box (photo pixels). `ann` is None when no photo is open or its file or photo cannot
+    half-drawn box (photo pixels), `grab` the point where a resize grabbed the selected box (the
+    box corner nearest to it moves with the next click). `confirm` names an action waiting for
+    its second key press (pressing `d` while model proposals wait asks once). `ref` is the
+    reference object's size in metres [width, height] (either may be None) that sizes the rack
+    from a selected box; it stays for the session's next photos. `ann` is None when no photo is open or its file or photo cannot
     be used (`error` says why). `ack` is the sequence number of the page's last applied action."""
 
     name: str | None = None
@@ -32,6 +36,9 @@ class Session:
     mode_before: str | None = None
     sel: list | None = None
     pending: list[float] | None = None
+    grab: list[float] | None = None
+    confirm: str | None = None
+    ref: list = field(default_factory=lambda: [None, None])
     msg: str = ""
     error: str | None = None
     filter: str = "all"

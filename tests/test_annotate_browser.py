@@ -339,21 +339,33 @@ def test_unreadable_photos_listed_and_skipped(tmp_path):
     assert project.statuses() == {"00_broken.jpg": "unreadable", "00_huge.png": "unreadable", PHOTO.name: "in progress"}
 
 
-def test_drag_draws_a_box(server, tmp_path):
-    """In boxes mode a drag from one corner of a box's front face to the other draws it."""
+def _drag(page, p0, p1):
     from annotate.browser import image_to_client
+
+    (x0, y0), (x1, y1) = (image_to_client(page, *p) for p in (p0, p1))
+    page.mouse.move(x0, y0)
+    page.mouse.down()
+    page.mouse.move(x1, y1, steps=5)
+    page.mouse.up()
+    settle(page)
+
+
+def test_drag_draws_a_box_and_resizes_it_by_the_corner_grabbed(server, tmp_path):
+    """In boxes mode a drag from one corner of a box's front face to the other draws it; in
+    resize mode, dragging its top-right corner left past the box's middle moves that corner (the
+    nearest-corner rule moved the left edge instead)."""
 
     project, url = server
     mark_rack(project)
     with browser_page(url, tmp_path / "chrome-profile") as page:
         page.keyboard.press("3")
         settle(page)
-        (x0, y0), (x1, y1) = (image_to_client(page, *p) for p in BOXES[1])
-        page.mouse.move(x0, y0)
-        page.mouse.down()
-        page.mouse.move(x1, y1, steps=5)
-        page.mouse.up()
+        _drag(page, *BOXES[1])
+        got = project.load(PHOTO.name)["boxes"]
+        assert len(got) == 1
+        np.testing.assert_allclose([got[0]["p0"], got[0]["p1"]], BOXES[1], atol=1.0)
+        page.keyboard.press("6")
         settle(page)
+        _drag(page, BOXES[1][1], (290, 220))
     got = project.load(PHOTO.name)["boxes"]
-    assert len(got) == 1
-    np.testing.assert_allclose([got[0]["p0"], got[0]["p1"]], BOXES[1], atol=1.0)
+    np.testing.assert_allclose([got[0]["p0"], got[0]["p1"]], [BOXES[1][0], (290, 220)], atol=1.0)

@@ -81,9 +81,12 @@ def test_select_move_resize_delete_undo_redo(proj):
     st = tool.click(st, *disp(tool, st, [centre[0] + 10, centre[1]]))
     moved = st.ann["boxes"][0]
     assert moved["p0"][0] == pytest.approx(b0["p0"][0] + 10, abs=0.05)
-    st.mode = "resize"
+    st.mode = "resize"   # click near a corner (grab), then where it goes
+    st = tool.click(st, *disp(tool, st, [moved["p1"][0] - 2, moved["p1"][1] + 1]))
+    assert st.grab is not None and st.ann["boxes"][0] == moved
     st = tool.click(st, *disp(tool, st, [moved["p1"][0] + 7, moved["p1"][1]]))
     assert st.ann["boxes"][0]["p1"][0] == pytest.approx(moved["p1"][0] + 7, abs=0.05)
+    assert st.ann["boxes"][0]["p0"] == moved["p0"] and st.grab is None
     n = len(st.ann["boxes"])
     st = tool.delete(st)
     assert len(proj.load("r.png")["boxes"]) == n - 1
@@ -96,6 +99,66 @@ def test_select_move_resize_delete_undo_redo(proj):
     st.mode = "select"
     st = tool.click(st, *disp(tool, st, st.ann["rack"]["corners"][0]))
     assert st.sel == ["corner", 0]
+
+
+def test_resize_moves_the_corner_grabbed_even_past_the_middle(proj):
+    """Shrinking a wide box by dragging its right edge far to the left moves the right corner
+    (not the left one, which is nearer to where it lands); a drag in select mode grabs a box by
+    its corner, by its inside it moves it."""
+    tool = Tool(proj)
+    st = tool.open("r.png")
+    st.mode = "boxes"
+    st = tool.drag(st, [100, 200], [500, 300])
+    assert st.sel == ["box", 0]
+    st.mode = "resize"
+    st = tool.drag(st, [499, 299], [180, 260])          # right-bottom corner to near the left edge
+    b = st.ann["boxes"][0]
+    assert b["p0"] == [100, 200] and b["p1"] == [180, 260]
+    st.mode = "select"
+    st = tool.drag(st, [101, 201], [90, 190])           # grabbed by its top-left corner: resized
+    b = st.ann["boxes"][0]
+    assert b["p0"] == [90, 190] and b["p1"] == [180, 260]
+    st = tool.drag(st, [140, 230], [150, 240])          # grabbed inside: moved by the drag
+    b = st.ann["boxes"][0]
+    assert b["p0"] == [100, 200] and b["p1"] == [190, 270]
+    st.mode = "move"
+    st = tool.drag(st, [0, 0], [-10, 5])
+    assert st.ann["boxes"][0]["p0"] == [90, 205]
+    st = tool.undo(st)
+    assert st.ann["boxes"][0]["p0"] == [100, 200]
+    # the page sends drags as actions; one made on another photo is not applied
+    st = tool.apply(st, [{"kind": "drag", "p0": [0, 0], "p1": [10, 0], "image": "other.png", "seq": 1}])
+    assert "not applied" in st.msg and st.ann["boxes"][0]["p0"] == [100, 200]
+
+
+def test_rack_size_from_a_reference_object_of_known_size(proj):
+    """A labeller who knows one object's size (a pallet's front: 1.2 m wide) draws its box and
+    presses g: the rack's width and height follow from the rack plane, whatever size was guessed."""
+    truth = clicks(CAM)
+    W, H = truth["rack"]["width"], truth["rack"]["height"]
+    tool = Tool(proj)
+    st = label_by_clicks(tool, tool.open("r.png"), dict(truth, boxes=[]))
+    st = tool.set_rack(st, width=W * 1.7, height=H * 0.6)     # a wrong guess
+    guessed = dict(st.ann["rack"])
+    # the true box 0's front face, outlined on the photo (its true size known to the labeller)
+    _, x0, x1, z0, z1 = BOXES[0][:5]
+    b0 = truth["boxes"][0]
+    st.mode = "boxes"
+    st = tool.drag(st, b0["p0"], b0["p1"])
+    st = tool.size_from_box(st)
+    assert "type the reference" in st.msg
+    st = tool.set_field(st, "ref_width", f"{x1 - x0:g}")
+    st = tool.set_field(st, "ref_height", "")
+    st = tool.size_from_box(st)
+    r = proj.load("r.png")["rack"]
+    assert r["width"] == pytest.approx(W, rel=0.02) and r["height"] == guessed["height"]
+    assert r["size_confirmed"] is True and "height unchanged" in st.msg
+    st = tool.set_field(st, "ref_height", "abc")
+    assert "not a number" in st.msg
+    st = tool.set_field(st, "ref_height", f"{z1 - z0:g}")
+    st = tool.size_from_box(st)
+    r = proj.load("r.png")["rack"]
+    assert r["width"] == pytest.approx(W, rel=0.02) and r["height"] == pytest.approx(H, rel=0.02)
 
 
 def test_two_labellers_conflict_is_refused_with_message(proj):
@@ -172,6 +235,7 @@ def test_model_proposals_accept_edit_reject(proj):
     assert st.sel == ["proposal", p["id"]]
     st = tool.accept(st)
     assert len(st.ann["boxes"]) == 1 and st.ann["boxes"][0]["source"] == "model"
+    assert st.sel == ["box", st.ann["boxes"][0]["id"]]   # the accepted box stays selected, to edit
     assert len(st.ann["proposals"]) == len(BOXES) - 1
     # reject the next one: it is remembered and not proposed again when a shelf moves
     q = st.ann["proposals"][0]
@@ -185,6 +249,25 @@ def test_model_proposals_accept_edit_reject(proj):
     st = tool.accept(st, all_=True)
     assert len(st.ann["boxes"]) == len(BOXES) - 1 and not st.ann["proposals"]
     assert pred.calls == 1
+
+
+def test_done_asks_once_then_rejects_waiting_proposals(proj):
+    """d while model proposals wait: the first press asks, any other action disarms it, a
+    second d right after rejects them all (remembered) and marks the photo done."""
+    tool = Tool(proj, predictor=StandIn())
+    truth = clicks(CAM)
+    st = label_by_clicks(tool, tool.open("r.png"), dict(truth, boxes=[]))
+    st = tool.confirm_size(st)
+    n = len(st.ann["proposals"])
+    assert n == len(BOXES)
+    d = {"kind": "act", "name": "done"}
+    st = tool.apply(st, [dict(d, seq=1)])
+    assert "press d again" in st.msg and len(st.ann["proposals"]) == n and st.ann["status"] != "done"
+    st = tool.apply(st, [{"kind": "mode", "mode": "select", "seq": 2}, dict(d, seq=3)])
+    assert "press d again" in st.msg and len(st.ann["proposals"]) == n      # disarmed, asked again
+    st = tool.apply(st, [dict(d, seq=4)])
+    saved = proj.load("r.png")
+    assert not saved["proposals"] and len(saved["rejected"]) == n and saved["status"] == "done", st.msg
 
 
 def test_real_predictor_contract(proj):
