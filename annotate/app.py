@@ -386,7 +386,7 @@ class Tool:
         if mb is None or mb.shelf is None:
             st.msg = "mark the rack, its shelves and the box's shelf first"
             return st
-        cam = G.camera_from_plane(scene.plane, st.ann["image_size"])
+        cam = G.camera_from_plane(scene.plane, st.ann["image_size"], S.pixel_aspect(self.project.settings))
         back, st.mode_before = st.mode_before or "boxes", None
         if mode == "depth":
             s = G.depth_from_click(cam, mb, pt, scene.depth)
@@ -785,7 +785,10 @@ class Tool:
     def prediction(self, name: str) -> dict:
         with self._lock:
             if name not in self._preds:
-                self._preds[name] = self.predictor.predict(self.image(name))
+                # the model sees the photo as taken (a squeezed photo un-squeezed); its layouts are
+                # metric and reach the photo through the rack plane, whatever the pixel aspect
+                self._preds[name] = self.predictor.predict(
+                    G.restore_aspect(self.image(name), S.pixel_aspect(self.project.settings)))
                 while len(self._preds) > 8:
                     self._preds.popitem(last=False)
             return self._preds[name]
@@ -1049,6 +1052,7 @@ def build_app(project: Project, predictor=None, user: str | None = None):
             name = st.name
             photo_key = f"{name}:{project.image_path(name).stat().st_mtime_ns}" if st.ann is not None else ""
             view = {"ack": st.ack, "name": name, "image_size": a.get("image_size"), "mode": st.mode,
+                    "pixel_aspect": S.pixel_aspect(project.settings),
                     "overlay": D.overlay(f), "sel": st.sel,
                     "fields": {"width": rack.get("width"), "height": rack.get("height"), "depth": rack.get("depth"),
                                "box_depth": bd, "box_offset": bo, "ref_width": st.ref[0], "ref_height": st.ref[1]},

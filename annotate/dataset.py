@@ -103,6 +103,7 @@ def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict
                        "height": round(b.v1 - b.v0, 4), "depth": round(b.depth, 4),
                        "front_offset": round(b.front_offset, 4)} for b in scene.boxes],
             "grid": {"D": project.settings["D"], "extent": project.settings["extent"]},
+            **({"pixel_aspect": S.pixel_aspect(project.settings)} if S.pixel_aspect(project.settings) != 1 else {}),
             "warnings": scene.warnings}
 
 
@@ -184,7 +185,10 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
             it = tqdm(list(it), desc="export", unit="img")
         for sid, (name, ann, scene) in it:
             top, front = scene_layouts(project, scene)
-            ds.write_sample(sid, image_bytes=encode_png(project.read_image(name)), top=top, front=front,
+            # a photo stored squeezed is written as taken (the project's pixel_aspect), so that a
+            # model trained on the set sees real proportions; the layouts are metric either way
+            image = G.restore_aspect(project.read_image(name), S.pixel_aspect(project.settings))
+            ds.write_sample(sid, image_bytes=encode_png(image), top=top, front=front,
                             meta=_sample_meta(project, name, ann, scene))
         for split, ids in splits.items():
             ds.write_split(split, ids)

@@ -253,25 +253,28 @@ class Camera:
 DEFAULT_FOCAL = 0.8
 
 
-def camera_from_plane(plane: RackPlane, image_size) -> Camera:
+def camera_from_plane(plane: RackPlane, image_size, pixel_aspect: float = 1.0) -> Camera:
     """The camera that sees the rack's front plane through `plane`'s homography (Zhang's
-    constraints with square pixels and the principal point at the photo's centre)."""
+    constraints with the principal point at the photo's centre and square pixels in the photo
+    as taken: `pixel_aspect` is the width / height of one stored pixel, > 1 for a photo squeezed
+    horizontally, e.g. 16/9 for a 16:9 frame stored as a square). The camera maps to stored pixels."""
     W, Hh = image_size
+    a = float(pixel_aspect)
     cx, cy = (W - 1) / 2, (Hh - 1) / 2
-    T = np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1.0]])
+    T = np.array([[a, 0, -a * cx], [0, 1, -cy], [0, 0, 1.0]])   # stored pixel -> centred, as taken
     M = T @ plane.Hinv  # plane (u, v, 1) -> centred image
     h1, h2 = M[:, 0], M[:, 1]
     cands = []
     with np.errstate(divide="ignore", invalid="ignore"):
         f2a = -(h1[0] * h2[0] + h1[1] * h2[1]) / (h1[2] * h2[2])
         f2b = (h2[0] ** 2 + h2[1] ** 2 - h1[0] ** 2 - h1[1] ** 2) / (h1[2] ** 2 - h2[2] ** 2)
-    side = float(max(W, Hh))
+    side = float(max(W * a, Hh))
     for f2 in (f2a, f2b):
         if np.isfinite(f2) and f2 > 0 and 0.3 * side <= np.sqrt(f2) <= 5 * side:
             cands.append(np.sqrt(f2))
     found = bool(cands)
     f = float(np.median(cands)) if found else DEFAULT_FOCAL * side
-    K = np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
+    K = np.array([[f / a, 0, cx], [0, f, cy], [0, 0, 1.0]])
     B = np.linalg.solve(K, plane.Hinv)  # ~ [r_x, r_z, t]
     lam = 2.0 / (np.linalg.norm(B[:, 0]) + np.linalg.norm(B[:, 1]))
     if B[2, 2] * lam < 0:
@@ -311,6 +314,18 @@ def offset_from_click(cam: Camera, board_v: float, pt) -> float | None:
     if lam <= 0:
         return None
     return float(c[1] + lam * d[1])
+
+
+def restore_aspect(image: np.ndarray, pixel_aspect: float) -> np.ndarray:
+    """A photo stored with non-square pixels resized to its aspect as taken (width x
+    `pixel_aspect`, height kept); itself when the pixels are square."""
+    if abs(float(pixel_aspect) - 1.0) < 1e-6:
+        return image
+    import cv2
+
+    h, w = image.shape[:2]
+    return cv2.resize(image, (max(1, round(w * float(pixel_aspect))), h), interpolation=cv2.INTER_AREA
+                      if pixel_aspect < 1 else cv2.INTER_LINEAR)
 
 
 # --- back to the photo ---------------------------------------------------------------------

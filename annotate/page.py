@@ -79,7 +79,8 @@ VIEWER_JS = r"""
 (() => {
   const KEYMAP = __KEYMAP__, BUTTONS = __BUTTONS__, FIELDS = __FIELDS__;
   const rl = window.rl = {q: [], inflight: null, seq: 0, view: null, up: true, stats: [], W: 0, H: 0,
-                          s: 1, fit: 1, tx: 0, ty: 0, mouse: null, photoKey: null, previewSrc: null};
+                          s: 1, fit: 1, tx: 0, ty: 0, mouse: null, photoKey: null, previewSrc: null,
+                          ax: 1};   // ax: width / height of a photo pixel (the project's pixel_aspect)
   const $ = (s) => document.querySelector(s);
   // --- the action queue: one batch at a time, in order ---------------------------------------
   rl.enqueue = (a, t) => {
@@ -108,8 +109,9 @@ VIEWER_JS = r"""
     rl.lastText = el.textContent;
     let v; try { v = JSON.parse(el.textContent); } catch (e) { return; }
     rl.view = v;
-    if (v.image_size && (v.image_size[0] !== rl.W || v.image_size[1] !== rl.H || v.name !== rl.name)) {
-      rl.W = v.image_size[0]; rl.H = v.image_size[1]; rl.name = v.name; fitView();
+    const ax = v.pixel_aspect || 1;
+    if (v.image_size && (v.image_size[0] !== rl.W || v.image_size[1] !== rl.H || v.name !== rl.name || ax !== rl.ax)) {
+      rl.W = v.image_size[0]; rl.H = v.image_size[1]; rl.name = v.name; rl.ax = ax; fitView();
     }
     draw(v);
     for (const [id, h] of Object.entries(v.text || {})) {
@@ -179,7 +181,8 @@ VIEWER_JS = r"""
   }
   function applyTransform() {
     const stage = $('#rl-stage');
-    if (stage) stage.style.transform = `translate(${rl.tx}px, ${rl.ty}px) scale(${rl.s})`;
+    // a squeezed photo (pixel aspect ax) is shown as taken: its pixels ax times wider than high
+    if (stage) stage.style.transform = `translate(${rl.tx}px, ${rl.ty}px) scale(${rl.s * rl.ax}, ${rl.s})`;
     const z = $('#rl-zoom'); if (z) z.textContent = rl.s / rl.fit > 1.001 ? `zoom ${(rl.s / rl.fit).toFixed(1)}×` : 'fit';
     if (rl.view) draw(rl.view);
   }
@@ -187,8 +190,8 @@ VIEWER_JS = r"""
     const vp = $('#rl-viewport');
     if (!vp || !rl.W) return;
     const vw = vp.clientWidth, vh = vp.clientHeight;
-    rl.fit = rl.s = Math.min(vw / rl.W, vh / rl.H);
-    rl.tx = (vw - rl.W * rl.s) / 2; rl.ty = (vh - rl.H * rl.s) / 2;
+    rl.fit = rl.s = Math.min(vw / (rl.W * rl.ax), vh / rl.H);
+    rl.tx = (vw - rl.W * rl.ax * rl.s) / 2; rl.ty = (vh - rl.H * rl.s) / 2;
     applyTransform();
   }
   rl.fitView = fitView;
@@ -202,11 +205,11 @@ VIEWER_JS = r"""
   // photo pixel (x right, y down; pixel centres at integers) <-> page (client) coordinates
   rl.toImage = (clientX, clientY) => {
     const r = $('#rl-viewport').getBoundingClientRect();
-    return [(clientX - r.left - rl.tx) / rl.s - 0.5, (clientY - r.top - rl.ty) / rl.s - 0.5];
+    return [(clientX - r.left - rl.tx) / (rl.s * rl.ax) - 0.5, (clientY - r.top - rl.ty) / rl.s - 0.5];
   };
   rl.toClient = (x, y) => {
     const r = $('#rl-viewport').getBoundingClientRect();
-    return [r.left + rl.tx + (x + 0.5) * rl.s, r.top + rl.ty + (y + 0.5) * rl.s];
+    return [r.left + rl.tx + (x + 0.5) * rl.s * rl.ax, r.top + rl.ty + (y + 0.5) * rl.s];
   };
   function viewAction(what) {
     const vp = $('#rl-viewport'), m = rl.mouse || [vp.clientWidth / 2, vp.clientHeight / 2];

@@ -126,6 +126,7 @@ class Settings(_SettingsFields, total=False):
     default_depth: float | None
     default_preset: str | None
     box_snap: float
+    pixel_aspect: float     # width / height of one photo pixel (photos squeezed to a square: > 1); 1 if absent
     version: int
 
 
@@ -356,6 +357,15 @@ def load_annotation(path: str | os.PathLike) -> Annotation:
 
 
 # --- project settings -------------------------------------------------------------------------
+#: the pixel aspects a project may declare (a 21:9 frame squeezed to a square is 2.33)
+PIXEL_ASPECT_RANGE = (0.25, 4.0)
+
+
+def pixel_aspect(settings: Settings) -> float:
+    """Width / height of one photo pixel in this project (1 unless `pixel_aspect` says otherwise)."""
+    return float(settings.get("pixel_aspect") or 1.0)
+
+
 def default_settings() -> Settings:
     return {
         "schema_version": SETTINGS_VERSION,
@@ -384,6 +394,8 @@ def validate_settings(d: Any, source: str = "project settings") -> Settings:
         _num(d["default_depth"], source, "default_depth", lo=0, hi=100, lo_open=True)
     if d.get("box_snap") is not None:
         _num(d["box_snap"], source, "box_snap", lo=0, hi=1)
+    if d.get("pixel_aspect") is not None:
+        _num(d["pixel_aspect"], source, "pixel_aspect", lo=PIXEL_ASPECT_RANGE[0], hi=PIXEL_ASPECT_RANGE[1])
     if not isinstance(d["presets"], list):
         _fail(source, "presets", "expected a list")
     names = []

@@ -369,3 +369,30 @@ def test_drag_draws_a_box_and_resizes_it_by_the_corner_grabbed(server, tmp_path)
         _drag(page, BOXES[1][1], (290, 220))
     got = project.load(PHOTO.name)["boxes"]
     np.testing.assert_allclose([got[0]["p0"], got[0]["p1"]], [BOXES[1][0], (290, 220)], atol=1.0)
+
+
+def test_squeezed_photo_shown_as_taken_and_clicked_where_aimed(tmp_path):
+    """A project whose photos are stored squeezed (pixel aspect 16:9): the photo is drawn 16/9 times
+    wider than stored, and a click on a point of the drawn photo lands on that photo pixel."""
+    from annotate.browser import require_browser
+
+    require_browser()
+    proj_dir = tmp_path / "project"
+    proj_dir.mkdir()
+    shutil.copy(PHOTO, proj_dir / PHOTO.name)     # 416 x 416 as stored
+    from annotate.store import Project
+    p = Project(proj_dir)
+    p.save_settings(dict(p.settings, pixel_aspect=16 / 9))
+    project, demo, url = serve(proj_dir)
+    try:
+        with browser_page(url, tmp_path / "chrome-profile") as page:
+            r = page.evaluate("(() => { const b = document.querySelector('#rl-img').getBoundingClientRect();"
+                              " return [b.left, b.top, b.width, b.height]; })()")
+            assert r[2] / r[3] == pytest.approx(16 / 9, rel=0.01)
+            # aim at photo pixel (100, 300) from the drawn image's box alone, not through the page's maths
+            x, y = 100, 300
+            page.mouse.click(r[0] + (x + 0.5) / 416 * r[2], r[1] + (y + 0.5) / 416 * r[3])
+            settle(page)
+    finally:
+        demo.close()
+    np.testing.assert_allclose(project.load(PHOTO.name)["rack"]["corners"], [[x, y]], atol=1.0)

@@ -188,11 +188,12 @@ class StandIn:
     """Follows racklay.predict.Predictor's contract; returns the true scene's layouts."""
 
     def __init__(self, scale: float = 1.0):
-        self.calls, self.scale = 0, scale
+        self.calls, self.scale, self.shapes = 0, scale, []
 
     def predict(self, rgb):
         assert rgb.dtype == np.uint8 and rgb.ndim == 3
         self.calls += 1
+        self.shapes.append(rgb.shape)
         top, front = (L.scale_about_origin(a, [self.scale] * len(a)) for a in true_layouts())
         probs = {v: np.eye(3, dtype=np.float32)[a].transpose(0, 3, 1, 2) for v, a in (("top", top), ("front", front))}
         return {"top": top, "front": front, "probs": probs, "grid": GRID}
@@ -520,6 +521,57 @@ def test_box_depth_and_offset_by_clicking(proj):
     st = tool.apply(st, [{"seq": 2, "kind": "mode", "mode": "offset"}])
     st = tool.click(st, *CAM.project([[x0 + 0.1, 0.07, zb]])[0])
     assert proj.load("r.png")["boxes"][0]["front_offset"] == pytest.approx(0.07, abs=0.01)
+
+
+def test_squeezed_photos_pixel_aspect_depth_clicks_model_and_export(tmp_path):
+    """A project of photos stored squeezed to half their width (pixel aspect 2, `serve
+    --pixel-aspect 2:1`): the depth click still measures the box's depth (the camera has square
+    pixels as taken), the model is shown the photo as taken, and export writes it so."""
+    from annotate.commands.serve import pixel_aspect_value
+    from annotate.dataset import export_project
+    from racklay.data import RackLayRoot
+
+    (tmp_path / "r.png").write_bytes(encode_png(np.full((480, 320, 3), 90, np.uint8)))
+    squeeze = np.diag([0.5, 1.0])
+
+    def sq(p):
+        return (np.asarray(p, float) @ squeeze).tolist()
+    truth = clicks(CAM)
+    ann = dict(truth, boxes=[], image_size=[320, 480])
+    ann["rack"] = dict(ann["rack"], corners=sq(ann["rack"]["corners"]))
+    ann["shelves"] = [dict(x, point=sq([x["point"]])[0]) for x in ann["shelves"]]
+    s_, x0, x1, z0, z1, o, d = 1, 0.20, 0.90, 0.0, 0.50, 0.0, 0.50   # BOXES[3]
+    zb = BOARDS[s_]
+    depth = {}
+    for aspect in (1.0, pixel_aspect_value("2:1")):
+        proj = Project(tmp_path / f"a{aspect:g}")
+        proj.add_image("r.png", (tmp_path / "r.png").read_bytes())
+        proj.save_settings(dict(proj.settings, D=256, extent=4.0, pixel_aspect=aspect))
+        pred = StandIn()
+        tool = Tool(proj, predictor=pred)
+        st = label_by_clicks(tool, tool.open("r.png"), ann)
+        st = tool.set_rack(st, depth=0.6)
+        st.mode = "boxes"
+        p = sq(CAM.project([[x0, o, zb + z0], [x1, o, zb + z1]]))
+        st = tool.drag(st, p[0], p[1])
+        st = tool.apply(st, [{"seq": 1, "kind": "mode", "mode": "depth"}])
+        st = tool.click(st, *sq(CAM.project([[(x0 + x1) / 2, o + d, zb + z1]]))[0])
+        depth[aspect] = proj.load("r.png")["boxes"][0]["depth"]
+        assert pred.shapes == [(480, round(320 * aspect), 3)]
+    import argparse
+    for bad, why in (("wide", "not a pixel aspect"), ("16:0", "not a pixel aspect"), ("9", "outside")):
+        with pytest.raises(argparse.ArgumentTypeError, match=why):
+            pixel_aspect_value(bad)
+    assert depth[2.0] == pytest.approx(d, abs=0.02)
+    assert abs(depth[1.0] - d) > 0.05        # taken as square pixels, the same click is wrong
+    st = tool.confirm_size(st)
+    st = tool.mark_done(st)
+    st = tool.mark_done(st, "reject_proposals")
+    assert proj.load("r.png")["status"] == "done", st.msg
+    export_project(proj, tmp_path / "ds", fractions={"test": 1.0})
+    ds = RackLayRoot(tmp_path / "ds")
+    sid = ds.split_ids("test")[0]
+    assert ds.read_image(sid).shape == (480, 640, 3)          # as taken
 
 
 def test_scene_built_at_most_once_per_event(proj, monkeypatch):

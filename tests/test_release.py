@@ -22,6 +22,7 @@ def test_shipped_weights_are_intact_small_and_load():
     assert release.sha256_file(path) == release.RELEASE_SHA256
     model, cfg, meta = load_model(path)
     assert cfg.encoder == "efficientnet-lite0" and set(cfg.views) == {"top", "front"}
+    assert cfg.decoder == "struct"       # boxes as rectangles, scale explicit (docs/model-card.md)
     assert meta.get("storage") == "fp16" and "train_config" in meta
 
 
@@ -122,21 +123,37 @@ def test_graft_update_adds_a_fine_tunes_change_to_another_model(tmp_path):
         release.graft_update(paths["base"], odd, paths["ft"], tmp_path / "bad.safetensors", alpha=0.3)
 
 @pytest.mark.slow
-def test_predict_without_weights_uses_the_shipped_model_and_finds_the_shelves(tmp_path):
-    out = tmp_path / "pred"
-    r = run_module("racklay", "predict", PHOTO, "--out", out, "--no-png", cwd=REPO)
-    assert r.returncode == 0, r.stderr
-    assert "shipped model" in r.stderr
+def test_predict_without_weights_uses_the_shipped_model_finds_the_shelves_and_takes_a_known_length(tmp_path):
+    """The shipped model on a real photo finds its shelves in both views; `--shelf-length 1.2`
+    makes every shelf 1.2 m long and changes nothing else (which shelves, where boxes stand along
+    each shelf)."""
+    from racklay import layout as L
     from racklay.data import RackLayRoot
-    root = RackLayRoot(out)
-    top = root.read_layouts("top", PHOTO.stem)
-    front = root.read_layouts("front", PHOTO.stem)
-    # a 3-level shelf with 9 small boxes: the shipped model finds its shelves in both views (its
-    # boxes here are slivers at best: docs/model-card.md, known limits)
-    for lay in (top, front):
-        assert lay.shape == (4, 256, 256)
-        assert sum(int((ch == 1).sum()) >= 500 for ch in lay) >= 2
-    assert (out / "figures" / f"{PHOTO.stem}.png").is_file()
+
+    lays = {}
+    for name, extra in (("own", []), ("known", ["--shelf-length", "1.2"])):
+        out = tmp_path / name
+        r = run_module("racklay", "predict", PHOTO, "--out", out, "--no-png", *extra, cwd=REPO)
+        assert r.returncode == 0, r.stderr
+        assert "shipped model" in r.stderr
+        root = RackLayRoot(out)
+        lays[name] = {v: root.read_layouts(v, PHOTO.stem) for v in ("top", "front")}
+    assert (tmp_path / "own" / "figures" / f"{PHOTO.stem}.png").is_file()
+    own, known = lays["own"], lays["known"]
+    grid = L.Grid(256, 8.0)
+    for v in ("top", "front"):
+        assert own[v].shape == (4, 256, 256)
+        # a 3-level shelf: the shipped model finds at least two of its shelves in both views
+        present = [int((ch != L.BACKGROUND).sum()) >= 500 for ch in own[v]]
+        assert sum(present) >= 2
+        assert [int((ch != L.BACKGROUND).sum()) > 0 for ch in known[v]] == [int((ch != L.BACKGROUND).sum()) > 0 for ch in own[v]]
+        for a, b, here in zip(own[v], known[v], present):
+            if not here:
+                continue
+            assert L.shelf_lengths(b[None], grid)[0] == pytest.approx(1.2, abs=2 * grid.res)
+            # where boxes stand, as a fraction of the shelf's length: unchanged by the scale
+            share = [float((x == L.BOX).any(0).sum()) / max(float((x != L.BACKGROUND).any(0).sum()), 1.0) for x in (a, b)]
+            assert share[1] == pytest.approx(share[0], abs=0.05)
 
 
 @pytest.mark.slow

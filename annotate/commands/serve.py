@@ -15,6 +15,25 @@ def port_number(text: str) -> int:
     return port
 
 
+def pixel_aspect_value(text: str) -> float:
+    """argparse type of --pixel-aspect: a number (1.778) or a ratio W:H of the photo as taken over
+    the photo as stored, e.g. 16:9 for 16:9 frames stored as squares."""
+    from annotate.schema import PIXEL_ASPECT_RANGE
+
+    try:
+        if ":" in text:
+            w, h = (float(x) for x in text.split(":"))
+            value = w / h
+        else:
+            value = float(text)
+    except (ValueError, ZeroDivisionError):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a pixel aspect (a number like 1.778 or a ratio like 16:9)") from None
+    lo, hi = PIXEL_ASPECT_RANGE
+    if not lo <= value <= hi:
+        raise argparse.ArgumentTypeError(f"pixel aspect {value:g} is outside {lo:g}-{hi:g}")
+    return value
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "serve", help="open the annotation tool in the browser",
@@ -30,6 +49,11 @@ def register(sub) -> None:
                    help="checkpoint for model-assisted pre-labels (default: the shipped model, docs/model-card.md)")
     p.add_argument("--no-model", action="store_true", help="no model-assisted pre-labels")
     p.add_argument("--backend", default="torch", choices=("torch", "onnx"), help="prediction backend for --model")
+    p.add_argument("--pixel-aspect", type=pixel_aspect_value, default=None, metavar="W:H",
+                   help="the project's photos are stored squeezed: width / height of one stored pixel, as a "
+                        "ratio (16:9 for 16:9 frames stored as squares) or a number; saved in project.json, so "
+                        "give it once (1 undoes it). The tool shows the photos as taken, the model and the "
+                        "camera see them so, and `annotate export` writes them so")
     p.add_argument("--auth-file", default=None, metavar="FILE",
                    help="require a login; FILE lists the users with salted password hashes "
                         "(create it with `annotate passwd FILE USER`)")
@@ -53,5 +77,11 @@ def run(args) -> int:
         from racklay.release import weights_for_cli
 
         model = weights_for_cli(args.model, quiet=True)   # serve names its model once it listens
+    if args.pixel_aspect is not None:
+        from annotate.store import Project
+
+        project = Project(args.project)
+        project.save_settings(dict(project.settings, pixel_aspect=round(args.pixel_aspect, 6)))
+        print(f"annotate: {args.project}: pixel aspect {args.pixel_aspect:.4g} saved in project.json")
     serve(args.project, host=args.host, port=args.port, model=model, backend=args.backend, auth=auth)
     return 0
