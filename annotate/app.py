@@ -618,6 +618,8 @@ class Tool:
         plane, so the rack is (ref width / du) × (ref height / dv) times its current size. A
         dimension whose reference is not given stays; the depth stays."""
         sel, ref = st.sel, st.ref
+        if st.ann is None:
+            return st
         if not sel or sel[0] not in ("box", "proposal"):
             st.msg = "select the box of the reference object first (mode 4), then press g"
             return st

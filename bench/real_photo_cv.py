@@ -5,8 +5,8 @@
 The labelled photos of an `annotate` project (default `datasets/real-photos/`) are grouped by
 where they come from (the `repo` column of the project's SOURCES.tsv: each source is one site,
 camera and labeller). For each group, the model (`--weights`; it must not have seen these photos,
-so not the shipped v5, which was fine-tuned on them: the bench refuses it) is fine-tuned on the
-photos of every *other* group, with synthetic replay (`--replay`: the release set's train split,
+so not the shipped model, which was fine-tuned on them: the bench refuses it) is fine-tuned on the
+photos of every *other* group, with synthetic replay (`--replay`: a rendered set's train split,
 `--replay-ratio` renders per photo and epoch) and the model's own augmentation and loss (from
 its metadata), and scored on the held-out group at the photos' own resolution. The table compares the model before
 and after, per group and pooled over all photos (dataset-level IoU: every photo is scored by a
@@ -86,8 +86,8 @@ def main() -> int:
                     help="annotate project of labelled photos with a SOURCES.tsv (default datasets/real-photos)")
     ap.add_argument("--weights", default=None, help="model to fine-tune (default: the shipped one)")
     ap.add_argument("--replay", type=Path, required=True,
-                    help="synthetic RackLay root mixed into every epoch (its train split), e.g. the release set "
-                         "(docs/model-card.md has the command that renders it)")
+                    help="synthetic RackLay root mixed into every epoch (its train split), e.g. the set the model "
+                         "was trained on (docs/model-card.md has the shipped model's command)")
     ap.add_argument("--replay-ratio", type=float, default=1.0, help="renders per photo and epoch (default 1)")
     ap.add_argument("--epochs", type=int, default=100, help="epochs per fold (default 100)")
     ap.add_argument("--lr", type=float, default=2e-4, help="peak learning rate (default 2e-4)")
