@@ -25,20 +25,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
 REPO = Path(__file__).resolve().parents[1]
 PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
 BOX_TARGET = {"top": 70.0, "front": 75.0}            # reproduction row, dataset-level box IoU
-
-
-def box_runs(layouts: np.ndarray) -> np.ndarray:
-    """(..., D, D) class ids -> (...,) number of separate runs of box columns along x."""
-    from racklay.layout import BOX
-
-    cols = (layouts == BOX).any(-2).astype(np.int8)
-    pad = np.zeros(cols.shape[:-1] + (1,), np.int8)
-    return (np.diff(np.concatenate([pad, cols, pad], -1), axis=-1) > 0).sum(-1)
 
 
 def separation(pred, root, split, limit, per_image: bool = False):
@@ -48,6 +37,7 @@ def separation(pred, root, split, limit, per_image: bool = False):
     import torch
     from torch.utils.data import DataLoader
 
+    from racklay import layout as L
     from racklay.evaluate import split_dataset
 
     _, views, ds = split_dataset(pred, root, split, limit)
@@ -57,8 +47,8 @@ def separation(pred, root, split, limit, per_image: bool = False):
     with torch.inference_mode():
         for batch in DataLoader(ds, batch_size=8):
             c = pred.predict_batch(batch["image"])[0]["front"]
-            gt_sep = box_runs(batch["front"].numpy()) >= 2
-            pr_sep = box_runs(c) >= 2
+            gt_sep = L.box_runs(batch["front"].numpy()) >= 2
+            pr_sep = L.box_runs(c) >= 2
             if per_image:
                 gt_sep, pr_sep = gt_sep.any(-1), pr_sep.any(-1)
             t, both, p = t + int(gt_sep.sum()), both + int((gt_sep & pr_sep).sum()), p + int(pr_sep.sum())

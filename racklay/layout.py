@@ -369,6 +369,15 @@ def layout_area_m2(mask: np.ndarray, grid: Grid) -> float:
     return float(np.count_nonzero(mask)) * grid.pixel_area_m2()
 
 
+def box_runs(layouts: np.ndarray) -> np.ndarray:
+    """(..., D, D) class-id layouts -> (...,) the number of separate runs of box columns along x
+    (boxes with a gap between them count as two; touching boxes are one run, as the layout cannot
+    tell them apart)."""
+    cols = (np.asarray(layouts) == BOX).any(axis=-2).astype(np.int8)
+    pad = np.zeros(cols.shape[:-1] + (1,), np.int8)
+    return (np.diff(np.concatenate([pad, cols, pad], -1), axis=-1) > 0).sum(-1)
+
+
 def shelf_lengths(layouts: np.ndarray, grid: Grid) -> np.ndarray:
     """Metric length of each channel's shelf in (R, D, D) class-id layouts of either view: the
     longest run of adjacent columns holding a shelf or box pixel, times the pixel size (stray

@@ -13,8 +13,8 @@ from importlib import resources
 from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
-RELEASE_NAME = "racklay-lite0-release-v5.safetensors"
-RELEASE_SHA256 = "b8b861adf6a3baf0ce0958c70deb79451bb94e5d001d609b56f6fe75fee50830"
+RELEASE_NAME = "racklay-lite0-struct-v6.safetensors"
+RELEASE_SHA256 = "3c051a5ef81d996758f1b6378460a2cc51f0e30dfd18e9dfc2689f68881d3ffd"
 WEIGHTS_DIR = Path(str(resources.files("racklay") / "weights"))   # package data
 
 _verified: set[str] = set()

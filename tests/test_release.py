@@ -157,6 +157,26 @@ def test_predict_without_weights_uses_the_shipped_model_finds_the_shelves_and_ta
 
 
 @pytest.mark.slow
+def test_shipped_model_draws_separate_boxes_where_a_photo_shows_them_apart():
+    """Two cube shelves with boxes standing apart (photo 21): the shipped struct model draws them
+    as separate rectangles on their boards, not one band per shelf (v5 drew bands): in the front
+    view (rows top-down in z) every shelf's lowest box row is its board's row."""
+    from racklay import layout as L
+    from racklay.data import read_image
+    from racklay.predict import Predictor
+
+    pred = Predictor(str(release.release_weights()))
+    out = pred.predict(read_image(REAL_PHOTOS / "21_mock_cube_shelf_b.jpg"))
+    front = out["front"]
+    assert L.box_runs(front).max() >= 2
+    for ch in front:
+        if (ch == L.BOX).any():
+            rows = np.nonzero((ch != L.BACKGROUND).any(1))[0]
+            box_rows = np.nonzero((ch == L.BOX).any(1))[0]
+            assert box_rows.max() == rows.max()
+
+
+@pytest.mark.slow
 def test_quick_demo_runs_end_to_end_from_the_shipped_model(tmp_path, capsys):
     """`transfer demo --quick` (the README's main job, `make demo`, reduced) through its command line."""
     from transfer.cli import main as transfer_main

@@ -183,6 +183,14 @@ def test_scaling_a_shelf_about_its_origin_is_the_shelf_drawn_at_that_size():
         L.scale_about_origin(top, [0.0, 1.0, 1.0])
 
 
+def test_box_runs_counts_boxes_with_a_gap_as_two_and_touching_ones_as_one():
+    top, front = _two_box_shelf()
+    assert L.box_runs(front).tolist() == [2, 0, 0] and L.box_runs(top).tolist() == [2, 0, 0]
+    touching = [L.Box(-0.3, 0.0, 0.4, 0.5, 0.3), L.Box(0.1, 0.0, 0.4, 0.5, 0.3)]   # x in [-0.5, -0.1] and [-0.1, 0.3]
+    f = L.rasterize_shelf(L.Shelf(2.0, 0.8, 0.5), touching, G).front
+    assert L.box_runs(f) == 1
+
+
 def test_shelf_length_ignores_stray_pixels_beside_the_shelf():
     top, _ = _two_box_shelf(length=2.0)
     top[0, 10, 3:6] = L.BOX                          # a stray blob far to the left
