@@ -306,7 +306,7 @@ class Tool:
                   "next": lambda s: self.step(s, +1), "prev": lambda s: self.step(s, -1),
                   "next_unfinished": lambda s: self.step(s, +1, unfinished=True),
                   "confirm_size": self.confirm_size, "toggle_on_board": self.toggle_on_board,
-                  "size_from_box": self.size_from_box}.get(a["name"])
+                  "size_from_box": self.size_from_box, "split_row": self.split_row}.get(a["name"])
             if fn is None:
                 raise ValueError(f"unknown action {a['name']!r}")
             return fn(st)
@@ -735,6 +735,39 @@ class Tool:
             return f"rack size {r['width']:g} × {r['height']:g} × {r['depth']:g} m confirmed"
         return self.act(st, upd)
 
+    def split_row(self, st: Session) -> Session:
+        """`w`: the selected box drawn around a row of N equal loads (N typed under Selection)
+        becomes N boxes of equal width along the rack, split in metres on the rack plane (so a
+        row seen at an angle is split where its loads are, not at equal pixels). Each keeps the
+        box's depth, front offset, on-board flag and source."""
+        b = self._selected_box(st)
+        n = int(st.split_n)
+        if b is None:
+            st.msg = ("accept the proposal first (a), then press w" if st.sel and st.sel[0] == "proposal"
+                      else "select the box drawn around the row first (mode 4)")
+            return st
+        scene = self.scene(st.ann)
+        if scene is None:
+            st.msg = "mark the rack's 4 corners and its size first"
+            return st
+        uv = scene.plane.to_plane([b["p0"], b["p1"]])
+        (u0, u1), (v0, v1) = sorted(uv[:, 0]), sorted(uv[:, 1])
+        cuts = np.linspace(u0, u1, n + 1)
+
+        def upd(a):
+            keep = {k: v for k, v in b.items() if k not in ("id", "p0", "p1")}
+            a["boxes"] = [x for x in a["boxes"] if x["id"] != b["id"]]
+            made = []
+            for i in range(n):
+                p = scene.plane.to_image([[cuts[i], v0], [cuts[i + 1], v1]])
+                nb = dict(keep, id=_next_id(a["boxes"]), p0=[round(float(c), 2) for c in p[0]],
+                          p1=[round(float(c), 2) for c in p[1]])
+                a["boxes"].append(nb)
+                made.append(nb["id"])
+            st.sel = ["box", made[0]]
+            return f"box {b['id']} split into {n} boxes ({', '.join(map(str, made))}); box {made[0]} selected"
+        return self.act(st, upd)
+
     def toggle_on_board(self, st: Session) -> Session:
         b = self._selected_box(st)
         if b is None:
@@ -772,6 +805,13 @@ class Tool:
             return self.set_rack(st, **{field: value})
         if field in ("box_depth", "box_offset"):
             return self.set_box_field(st, "depth" if field == "box_depth" else "front_offset", value)
+        if field == "split_n":
+            if value is None or value != int(value) or not 2 <= value <= 50:
+                st.msg = "⚠ split into: a whole number of boxes from 2 to 50"
+                return st
+            st.split_n = int(value)
+            st.msg = f"w splits the selected box into {st.split_n} equal boxes"
+            return st
         if field in ("ref_width", "ref_height"):
             if value is not None and not 0 < value <= 100:
                 st.msg = f"⚠ reference {field[4:]} must be between 0 and 100 m"
@@ -1012,6 +1052,10 @@ def build_app(project: Project, predictor=None, user: str | None = None):
                               elem_classes="rl-field", minimum=0)
                     gr.Number(label="front offset m (or mode 8)", elem_id="box-offset", elem_classes="rl-field", minimum=0)
                 with gr.Row():
+                    gr.Number(label="split into N equal boxes (w)", elem_id="split-n", elem_classes="rl-field",
+                              minimum=2, precision=0)
+                    gr.Button("split the row (w)", elem_id="btn-split-row", size="sm")
+                with gr.Row():
                     gr.Button("on board / floats (f)", elem_id="btn-on-board", size="sm")
                     gr.Button("delete (Del)", elem_id="btn-delete", size="sm")
                     gr.Button("accept (a)", elem_id="btn-accept", size="sm")
@@ -1057,7 +1101,8 @@ def build_app(project: Project, predictor=None, user: str | None = None):
                     "pixel_aspect": S.pixel_aspect(project.settings),
                     "overlay": D.overlay(f), "sel": st.sel,
                     "fields": {"width": rack.get("width"), "height": rack.get("height"), "depth": rack.get("depth"),
-                               "box_depth": bd, "box_offset": bo, "ref_width": st.ref[0], "ref_height": st.ref[1]},
+                               "box_depth": bd, "box_offset": bo, "ref_width": st.ref[0], "ref_height": st.ref[1],
+                               "split_n": st.split_n},
                     "text": {"message": D.md_html(st.msg), "summary": D.md_html(D.summary(f)),
                              "selection": D.md_html(sel_txt),
                              "mode-help": D.md_html(f"**{st.mode}**: {MODE_HELP.get(st.mode, '')}")}}

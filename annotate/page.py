@@ -37,7 +37,9 @@ SHORTCUTS = [
     ("Del / Backspace / x", "delete selected (a proposal: reject)"),
     ("s / Ctrl+S", "save now"),
     ("d", "mark done (refused while the photo has warnings; while model proposals wait, d again rejects them)"),
-    ("c", "confirm the rack size"), ("g", "rack size from the selected box (a reference object of the typed size)"), ("f", "selected box: stands on its board / floats (on something)"),
+    ("c", "confirm the rack size"), ("g", "rack size from the selected box (a reference object of the typed size)"),
+    ("w", "split the selected box into N equal boxes along the rack (a row of equal loads; N under Selection)"),
+    ("f", "selected box: stands on its board / floats (on something)"),
     ("a / r", "accept / reject selected proposal"), ("A", "accept all proposals"),
     ("wheel, + / - / 0", "zoom at the cursor / reset; right-drag or Space+drag pans"),
     ("Enter", "leave a number field (its value is applied)"),
@@ -50,6 +52,7 @@ BUTTONS.update({
     "btn-redo": "redo", "btn-delete": "delete", "btn-save": "save", "btn-done": "done",
     "btn-accept": "accept", "btn-reject": "reject", "btn-accept-all": "accept_all", "btn-cancel": "cancel",
     "btn-confirm-size": "confirm_size", "btn-on-board": "toggle_on_board", "btn-size-from-box": "size_from_box",
+    "btn-split-row": "split_row",
     "btn-zoom-in": "view:in", "btn-zoom-out": "view:out", "btn-zoom-reset": "view:reset",
 })
 KEYMAP = {str(i + 1): f"mode:{m}" for i, m in enumerate(MODES)}
@@ -57,12 +60,13 @@ KEYMAP.update({
     "n": "next", "ArrowRight": "next", "p": "prev", "ArrowLeft": "prev", "u": "next_unfinished",
     "z": "undo", "Ctrl+z": "undo", "y": "redo", "Ctrl+y": "redo", "Ctrl+Z": "redo",
     "Delete": "delete", "Backspace": "delete", "x": "delete", "s": "save", "Ctrl+s": "save",
-    "d": "done", "c": "confirm_size", "g": "size_from_box", "f": "toggle_on_board", "a": "accept", "r": "reject", "A": "accept_all",
+    "d": "done", "c": "confirm_size", "g": "size_from_box", "w": "split_row", "f": "toggle_on_board", "a": "accept", "r": "reject", "A": "accept_all",
     "+": "view:in", "=": "view:in", "-": "view:out", "0": "view:reset", "Escape": "cancel",
 })
 #: number fields (elem_id -> action field); the page sends the text as typed when it changes
 FIELDS = {"rack-width": "width", "rack-height": "height", "rack-depth": "depth",
-          "box-depth": "box_depth", "box-offset": "box_offset", "ref-width": "ref_width", "ref-height": "ref_height"}
+          "box-depth": "box_depth", "box-offset": "box_offset", "ref-width": "ref_width", "ref-height": "ref_height",
+          "split-n": "split_n"}
 
 VIEWER_HTML = """<div id="rl-viewer">
 <div id="rl-banner" hidden></div>

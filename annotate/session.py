@@ -39,6 +39,8 @@ class Session:
     grab: list[float] | None = None
     confirm: str | None = None
     ref: list = field(default_factory=lambda: [None, None])
+    #: how many equal boxes `w` splits the selected box into (a row of equal loads)
+    split_n: int = 2
     msg: str = ""
     error: str | None = None
     filter: str = "all"

@@ -353,7 +353,7 @@ def _drag(page, p0, p1):
 def test_drag_draws_a_box_and_resizes_it_by_the_corner_grabbed(server, tmp_path):
     """In boxes mode a drag from one corner of a box's front face to the other draws it; in
     resize mode, dragging its top-right corner left past the box's middle moves that corner (the
-    nearest-corner rule moved the left edge instead)."""
+    nearest-corner rule moved the left edge instead); N typed and `w` split it into N boxes."""
 
     project, url = server
     mark_rack(project)
@@ -367,8 +367,15 @@ def test_drag_draws_a_box_and_resizes_it_by_the_corner_grabbed(server, tmp_path)
         page.keyboard.press("6")
         settle(page)
         _drag(page, BOXES[1][1], (290, 220))
-    got = project.load(PHOTO.name)["boxes"]
-    np.testing.assert_allclose([got[0]["p0"], got[0]["p1"]], [BOXES[1][0], (290, 220)], atol=1.0)
+        got = project.load(PHOTO.name)["boxes"]
+        np.testing.assert_allclose([got[0]["p0"], got[0]["p1"]], [BOXES[1][0], (290, 220)], atol=1.0)
+        # the row tool: N typed, Enter, then w splits the selected box
+        field = page.locator("#split-n input")
+        field.fill("3")
+        field.press("Enter")
+        page.keyboard.press("w")
+        settle(page)
+    assert len(project.load(PHOTO.name)["boxes"]) == 3
 
 
 def test_squeezed_photo_shown_as_taken_and_clicked_where_aimed(tmp_path):

@@ -161,6 +161,32 @@ def test_rack_size_from_a_reference_object_of_known_size(proj):
     assert r["width"] == pytest.approx(W, rel=0.02) and r["height"] == pytest.approx(H, rel=0.02)
 
 
+def test_a_box_around_a_row_of_equal_loads_splits_into_n_on_the_rack_plane(proj):
+    """One box drawn around a row (or an accepted one-per-shelf proposal), N typed, `w`: N boxes
+    of equal metric width side by side (split on the rack plane, not in pixels of an oblique
+    photo), each keeping the box's depth and flags; undo gives the one box back."""
+    tool = Tool(proj)
+    truth = clicks(CAM)
+    st = label_by_clicks(tool, tool.open("r.png"), dict(truth, boxes=[]))
+    s_, x0, x1, z0, z1, o = 1, 0.20, 0.90, 0.0, 0.50, 0.0   # BOXES[3]
+    p = CAM.project([[x0, o, BOARDS[s_] + z0], [x1, o, BOARDS[s_] + z1]])
+    st.mode = "boxes"
+    st = tool.drag(st, p[0].tolist(), p[1].tolist())
+    st = tool.set_box_field(st, "depth", 0.4)
+    st = tool.set_field(st, "split_n", "2.5")
+    assert "whole number" in st.msg
+    st = tool.set_field(st, "split_n", "3")
+    st = tool.apply(st, [{"kind": "act", "name": "split_row", "seq": 1}])
+    boxes = proj.load("r.png")["boxes"]
+    assert len(boxes) == 3 and all(b["depth"] == 0.4 for b in boxes) and st.sel == ["box", boxes[0]["id"]]
+    scene = G.build_scene(proj.load("r.png"), proj.settings)
+    spans = sorted((m.u0, m.u1, m.shelf) for m in scene.boxes)
+    np.testing.assert_allclose([sp[:2] for sp in spans], [[0.20, 0.4333], [0.4333, 0.6667], [0.6667, 0.90]], atol=0.01)
+    assert {sp[2] for sp in spans} == {s_}
+    st = tool.undo(st)
+    assert len(proj.load("r.png")["boxes"]) == 1
+
+
 def test_two_labellers_conflict_is_refused_with_message(proj):
     ana, ben = Tool(proj, user="ana"), Tool(proj, user="ben")
     sa, sb = ana.open("r.png"), ben.open("r.png")
