@@ -264,15 +264,13 @@ class Tool:
             return st
         if kind == "click":
             return self.click(st, _finite(a["x"]), _finite(a["y"]), zoom=_finite(a.get("z", 1.0)))
-        if kind == "box":
+        if kind in ("box", "drag"):
             p0 = [_finite(a["p0"][0]), _finite(a["p0"][1])]
             p1 = [_finite(a["p1"][0]), _finite(a["p1"][1])]
+            if kind == "drag":
+                return self.drag(st, p0, p1, zoom=_finite(a.get("z", 1.0)))
             st.pending = None
             return self.add_box(st, p0, p1)
-        if kind == "drag":
-            p0 = [_finite(a["p0"][0]), _finite(a["p0"][1])]
-            p1 = [_finite(a["p1"][0]), _finite(a["p1"][1])]
-            return self.drag(st, p0, p1, zoom=_finite(a.get("z", 1.0)))
         if kind == "mode":
             if a["mode"] not in MODES:
                 raise ValueError(f"unknown mode {a['mode']!r}")
@@ -372,7 +370,15 @@ class Tool:
     def _selected_box(self, st: Session) -> S.Box | None:
         if not st.sel or st.sel[0] != "box" or st.ann is None:
             return None
-        return next((b for b in st.ann["boxes"] if b["id"] == st.sel[1]), None)
+        return self._selected_item(st)
+
+    @staticmethod
+    def _selected_item(st: Session) -> S.Box | None:
+        """The selected box or proposal (None if neither is selected or it is gone)."""
+        if not st.sel or st.sel[0] not in ("box", "proposal") or st.ann is None:
+            return None
+        items = st.ann["boxes"] if st.sel[0] == "box" else st.ann.get("proposals", [])
+        return next((b for b in items if b["id"] == st.sel[1]), None)
 
     def _depth_click(self, st: Session, pt, mode: str) -> Session:
         """A click on the selected box's top-back edge (depth) or on the board where its front
@@ -440,33 +446,25 @@ class Tool:
         if mode == "boxes":
             st.pending = None
             return self.add_box(st, p0, p1)
+        if mode not in ("select", "move", "resize"):
+            return self.click(st, p0[0], p0[1], zoom)
+        st.grab = None
         if mode == "select":
-            st.sel, st.grab = self.pick(st, p0, zoom), None
-            if not st.sel:
-                st.msg = "nothing here"
-                return st
-            if st.sel[0] in ("box", "proposal") and self._near_corner(st, p0, zoom):
-                return self.act(st, lambda a: self._resize(st.sel, a, p0, p1))
-            return self.act(st, lambda a: self._shift(st.sel, a, p1[0] - p0[0], p1[1] - p0[1]))
-        if mode in ("move", "resize"):
-            if not st.sel:
-                st.msg = "select something first (mode 4)"
-                return st
-            st.grab = None
-            if mode == "resize" and st.sel[0] in ("box", "proposal"):
-                return self.act(st, lambda a: self._resize(st.sel, a, p0, p1))
-            return self.act(st, lambda a: self._shift(st.sel, a, p1[0] - p0[0], p1[1] - p0[1]))
-        return self.click(st, p0[0], p0[1], zoom)
+            st.sel = self.pick(st, p0, zoom)
+        if not st.sel:
+            st.msg = "nothing here" if mode == "select" else "select something first (mode 4)"
+            return st
+        box = st.sel[0] in ("box", "proposal")
+        if box and (self._near_corner(st, p0, zoom) if mode == "select" else mode == "resize"):
+            return self.act(st, lambda a: self._resize(st.sel, a, p0, p1))
+        return self.act(st, lambda a: self._shift(st.sel, a, p1[0] - p0[0], p1[1] - p0[1]))
 
     def _near_corner(self, st: Session, pt, zoom: float) -> bool:
         """Whether `pt` is within picking distance of a corner of the selected box's rectangle."""
-        a = st.ann
-        items = a["boxes"] if st.sel[0] == "box" else a.get("proposals", [])
-        b = next((b for b in items if b["id"] == st.sel[1]), None)
+        b = self._selected_item(st)
         if b is None:
             return False
-        W, H = a["image_size"]
-        tol = max(W, H) / 50 / max(1.0, float(zoom or 1.0))
+        tol = _pick_tolerance(st.ann, zoom)
         return any(np.hypot(x - pt[0], y - pt[1]) <= tol for x in (b["p0"][0], b["p1"][0]) for y in (b["p0"][1], b["p1"][1]))
 
     @staticmethod
@@ -493,16 +491,14 @@ class Tool:
         if kind == "corner" and key < len(a["rack"]["corners"]):
             a["rack"]["corners"][key] = by(a["rack"]["corners"][key])
             return f"corner {key + 1} moved"
-        for items, k in ((a["shelves"], "shelf"), (a["boxes"], "box"), (a.get("proposals", []), "proposal")):
-            if k != kind:
-                continue
-            for it in items:
-                if it["id"] == key:
-                    if k == "shelf":
-                        it["point"] = by(it["point"])
-                    else:
-                        it["p0"], it["p1"] = by(it["p0"]), by(it["p1"])
-                    return f"{kind} {key} moved"
+        items = {"shelf": a["shelves"], "box": a["boxes"], "proposal": a.get("proposals", [])}.get(kind, [])
+        for it in items:
+            if it["id"] == key:
+                if kind == "shelf":
+                    it["point"] = by(it["point"])
+                else:
+                    it["p0"], it["p1"] = by(it["p0"]), by(it["p1"])
+                return f"{kind} {key} moved"
         return "the selected item is gone"
 
     def _move(self, st: Session, a, pt):
@@ -527,8 +523,7 @@ class Tool:
         """The item under a click: a corner, then the smallest box or proposal containing it,
         then the nearest shelf line (within a 50th of the photo, less when zoomed in)."""
         a = st.ann
-        W, H = a["image_size"]
-        tol = max(W, H) / 50 / max(1.0, float(zoom or 1.0))
+        tol = _pick_tolerance(a, zoom)
         for k, q in enumerate(a["rack"]["corners"]):
             if np.hypot(q[0] - pt[0], q[1] - pt[1]) <= tol:
                 return ["corner", k]
@@ -630,8 +625,7 @@ class Tool:
         if scene is None:
             st.msg = "mark the rack's 4 corners (and its size, any guess) first"
             return st
-        b = next((b for b in (st.ann["boxes"] if sel[0] == "box" else st.ann.get("proposals", []))
-                  if b["id"] == sel[1]), None)
+        b = self._selected_item(st)
         if b is None:
             st.msg = "the selected item is gone"
             return st
@@ -956,6 +950,13 @@ class Tool:
         if st.ann is None:
             return D.Frame(st, self.project)
         return D.Frame(st, self.project, *self.layouts(st.ann))
+
+
+def _pick_tolerance(a: S.Annotation, zoom: float) -> float:
+    """How near (photo pixels) a click must be to pick a point or line: a 50th of the photo, less
+    when zoomed in."""
+    W, H = a["image_size"]
+    return max(W, H) / 50 / max(1.0, float(zoom or 1.0))
 
 
 def _fmt_ref(ref) -> str:

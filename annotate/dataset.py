@@ -94,6 +94,7 @@ def _dir_mode() -> int:
 
 
 def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict:
+    aspect = S.pixel_aspect(project.settings)
     return {"source": "annotate", "source_image": name, "annotation_version": ann["version"],
             "status": ann["status"], "rack": {k: ann["rack"][k] for k in ("width", "height", "depth", "preset")},
             "shelf_heights_m": [round(v, 4) for v in scene.shelf_v],
@@ -103,7 +104,7 @@ def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict
                        "height": round(b.v1 - b.v0, 4), "depth": round(b.depth, 4),
                        "front_offset": round(b.front_offset, 4)} for b in scene.boxes],
             "grid": {"D": project.settings["D"], "extent": project.settings["extent"]},
-            **({"pixel_aspect": S.pixel_aspect(project.settings)} if S.pixel_aspect(project.settings) != 1 else {}),
+            **({"pixel_aspect": aspect} if aspect != 1 else {}),
             "warnings": scene.warnings}
 
 

@@ -15,8 +15,9 @@ homography is exact for a plane.
   depth d spans y in [-depth/2 + o, -depth/2 + o + d]. Its top may rise above the next board.
 * Depth by clicking: the camera is recovered from the rack-plane homography (square pixels in
   the photo as taken, given the project's pixel aspect; principal point at the photo's centre,
-  focal length from the homography when the view is oblique enough); a click on a box's top-back edge then gives its depth, a click on the board
-  where the box's front stands gives its front offset.
+  focal length from the homography when the view is oblique enough); a click on a box's
+  top-back edge then gives its depth, a click on the board where the box's front stands gives
+  its front offset.
 * Layouts: racklay.layout.rasterize_shelf and stack_shelves only; nothing is re-drawn here.
 * Back-projection: metric boxes and shelves -> polygon outlines in the photo.
 * Model proposals: connected components of predicted front-view boxes -> metric rectangles

@@ -23,8 +23,8 @@ class Session:
     box corner nearest to it moves with the next click). `confirm` names an action waiting for
     its second key press (pressing `d` while model proposals wait asks once). `ref` is the
     reference object's size in metres [width, height] (either may be None) that sizes the rack
-    from a selected box; it stays for the session's next photos. `ann` is None when no photo is open or its file or photo cannot
-    be used (`error` says why). `ack` is the sequence number of the page's last applied action."""
+    from a selected box; it stays for the session's next photos. `ann` is None when no photo is
+    open or its file or photo cannot be used (`error` says why). `ack` is the sequence number of the page's last applied action."""
 
     name: str | None = None
     ann: Annotation | None = None
