@@ -2,7 +2,7 @@
 the authors' `paper` decoder) at the shipped input and layout size and the same precision
 (the model issue's target: the reference >= 3x slower than the shipped struct model).
 
-    nice -n 5 .venv/bin/python bench/release_speed.py [--weights FILE] [--precision auto|fp32|bf16]
+    nice -n 5 .venv/bin/python bench/release_speed.py [--weights FILE] [--precision auto|fp32|bf16] [--onnx]
 
 Both models run both views, in the memory format given (default channels_last, as `racklay
 predict` runs a model; `--memory-format contiguous` gives the default PyTorch layout); the
@@ -30,6 +30,9 @@ def main(argv=None) -> int:
                     help="both models at this precision (default auto: bf16 only on CPUs with native bf16)")
     ap.add_argument("--memory-format", choices=("channels_last", "contiguous"), default="channels_last",
                     help="both models in this layout (default channels_last: what racklay predict uses)")
+    ap.add_argument("--onnx", action="store_true",
+                    help="also run both models through onnxruntime (fp32, graphs as `racklay export` writes them), "
+                         "in the same interleaved rounds")
     add_common_args(ap, rounds=3, calls=5, warmup=2)
     args = ap.parse_args(argv)
     start(args)
@@ -54,6 +57,21 @@ def main(argv=None) -> int:
         as_light = RackLayNet(replace(cfg, decoder="light")).eval()
         as_light.load_state_dict(shipped.state_dict())
         models["shipped weights, light decoder"] = as_light
+    ort_runners = {}
+    if args.onnx:   # what `racklay predict --backend onnx` runs
+        import onnxruntime as ort
+
+        from racklay.onnx import export_onnx_bytes
+
+        so = ort.SessionOptions()
+        if args.threads:
+            so.intra_op_num_threads = args.threads
+        xn = x.numpy()
+        for k, (m, c) in (("shipped, onnxruntime", (shipped, cfg)), ("reference, onnxruntime", (reference, ref_cfg))):
+            sess = ort.InferenceSession(export_onnx_bytes(m, c), so,
+                                        providers=["CPUExecutionProvider"])
+            feed = {sess.get_inputs()[0].name: xn}
+            ort_runners[k] = (lambda s_=sess, f_=feed: s_.run(None, f_))
     if args.memory_format == "channels_last":
         x = x.contiguous(memory_format=torch.channels_last)
         models = {k: m.to(memory_format=torch.channels_last) for k, m in models.items()}
@@ -68,6 +86,8 @@ def main(argv=None) -> int:
     # the shipped model's encoder alone: what the ratio could reach if its decoders cost nothing
     enc_name = "shipped encoder alone"
     runners[enc_name] = runner(shipped.encoder)
+    runners.update(ort_runners)
+    ort_names = list(ort_runners)
     times = interleaved(runners, args)
     st = {k: summarise(v, 1000.0) for k, v in times.items()}
     names = list(models)
@@ -86,6 +106,8 @@ def main(argv=None) -> int:
     for k in names[2:]:
         rows += [row(k), ratio(k, names[0], f"{k} / shipped")]
     rows += [row(enc_name), ratio(names[1], enc_name, "ceiling: reference / shipped encoder alone", bold=False)]
+    if ort_names:
+        rows += [row(ort_names[0]), row(ort_names[1]), ratio(ort_names[1], ort_names[0], "**reference / shipped, onnxruntime**")]
     print(f"\nbatch 1, both views, input {w}x{h} -> layouts {cfg.layout_size}, {prec}, {args.memory_format}, "
           f"{args.rounds}x{args.calls} interleaved calls per model (target: reference >= 3x slower):")
     print(markdown_table(["model", "wall ms median (min)", "CPU ms median"], rows))
