@@ -1,7 +1,9 @@
 """Regenerate docs/img/waresynth_examples.png: a few images of each WareSynth recipe with their
-per-shelf top/front layouts, drawn with `racklay show`.
+per-shelf top/front layouts, drawn with `racklay show`; with --sheet RECIPE, a contact sheet of
+16 renders of one recipe instead (docs/img/waresynth_<recipe>.jpg), to look at a style as a whole.
 
     .venv/bin/python bench/synth_examples.py [--per-recipe 2] [--out docs/img/waresynth_examples.png]
+    .venv/bin/python bench/synth_examples.py --sheet pallet
 """
 from __future__ import annotations
 
@@ -18,7 +20,11 @@ def main(argv=None) -> int:
     ap.add_argument("--per-recipe", type=int, default=2)
     ap.add_argument("--seed", type=int, default=2)
     ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "img" / "waresynth_examples.png"))
+    ap.add_argument("--sheet", default=None, metavar="RECIPE", help="a 4 x 4 contact sheet of this recipe instead")
     args = ap.parse_args(argv)
+    if args.sheet:
+        return contact_sheet(args.sheet, args.seed, args.out if "--out" in (argv or sys.argv) else
+                             str(Path(__file__).resolve().parents[1] / "docs" / "img" / f"waresynth_{args.sheet}.jpg"))
 
     import cv2
     import numpy as np
@@ -57,6 +63,27 @@ def main(argv=None) -> int:
     grid = cv2.resize(grid, (int(grid.shape[1] * scale), int(grid.shape[0] * scale)), interpolation=cv2.INTER_AREA)
     atomic_save_png(args.out, grid)
     print(f"wrote {args.out} ({grid.shape[1]}x{grid.shape[0]})")
+    return 0
+
+
+def contact_sheet(recipe: str, seed: int, out: str) -> int:
+    import cv2
+    import numpy as np
+
+    from racklay.atomic import atomic_write_bytes
+    from racklay.cli import main as racklay_main
+    from racklay.data import read_image
+
+    with tempfile.TemporaryDirectory() as tmp:
+        ds = Path(tmp) / recipe
+        assert racklay_main(["synth", "--recipe", recipe, "--n", "16", "--out", str(ds), "--seed", str(seed),
+                             "--no-progress"]) == 0
+        ims = [read_image(p) for p in sorted((ds / "Images").iterdir())]
+    rows = [np.concatenate(ims[i:i + 4], axis=1) for i in range(0, 16, 4)]
+    grid = np.concatenate(rows, axis=0)
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(grid, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 82])
+    atomic_write_bytes(out, buf.tobytes())
+    print(f"wrote {out} ({grid.shape[1]}x{grid.shape[0]})")
     return 0
 
 

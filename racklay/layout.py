@@ -18,6 +18,16 @@ Shelf-centric frame, per shelf i: origin at the centre of the shelf board's top 
 x along the rack's length (to the camera's right), y along its depth (away from the camera),
 z up.
 
+What is a shelf, what is a box (pallet racking included):
+- A shelf is every level that stores goods: a board, a wire deck, or a pair of beams with
+  nothing between them (the level's rectangle is then the bay between the beams, its "board
+  top" the beams' top). The floor under a rack's first beam, where loads stand on the floor, is
+  a shelf too: the lowest channel, its board top the floor (z = 0 in the world), its clear
+  height up to the first beam's top. WareSynth (`floor_level`) and the annotator agree on this.
+- A box is one load unit: a carton, crate or stack of them on a shelf, or a pallet with
+  everything on it (cartons, a stretch-wrapped load, crates), from the pallet's underside on the
+  beams to the load's top. The pallet is never a box of its own and never part of the shelf.
+
 Rack plane (the annotation tool's, annotate.geometry): u along the rack's front face from its
 left edge (0 .. W), v up from its bottom. A shelf spans the rack's width, so x = u - W/2 and
 u = x + W/2 (`u_to_x`, `x_to_u`: the one place this shift is written). Depth is measured the same

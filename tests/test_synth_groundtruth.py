@@ -256,3 +256,62 @@ def test_clutter_stays_in_corridors_and_out_of_the_view_of_the_rack():
             assert not between, "clutter between the camera and the considered rack"
             assert a[2] >= -1e-9, "clutter below the floor"
     assert seen > 100
+
+
+def test_pallet_racking_units_stand_on_their_level_with_their_parts_inside():
+    """Pallet racking (recipe `pallet`): every load unit (a pallet and its load, one box of the
+    layout) stands on its level inside the bay, below the next beam, apart from its neighbours;
+    the pallet and the cartons drawn for it lie inside the unit's box, and the unit itself is not
+    drawn. The floor under the first beam is a storage level (board top 0) in about half the racks."""
+    from racklay.synth.scene import CATEGORY_NAMES, PALLET_HEIGHT, SEM
+
+    r = load_recipe("pallet")
+    floors = units = 0
+    for index in range(30):
+        scene = sample_scene(r, 5, index)
+        assert scene.rack_style == "pallet"
+        floors += scene.shelves[0].board_top == 0
+        for si, sh in enumerate(scene.shelves):
+            boxes = [scene.objects[i].layout_box for i in sh.items]
+            for i, b in zip(sh.items, boxes):
+                units += 1
+                o = scene.objects[i]
+                assert o.shape == "none" and CATEGORY_NAMES[o.category].startswith("pallet_")
+                assert b.z0 == 0 and PALLET_HEIGHT < b.sz <= sh.max_item_top + 1e-9
+                assert -scene.rack_length / 2 <= b.x_range()[0] and b.x_range()[1] <= scene.rack_length / 2
+                assert -scene.rack_depth / 2 <= b.y_range()[0] and b.y_range()[1] <= scene.rack_depth / 2
+                assert np.allclose(o.center, (b.cx, b.cy, sh.board_top + b.sz / 2))
+                parts = [p for p in scene.objects if p.part_of == i]
+                assert any(p.semantic == SEM["pallet"] for p in parts) and len(parts) >= 2
+                pc = cuboid_corners(parts)
+                lo, hi = np.array(o.center) - np.array(o.size) / 2, np.array(o.center) + np.array(o.size) / 2
+                assert (pc >= lo - 1e-6).all() and (pc <= hi + 1e-6).all(), "a drawn part sticks out of its unit"
+            for a_i in range(len(boxes)):
+                for b_i in range(a_i + 1, len(boxes)):
+                    assert not _footprints_overlap(boxes[a_i], boxes[b_i]), f"units overlap in scene {index}"
+    assert units > 30 and 5 <= floors <= 25, (units, floors)
+
+
+def test_recipes_without_pallet_racking_keep_their_scenes():
+    """Adding the style knob changed nothing for the recipes that do not use it."""
+    r = load_recipe("complex")
+    r0 = load_recipe("complex", {"rack_style": {"shelving": 1.0, "pallet": 0.0}})
+    for index in range(5):
+        a, b = sample_scene(r, 4, index), sample_scene(r0, 4, index)
+        assert [(o.center, o.size, o.material) for o in a.objects] == [(o.center, o.size, o.material) for o in b.objects]
+        assert a.rack_style == "shelving" and not any(o.part_of >= 0 for o in a.objects)
+
+
+def test_load_unit_annotation_owns_the_pixels_of_its_parts():
+    scene = next(s for s in (sample_scene(load_recipe("pallet"), 5, i) for i in range(20))
+                 if s.shelves[s.visible[0]].items)
+    unit = scene.shelves[scene.visible[0]].items[0]
+    parts = [i for i, o in enumerate(scene.objects) if o.part_of == unit]
+    W, H = scene.camera.width, scene.camera.height
+    inst = np.zeros((H, W), np.uint32)
+    inst[10:20, 30:40] = parts[0] + 1      # the pallet
+    inst[0:10, 30:50] = parts[1] + 1       # the load above it
+    a = next(a for a in object_annotations(scene, inst) if a["id"] == unit + 1)
+    assert a["visible_pixels"] == 300 and a["bbox_visible"] == [30, 0, 50, 20]
+    assert a["category"].startswith("pallet_") and a["channel"] == 0
+    assert not any(x["id"] == p + 1 for x in object_annotations(scene, inst) for p in parts), "parts are not objects"

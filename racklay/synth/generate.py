@@ -329,7 +329,7 @@ def write_coco(root: RackLayRoot, split: str, ids: list[str], recipe_name: str =
                          "segmentation": o["segmentation"],
                          "attributes": {"shelf_channel": o["channel"], "visible_fraction": o["visible_fraction"]}})
     coco = {"info": {"description": f"WareSynth recipe {recipe_name}, split {split}"},
-            "categories": [{"id": i + 1, "name": n, "supercategory": "crate" if n.startswith("crate") else "carton"}
+            "categories": [{"id": i + 1, "name": n, "supercategory": n.split("_")[0] if n.startswith(("crate", "pallet")) else "carton"}
                            for i, n in enumerate(CATEGORY_NAMES)],
             "images": images, "annotations": anns}
     return atomic_write_json(root.root / "annotations" / f"instances_{split}.json", coco, indent=None)

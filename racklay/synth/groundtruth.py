@@ -53,6 +53,12 @@ def object_annotations(scene: Scene, instance: np.ndarray, coco: bool = True) ->
 
     cam = scene.camera
     W, H = cam.width, cam.height
+    parts = [(i, o.part_of) for i, o in enumerate(scene.objects) if o.part_of >= 0]
+    if parts:   # the pixels of a drawn part (a pallet, the cartons on it) are its load unit's
+        lut = np.arange(len(scene.objects) + 1, dtype=instance.dtype)
+        for i, u in parts:
+            lut[i + 1] = u + 1
+        instance = lut[np.minimum(instance, len(scene.objects))]
     counts = np.bincount(instance.ravel(), minlength=len(scene.objects) + 1)
     slices = ndimage.find_objects(instance.astype(np.int32), max_label=len(scene.objects))
     chan = {si: c for c, si in enumerate(scene.visible)}
@@ -144,7 +150,7 @@ def scene_meta(scene: Scene, recipe, grid: L.Grid, objects: list[dict]) -> dict:
                    "convention": "X_cam = R @ X_world + t; OpenCV axes (x right, y down, z forward); "
                                  "world x along the rack, y into it, z up; pixel centres at +0.5"},
         "grid": {"D": grid.size, "extent_m": grid.extent, "R": recipe.R},
-        "rack": {"length": round(scene.rack_length, 6), "depth": round(scene.rack_depth, 6),
+        "rack": {"style": scene.rack_style, "length": round(scene.rack_length, 6), "depth": round(scene.rack_depth, 6),
                  "n_shelves": len(shelves),
                  "board_tops": _r([s.board_top for s in shelves], 6),
                  "clear_heights": _r([s.clear_height for s in shelves], 6),

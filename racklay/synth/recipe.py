@@ -57,6 +57,15 @@ class Recipe:
     board_thickness: float = _f(0.035, "float", 0.005, 0.2, "board thickness, metres")
     beam_height: list = _f([0.06, 0.12], "frange", 0.0, 0.3, "front/back beam height under each board")
     upright_width: float = _f(0.08, "float", 0.02, 0.3, "upright post width, metres")
+    # --- pallet racking (drawn only where rack_style gives it a weight: other recipes keep their scenes) ---
+    rack_style: dict = _f({"shelving": 1.0}, "weights:shelving|pallet", doc="probability of each rack style: shelving (boards, boxes straight on them) or pallet racking (beam pairs, loads on pallets)")
+    pallet_levels: list = _f([2, 5], "irange", 1, 8, "pallet racking: storage levels, the floor position included")
+    pallet_level_height: list = _f([1.2, 2.2], "frange", 0.5, 4.0, "pallet racking: beam level to beam level, metres")
+    pallet_bay_length: list = _f([2.7, 3.6], "frange", 1.0, 6.0, "pallet racking: beam length (clear bay width), metres")
+    pallet_rack_depth: list = _f([0.8, 1.2], "frange", 0.5, 2.0, "pallet racking: frame depth, metres")
+    floor_level: float = _f(0.5, "float", 0.0, 1.0, "pallet racking: probability that the floor under the first beam is a storage level (shelf channel 0, its board is the floor)")
+    wire_deck: float = _f(0.3, "float", 0.0, 1.0, "pallet racking: probability of wire-mesh decks on the beams (else open beams)")
+    pallet_load: dict = _f({"cartons": 0.5, "wrapped": 0.35, "crates": 0.15}, "weights:cartons|wrapped|crates", doc="pallet racking: what stands on a pallet")
     # --- warehouse ------------------------------------------------------------------------
     background: dict = _f({"wall": 0.4, "busy": 0.6}, "weights:wall|busy", doc="probability of each background")
     wall_gap: list = _f([0.05, 0.6], "frange", 0.0, 5.0, "gap between the rack's back and the wall (wall background)")

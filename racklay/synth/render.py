@@ -237,7 +237,7 @@ def instance_array(scene: Scene, bank: TextureBank, cam=None) -> tuple[np.ndarra
     rows_box, rows_cyl = [], []
     keep = frustum_keep(scene, cam if cam is not None else scene.camera)
     for i, o in enumerate(scene.objects):
-        if not keep[i]:
+        if not keep[i] or o.shape == "none":
             continue
         m = bank.materials[o.material]
         side = m.side[i % len(m.side)]

@@ -21,7 +21,7 @@ from .. import layout as L
 from .recipe import Recipe
 
 # --- semantic classes ---------------------------------------------------------------------
-SEMANTIC_CLASSES = ("void", "floor", "wall", "rack", "shelf", "box", "crate", "clutter")
+SEMANTIC_CLASSES = ("void", "floor", "wall", "rack", "shelf", "box", "crate", "clutter", "pallet")
 SEM = {name: i for i, name in enumerate(SEMANTIC_CLASSES)}
 
 # --- item categories: 6 cartons + 2 crates, nominal size (sx along the rack, sy deep, sz up) ---
@@ -34,10 +34,17 @@ CATEGORIES = (
     ("carton_large", (0.55, 0.45, 0.42)),
     ("crate_blue", (0.40, 0.30, 0.24)),
     ("crate_red", (0.60, 0.40, 0.32)),
+    # load units of pallet racking: a pallet and what stands on it are one box (racklay.layout)
+    ("pallet_cartons", (1.2, 0.8, 1.2)),
+    ("pallet_wrapped", (1.2, 0.8, 1.2)),
+    ("pallet_crates", (1.2, 0.8, 1.0)),
 )
 CATEGORY_NAMES = tuple(c[0] for c in CATEGORIES)
 CARTONS = tuple(i for i, c in enumerate(CATEGORY_NAMES) if c.startswith("carton"))
 CRATES = tuple(i for i, c in enumerate(CATEGORY_NAMES) if c.startswith("crate"))
+PALLET_UNITS = {c[len("pallet_"):]: i for i, c in enumerate(CATEGORY_NAMES) if c.startswith("pallet_")}
+PALLET_HEIGHT = 0.144     # a euro pallet's height, metres
+PALLET_FOOTPRINTS = ((1.2, 0.8), (1.2, 1.0))   # euro and UK/industrial pallets, metres
 
 
 @dataclass
@@ -50,10 +57,11 @@ class Obj:
     material: str          # texture bank key
     semantic: int
     tint: tuple = (1.0, 1.0, 1.0)
-    shape: str = "box"     # "box" | "cylinder"
+    shape: str = "box"     # "box" | "cylinder" | "none" (not drawn: a load unit whose parts are drawn)
     category: int = -1     # index into CATEGORIES for cartons/crates
     shelf: int = -1        # shelf index of the considered rack (-1 elsewhere)
     layout_box: L.Box | None = None  # the same item in its shelf frame (considered rack only)
+    part_of: int = -1      # index of the load unit this drawn part belongs to (its pixels are the unit's)
 
     def corners(self) -> np.ndarray:
         """8 x 3 world corners of the cuboid (bottom 4 counter-clockwise, then top 4)."""
@@ -140,6 +148,7 @@ class Scene:
     domain: str = "synthetic"
     shadows: bool = True          # the key light casts shadows
     light_falloff: float = 6.0    # metres at which a light's intensity has halved
+    rack_style: str = "shelving"  # "shelving" | "pallet" (Recipe.rack_style)
 
     def layout_inputs(self) -> list[tuple[L.Shelf, list[L.Box]]]:
         """(Shelf, boxes in the shelf frame) of each visible shelf, lowest first."""
@@ -315,6 +324,34 @@ def _stack(rng, r, items, cat, base: L.Box, slot, yband, max_top, stack_max):
         below = b
 
 
+def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: float, density: float) -> list[tuple[str, L.Box]]:
+    """Load units on one pallet-rack level (shelf frame): pallets side by side along the beams,
+    each slot taken with probability `density`. Returns (load kind, unit Box) pairs; a unit is the
+    pallet and its load as one box standing on the level (z0 = 0), never wider than the pallet,
+    kept on the level (x and y) and below `max_top`."""
+    units: list[tuple[str, L.Box]] = []
+    if max_top < PALLET_HEIGHT + 0.2:
+        return units
+    along, deep = PALLET_FOOTPRINTS[int(rng.integers(len(PALLET_FOOTPRINTS)))]
+    if rng.uniform() < 0.3 and along <= depth + 0.05:   # turned: the long side across the beams
+        along, deep = deep, along
+    deep = min(deep, depth - 0.02)
+    gap = float(rng.uniform(0.06, 0.15))
+    n = int((length - gap) // (along + gap))
+    if n < 1:
+        along, n = length - 2 * gap, 1
+    pitch = length / n
+    for k in range(n):
+        if rng.uniform() >= density:
+            continue
+        kind = rng.choice(list(r.pallet_load), p=list(r.pallet_load.values()))
+        cx = -length / 2 + pitch * (k + 0.5) + float(rng.uniform(-0.25, 0.25)) * (pitch - along)
+        cy = -depth / 2 + 0.01 + deep / 2 + float(rng.uniform(0, max(0.0, depth - 0.02 - deep)))
+        sz = PALLET_HEIGHT + float(rng.uniform(0.35, 1.0)) * (max_top - PALLET_HEIGHT)
+        units.append((kind, L.Box(cx=cx, cy=cy, sx=along, sy=deep, sz=sz, z0=0.0, yaw=0.0)))
+    return units
+
+
 # --- the scene ------------------------------------------------------------------------------
 class _Builder:
     def __init__(self, rng, r: Recipe):
@@ -362,23 +399,106 @@ class _Builder:
                 shelf_infos[si].items = idx
 
 
+    def pallet_rack(self, x0, y0, length, depth, boards, beam_h, top_z, steel_tint, beam_tint, deck,
+                    shelf_infos=None, uprights=(True, True)):
+        """A pallet-rack bay centred at (x0, y0): perforated uprights with footplates and side-frame
+        braces, a beam pair under every level off the floor (a wire deck on them where `deck`),
+        and load units on pallets. A level whose board top is 0 is the floor position."""
+        r, uw = self.r, self.r.upright_width
+        for side, want in zip((-1, 1), uprights):
+            if not want:
+                continue
+            xs = x0 + side * (length / 2 + uw / 2)
+            for yy in (-1, 1):
+                ys = y0 + yy * (depth / 2 - uw / 2)
+                self.add((xs, ys, top_z / 2), (uw, uw, top_z), "steel", SEM["rack"], tint=steel_tint)
+                self.add((xs, ys, 0.004), (uw + 0.06, uw + 0.06, 0.008), "steel", SEM["rack"], tint=steel_tint)
+            for zb in np.arange(0.3, top_z - 0.2, 1.1):   # horizontal braces of the side frame
+                self.add((xs, y0, float(zb)), (0.03, depth - 2 * uw, 0.04), "steel", SEM["rack"], tint=steel_tint)
+        for z_top, _h, _mt in boards:
+            if z_top <= 0:
+                continue   # the floor position: no beams
+            for yy in (-1, 1):
+                self.add((x0, y0 + yy * (depth / 2 - 0.03), z_top - beam_h / 2), (length, 0.06, beam_h),
+                         "beam", SEM["rack"], tint=beam_tint)
+            if deck:   # sits in the beams' step, 2 mm below their tops, which carry the pallets
+                self.add((x0, y0, z_top - 0.007), (length, depth - 0.02, 0.01), "deck", SEM["shelf"], tint=(1, 1, 1))
+        for si, (z_top, _h, max_top) in enumerate(boards):
+            density = _u(self.rng, r.box_density)
+            units = fill_pallet_level(self.rng, r, length, depth, max_top, density)
+            idx = [self.pallet_unit(kind, b, z_top, x0, y0, si if shelf_infos is not None else -1,
+                                    detailed=shelf_infos is not None)
+                   for kind, b in units]
+            if shelf_infos is not None:
+                shelf_infos[si].items = idx
+
+    def pallet_unit(self, kind: str, b: L.Box, z_board: float, x_off: float, y_off: float, shelf: int,
+                    detailed: bool) -> int:
+        """One load unit: an undrawn object holding the unit's box (what the ground truth
+        sees), a pallet and its load drawn as parts of it. A carton or crate load is drawn as
+        single cartons/crates, fewer of them in background bays (not `detailed`)."""
+        rng = self.rng
+        cx, cy = b.cx + x_off, b.cy + y_off
+        unit = self.add((cx, cy, z_board + b.sz / 2), (b.sx, b.sy, b.sz), "pallet", SEM["box"],
+                        shape="none", category=PALLET_UNITS[kind], shelf=shelf,
+                        layout_box=b if shelf >= 0 else None)
+        self.add((cx, cy, z_board + PALLET_HEIGHT / 2), (b.sx, b.sy, PALLET_HEIGHT), "pallet", SEM["pallet"],
+                 part_of=unit)
+        h = b.sz - PALLET_HEIGHT
+        inset = float(rng.uniform(0.0, 0.05))
+        lx, ly = b.sx - 2 * inset, b.sy - 2 * inset
+        z0 = z_board + PALLET_HEIGHT
+        if kind == "wrapped":
+            self.add((cx, cy, z0 + h / 2), (lx, ly, h), "wrap", SEM["box"], part_of=unit)
+            return unit
+        cat = _pick(rng, CRATES) if kind == "crates" else _pick(rng, CARTONS)
+        csx, csy, csz = _item_size(rng, self.r, cat)
+        cap = (4, 4, 6) if detailed else (3, 2, 3)
+        nx, ny, nz = (min(c, max(1, round(a / b))) for c, a, b in zip(cap, (lx, ly, h), (csx, csy, csz)))
+        sx, sy, sz = lx / nx, ly / ny, h / nz
+        sem = SEM["crate"] if kind == "crates" else SEM["box"]
+        for iz in range(nz):
+            for ix in range(nx):
+                for iy in range(ny):
+                    self.add((cx - lx / 2 + (ix + 0.5) * sx, cy - ly / 2 + (iy + 0.5) * sy, z0 + (iz + 0.5) * sz),
+                             (sx - 0.004, sy - 0.004, sz - 0.002), CATEGORY_NAMES[cat], sem, part_of=unit)
+        return unit
+
+
 def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -> Scene:
     """Sample the scene of image `index`; deterministic in (recipe, seed, index)."""
     rng = scene_rng(seed, index)
     B = _Builder(rng, r)
 
-    # the considered rack
-    length, depth = _u(rng, r.rack_length), _u(rng, r.rack_depth)
-    n = _ui(rng, r.n_shelves)
-    h_nom = _u(rng, r.shelf_height)
-    beam_h = _u(rng, r.beam_height)
-    z = _u(rng, r.bottom_height)
+    # the considered rack; the style is drawn only when pallet racking has a weight, so recipes
+    # without it keep their scenes draw for draw
+    style, deck = "shelving", False
+    if r.rack_style.get("pallet", 0.0) > 0:
+        style = rng.choice(list(r.rack_style), p=list(r.rack_style.values()))
     boards = []
-    for i in range(n):
-        h = h_nom * (1 + float(rng.uniform(-r.shelf_height_jitter, r.shelf_height_jitter)))
-        below_next = h - r.board_thickness - beam_h - 0.03 if i < n - 1 else h - 0.05
-        boards.append((z, h, max(below_next, 0.0)))
-        z += h
+    if style == "pallet":
+        length, depth = _u(rng, r.pallet_bay_length), _u(rng, r.pallet_rack_depth)
+        n = _ui(rng, r.pallet_levels)
+        h_nom = _u(rng, r.pallet_level_height)
+        beam_h = float(rng.uniform(0.1, 0.16))
+        z = 0.0 if rng.uniform() < r.floor_level else float(rng.uniform(0.1, 0.25))
+        deck = bool(rng.uniform() < r.wire_deck)
+        for i in range(n):
+            h = h_nom * (1 + float(rng.uniform(-r.shelf_height_jitter, r.shelf_height_jitter)))
+            # forklift clearance under the next beam; the top level ends at the uprights' top
+            boards.append((z, h, h - beam_h - 0.1 if i < n - 1 else h - 0.1))
+            z += h
+    else:
+        length, depth = _u(rng, r.rack_length), _u(rng, r.rack_depth)
+        n = _ui(rng, r.n_shelves)
+        h_nom = _u(rng, r.shelf_height)
+        beam_h = _u(rng, r.beam_height)
+        z = _u(rng, r.bottom_height)
+        for i in range(n):
+            h = h_nom * (1 + float(rng.uniform(-r.shelf_height_jitter, r.shelf_height_jitter)))
+            below_next = h - r.board_thickness - beam_h - 0.03 if i < n - 1 else h - 0.05
+            boards.append((z, h, max(below_next, 0.0)))
+            z += h
     top_z = boards[-1][0] + boards[-1][1]  # uprights end one nominal height above the top board
     shelves = [ShelfInfo(board_top=b[0], clear_height=b[1], max_item_top=b[2]) for b in boards]
     steel_tint = _tint(rng, 0.15, (0.25, 0.35, 0.65) if rng.uniform() < 0.6 else (0.55, 0.56, 0.58))
@@ -403,7 +523,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     if background == "busy":
         y_back = depth / 2
         for row in range(1, r.rack_rows + 1):
-            d2 = depth if row % 2 else _u(rng, r.rack_depth)
+            d2 = depth if row % 2 else _u(rng, r.pallet_rack_depth if style == "pallet" else r.rack_depth)
             # back-to-back rows pair up (small flue gap), pairs are separated by corridors
             gap = float(rng.uniform(0.1, 0.3)) if row % 2 else _u(rng, r.corridor_width)
             rows_y.append(y_back + gap + d2 / 2)
@@ -427,8 +547,12 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
                 continue
             left_shared = ci > 0 and row[ci - 1]
             is_target = ri == 0 and col == 0
-            B.rack(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, beam_tint, filled=True,
-                   shelf_infos=shelves if is_target else None, uprights=(not left_shared, True))
+            if style == "pallet":
+                B.pallet_rack(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, beam_tint, deck,
+                              shelf_infos=shelves if is_target else None, uprights=(not left_shared, True))
+            else:
+                B.rack(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, beam_tint, filled=True,
+                       shelf_infos=shelves if is_target else None, uprights=(not left_shared, True))
 
     # building: floor, ceiling, walls, lamps
     fl_tint = _tint(rng, 0.12)
@@ -517,7 +641,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     return Scene(index=index, seed=seed, recipe=r.name, objects=B.objects, shelves=shelves, rack_length=length,
                  rack_depth=depth, visible=visible, camera=cam, lights=lights, ambient=ambient,
                  ambient_color=(1.0, 1.0, 1.0), main_light=0, background=background, occupancy=occ_rows,
-                 effects=effects, domain=r.domain, shadows=r.shadows)
+                 effects=effects, domain=r.domain, shadows=r.shadows, rack_style=style)
 
 
 def rotation_world_to_cam(yaw: float, pitch: float, roll: float) -> np.ndarray:

@@ -218,6 +218,30 @@ def wood_planks(rng):
     return _to_u8(img)
 
 
+def wire_deck(rng):
+    """Galvanised wire-mesh decking on pallet-rack beams."""
+    img = _rgb((0.16, 0.16, 0.17)) * (0.8 + 0.2 * _noise(rng)[..., None])
+    for k in range(0, TEX, 12):
+        img[k:k + 2] = (0.72, 0.73, 0.75)
+    for k in range(0, TEX, 48):
+        img[:, k:k + 3] = (0.62, 0.63, 0.66)
+    return _to_u8(img)
+
+
+def stretch_wrap(rng):
+    """A pallet load under stretch film: cartons seen through milky, streaked plastic."""
+    n = _noise(rng, octaves=(4, 8, 64), falloff=0.7)
+    img = _rgb((0.72, 0.6, 0.45)) * (0.85 + 0.2 * n[..., None])
+    for y in range(0, TEX, 64):        # carton joints behind the film
+        img[y:y + 2] *= 0.6
+    for x in range(0, TEX, 85):
+        img[:, x:x + 2] *= 0.6
+    streaks = 0.5 + 0.5 * np.sin(np.arange(TEX) * 2 * np.pi / TEX * 7 + rng.uniform(0, 6))[:, None]
+    film = 0.45 + 0.3 * streaks * (0.7 + 0.3 * _noise(rng, octaves=(8, 32)))
+    img = img * (1 - film[..., None]) + film[..., None] * 0.95
+    return _to_u8(img)
+
+
 def plain(rng, level=0.92):
     return _to_u8(_rgb((level,) * 3) * (0.96 + 0.04 * _noise(rng, octaves=(16, 32))[..., None]))
 
@@ -281,5 +305,10 @@ def build_bank(family: str = "warehouse", seed: int = 0, texture_dir: str = "") 
     bank.materials["board"] = Material([b], [b], uv_tile=1.0, specular=0.05 if family == "warehouse" else 0.3)
     pw = bank.add(wood_planks(rng))
     bank.materials["pallet"] = Material([pw], [pw], uv_tile=1.2)
+    # pallet racking (added last: the layers above keep their indices and pixels)
+    dk = bank.add(wire_deck(rng))
+    bank.materials["deck"] = Material([dk], [dk], uv_tile=0.5, specular=0.3, shininess=24)
+    wr = bank.add(stretch_wrap(rng))
+    bank.materials["wrap"] = Material([wr], [wr], uv_tile=1.0, specular=0.45, shininess=40)
     _BANK_CACHE[key] = bank
     return bank
