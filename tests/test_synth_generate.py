@@ -69,7 +69,10 @@ def test_generated_set_is_valid_racklay(reference):
         assert (reference / "kitti" / f"{sid}.txt").exists()
     assert n_items >= 5
     coco = json.loads((reference / "annotations" / "instances_train.json").read_text())
-    assert coco["categories"][0]["name"] == "carton_small" and len(coco["categories"]) == 8
+    # ids are stable: the 6 cartons and 2 crates first, the pallet load units appended after them
+    names = [c["name"] for c in coco["categories"]]
+    assert names[0] == "carton_small" and names[6:8] == ["crate_blue", "crate_red"]
+    assert names[8:] == ["pallet_cartons", "pallet_wrapped", "pallet_crates"]
     assert coco["images"] and coco["annotations"]
 
 

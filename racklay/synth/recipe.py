@@ -52,7 +52,7 @@ class Recipe:
     shelf_height: list = _f([0.45, 0.8], "frange", 0.2, 2.5, "inter-shelf height in metres (board top to board top)")
     shelf_height_jitter: float = _f(0.0, "float", 0.0, 0.4, "relative per-level variation of the inter-shelf height")
     rack_length: list = _f([1.6, 3.0], "frange", 0.5, 6.0, "rack (shelf board) length along x, metres")
-    rack_depth: list = _f([0.6, 1.1], "frange", 0.3, 2.0, "shelf board depth, metres")
+    rack_depth: list = _f([0.6, 1.1], "frange", 0.2, 2.0, "shelf board depth, metres")
     bottom_height: list = _f([0.08, 0.25], "frange", 0.0, 1.0, "height of the lowest board's top above the floor")
     board_thickness: float = _f(0.035, "float", 0.005, 0.2, "board thickness, metres")
     beam_height: list = _f([0.06, 0.12], "frange", 0.0, 0.3, "front/back beam height under each board")

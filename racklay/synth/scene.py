@@ -333,7 +333,7 @@ def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: floa
     if max_top < PALLET_HEIGHT + 0.2:
         return units
     along, deep = PALLET_FOOTPRINTS[int(rng.integers(len(PALLET_FOOTPRINTS)))]
-    if rng.uniform() < 0.3 and along <= depth + 0.05:   # turned: the long side across the beams
+    if rng.uniform() < 0.5 and along <= depth + 0.05:   # turned: the long side across the beams
         along, deep = deep, along
     deep = min(deep, depth - 0.02)
     gap = float(rng.uniform(0.06, 0.15))

@@ -1,0 +1,202 @@
+"""Coverage report: does a WareSynth recipe cover what the labelled real photos show?
+
+For every labelled photo of an `annotate` project (default `datasets/real-photos/`) the metric
+scene is rebuilt from its annotation (`annotate.geometry`: rack size, shelf boards, boxes, and the
+camera recovered from the rack's homography), and the same quantities are measured on scenes
+sampled from each recipe (`racklay.synth.scene.sample_scene`, no rendering):
+
+    rack length, rack depth, visible shelves, level height (board to board, shelves below the
+    top one), box width / height / depth, camera distance to the rack front, camera height,
+    focal length per pixel of image width.
+
+It prints, per recipe and quantity, the recipe's 5-95 % and min-max range, how many photo values
+fall inside [min, max] (the recipe's support) and which photos fall outside, and draws one panel
+per quantity (recipe histograms, photo values as ticks; red = outside every recipe given).
+
+    .venv/bin/python bench/synth_coverage.py --recipe complex --recipe pallet [--n 2000]
+        [--project datasets/real-photos] [--out docs/img/synth_coverage.png]
+
+Numbers only; nothing is asserted. The camera of a near-frontal photo is not determined by its
+rack (a typical phone focal length is then assumed): such photos are left out of the focal and
+distance rows and counted in the header.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+QUANTITIES = {   # key: (label, unit)
+    "rack_length": ("rack length", "m"),
+    "rack_depth": ("rack depth", "m"),
+    "shelves": ("visible shelves", ""),
+    "level_height": ("level height", "m"),
+    "box_width": ("box width", "m"),
+    "box_height": ("box height", "m"),
+    "box_depth": ("box depth", "m"),
+    "cam_distance": ("camera distance", "m"),
+    "cam_height": ("camera height", "m"),
+    "focal": ("focal / image width", ""),
+}
+
+
+def photo_quantities(project: Path) -> tuple[dict, list[str]]:
+    """{photo name: {quantity: [values]}} from the project's annotations, and notes."""
+    from annotate import geometry as G
+    from annotate.schema import load_annotation, load_settings, pixel_aspect
+
+    settings = load_settings(project / "project.json")
+    aspect = pixel_aspect(settings)
+    out, notes = {}, []
+    for path in sorted((project / "annotations").glob("*.json")):
+        ann = load_annotation(path)
+        name = ann["image"]
+        try:
+            sc = G.build_scene(ann, settings)
+        except G.GeometryError as e:
+            notes.append(f"{name}: left out ({e})")
+            continue
+        q = {k: [] for k in QUANTITIES}
+        q["rack_length"] = [sc.width]
+        q["rack_depth"] = [sc.depth]
+        q["shelves"] = [len(sc.shelf_v)]
+        q["level_height"] = list(np.diff(sc.shelf_v))
+        for b in sc.boxes:
+            q["box_width"].append(b.u1 - b.u0)
+            q["box_height"].append(b.v1 - b.v0)
+            q["box_depth"].append(b.depth)
+        cam = G.camera_from_plane(sc.plane, ann["image_size"], aspect)
+        if cam.focal_from_photo:
+            c = -cam.R.T @ cam.t          # rack frame: x along, y into the rack, z up from its bottom
+            q["cam_distance"] = [float(-c[1])]
+            q["cam_height"] = [float(c[2])]
+            q["focal"] = [float(cam.K[1, 1] / (ann["image_size"][0] * aspect))]
+        else:
+            notes.append(f"{name}: near-frontal, camera not determined (no distance / height / focal)")
+        out[name] = q
+    return out, notes
+
+
+def recipe_quantities(name: str, n: int, seed: int) -> dict:
+    from racklay.synth.recipe import load_recipe
+    from racklay.synth.scene import sample_scene
+
+    r = load_recipe(name)
+    q = {k: [] for k in QUANTITIES}
+    for i in range(n):
+        s = sample_scene(r, seed, i)
+        q["rack_length"].append(s.rack_length)
+        q["rack_depth"].append(s.rack_depth)
+        q["shelves"].append(len(s.visible))
+        tops = [s.shelves[k].board_top for k in s.visible]
+        q["level_height"] += list(np.diff(tops))
+        for k in s.visible:
+            for j in s.shelves[k].items:
+                b = s.objects[j].layout_box
+                q["box_width"].append(b.sx)
+                q["box_height"].append(b.z0 + b.sz)     # a stack's height above its board
+                q["box_depth"].append(b.sy)
+        c = s.camera.center
+        q["cam_distance"].append(float(-s.rack_depth / 2 - c[1]))
+        q["cam_height"].append(float(c[2]))
+        q["focal"].append(float(s.camera.K[0, 0] / s.camera.width))
+    return q
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--recipe", action="append", default=None, help="recipe name or YAML path (repeatable; "
+                    "default: complex, release, pallet)")
+    ap.add_argument("--n", type=int, default=1500, help="scenes sampled per recipe (default 1500)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--project", type=Path, default=REPO / "datasets" / "real-photos", help="annotate project folder")
+    ap.add_argument("--out", default=None, help="write the figure here (PNG)")
+    args = ap.parse_args(argv)
+    recipes = args.recipe or ["complex", "release", "pallet"]
+
+    photos, notes = photo_quantities(args.project)
+    print(f"{len(photos)} labelled photos in {args.project}")
+    for line in notes:
+        print(f"  note: {line}")
+    from racklay.synth.recipe import RecipeError
+
+    try:
+        rq = {name: recipe_quantities(name, args.n, args.seed) for name in recipes}
+    except RecipeError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+    support = {name: {k: (float(np.min(rq[name][k])), float(np.max(rq[name][k]))) for k in QUANTITIES}
+               for name in recipes}
+
+    def inside(name, key, x):
+        lo, hi = support[name][key]
+        return lo - 1e-9 <= x <= hi + 1e-9
+
+    for name in recipes:
+        print(f"\nrecipe {name} ({args.n} scenes, seed {args.seed})")
+        print("| quantity | recipe 5-95 % | recipe min-max | photo values inside | photos outside |")
+        print("|---|---|---|---|---|")
+        for key, (label, unit) in QUANTITIES.items():
+            p5, p95 = np.percentile(rq[name][key], [5, 95])
+            lo, hi = support[name][key]
+            flags = {photo: [inside(name, key, x) for x in q[key]] for photo, q in photos.items()}
+            n_in = sum(sum(f) for f in flags.values())
+            total = sum(len(f) for f in flags.values())
+            bad = [photo.split(".")[0] for photo, f in flags.items() if not all(f)]
+            u = f" {unit}" if unit else ""
+            print(f"| {label} | {p5:.2f}-{p95:.2f}{u} | {lo:.2f}-{hi:.2f}{u} | {n_in} / {total} | "
+                  f"{', '.join(bad) if bad else '-'} |")
+
+    # values no recipe given covers: the union's gaps
+    uncovered = {key: {photo: [x for x in q[key] if not any(inside(n, key, x) for n in recipes)]
+                       for photo, q in photos.items()} for key in QUANTITIES}
+    print(f"\nphoto values outside every recipe given ({', '.join(recipes)}):")
+    print("| quantity | values outside / all | photos (their values outside) |")
+    print("|---|---|---|")
+    for key, per in uncovered.items():
+        n_out = sum(len(v) for v in per.values())
+        total = sum(len(q[key]) for q in photos.values())
+        listed = "; ".join(f"{p.split('.')[0]} ({', '.join(f'{x:.2f}' for x in v)})" for p, v in per.items() if v)
+        print(f"| {QUANTITIES[key][0]} | {n_out} / {total} | {listed or '-'} |")
+    n_photos_out = sum(1 for photo in photos if any(uncovered[k][photo] for k in QUANTITIES))
+    print(f"\nphotos with a value outside every recipe: {n_photos_out} of {len(photos)}")
+
+    if args.out:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from racklay.viz import save_figure
+
+        keys = list(QUANTITIES)
+        fig, axes = plt.subplots(2, 5, figsize=(18, 6.5))
+        for ax, key in zip(axes.ravel(), keys):
+            label, unit = QUANTITIES[key]
+            allv = np.concatenate([np.asarray(rq[n][key], float) for n in recipes] +
+                                  [np.asarray(q[key], float) for q in photos.values()])
+            bins = np.linspace(allv.min(), allv.max() + 1e-6, 30) if key != "shelves" else np.arange(0.5, 6.5)
+            for name in recipes:
+                ax.hist(rq[name][key], bins=bins, density=True, alpha=0.45, label=name)
+            for photo, q in photos.items():
+                for x in q[key]:
+                    out = x in uncovered[key][photo]
+                    ax.axvline(x, ymin=0, ymax=0.12, color="red" if out else "black", lw=1.2)
+            ax.set_title(label + (f" ({unit})" if unit else ""), fontsize=10)
+            ax.set_yticks([])
+        axes[0, 0].legend(fontsize=8)
+        fig.suptitle("WareSynth recipes (histograms) vs labelled real photos (ticks; red = outside every recipe)",
+                     fontsize=11)
+        fig.tight_layout()
+        save_figure(fig, args.out, dpi=80)
+        print(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
