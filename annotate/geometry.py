@@ -189,6 +189,7 @@ def build_scene(ann: dict, settings: dict) -> Scene:
     default_depth = settings.get("default_depth") or rack["depth"]
     snap = settings.get("box_snap", 0.05) or 0.0
     boxes = [metric_box(plane, b, shelf_v, rack["depth"], default_depth, snap, warnings) for b in ann["boxes"]]
+    snap_edges(boxes, plane.width, snap)
     return Scene(plane, float(rack["depth"]), shelf_v, shelf_ids, clear, boxes, warnings)
 
 
@@ -224,6 +225,29 @@ def metric_box(plane: RackPlane, b: dict, shelf_v, rack_depth: float, default_de
     # the box's height counts from where it stands
     return MetricBox(int(b["id"]), float(u0), float(u1), float(v0) if shelf is None else shelf_v[shelf] + z0,
                      float(v1), depth, off, shelf, z0)
+
+
+def snap_edges(boxes: list[MetricBox], width: float, snap: float) -> None:
+    """Edges a labeller clicks roughly, made exact (in place): a side within `snap` metres of the
+    rack's left or right edge moves onto it, and two side-by-side boxes on one shelf that overlap
+    by at most `snap` meet halfway. Gaps are kept, however small: cartons 1-4 cm apart are separate
+    boxes in the layouts, and closing the gap would merge them."""
+    for b in boxes:
+        if b.shelf is None:
+            continue
+        if b.u0 < snap:
+            b.u0 = 0.0
+        if width - b.u1 < snap:
+            b.u1 = width
+    on = sorted((b for b in boxes if b.shelf is not None), key=lambda b: (b.shelf, b.u0))
+    for i, a in enumerate(on):
+        for b in on[i + 1:]:
+            if b.shelf != a.shelf:
+                break
+            overlap = a.u1 - b.u0
+            side_by_side = min(a.v1, b.v1) > max(a.v0, b.v0)    # not one stacked on the other
+            if 0 < overlap <= snap and b.u1 > a.u1 and side_by_side:
+                a.u1 = b.u0 = (a.u1 + b.u0) / 2
 
 
 # --- the camera, from the rack plane: box depth and front offset by clicking -----------------

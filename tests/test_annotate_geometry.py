@@ -188,3 +188,25 @@ def test_box_set_back_stands_on_its_board():
     free = _one_box_scene(0.18, 0.50, on_board=False).boxes[0]
     assert free.shelf == 0 and free.z0 == pytest.approx(0.08)
 
+
+
+def test_rough_edges_snap_to_the_rack_and_to_an_overlapping_neighbour_but_gaps_stay():
+    """Labellers click roughly: a side 3 cm inside the rack's edge moves onto it, two cartons
+    drawn 4 cm into each other meet halfway, two cartons 2 cm apart stay apart (a real gap),
+    and a carton standing on another keeps its own edges."""
+    ann = S.new_annotation("x.png", 640, 640)
+    ann["rack"].update(corners=[[0, 0], [640, 0], [640, 640], [0, 640]], width=2.0, height=2.0, depth=0.6)
+    px = lambda u, v: [u * 320, 640 - v * 320]  # noqa: E731   frontal: 320 px a metre
+    ann["shelves"] = [{"id": 0, "point": px(1.0, 0.10)}, {"id": 1, "point": px(1.0, 0.75)}]
+    rows = [(0.03, 0.50, 0.10, 0.40),    # 3 cm from the left edge
+            (0.46, 0.90, 0.10, 0.40),    # 4 cm into the first
+            (0.92, 1.40, 0.10, 0.40),    # 2 cm gap to the second
+            (0.95, 1.35, 0.40, 0.60),    # stacked on the third
+            (1.45, 1.97, 0.10, 0.50)]    # 3 cm from the right edge
+    ann["boxes"] = [{"id": k, "p0": px(u0, v0), "p1": px(u1, v1), **({"on_board": False} if v0 > 0.2 else {})}
+                    for k, (u0, u1, v0, v1) in enumerate(rows)]
+    b = G.build_scene(ann, SETTINGS).boxes
+    assert b[0].u0 == 0.0 and b[4].u1 == 2.0
+    assert b[0].u1 == pytest.approx(0.48) and b[1].u0 == pytest.approx(0.48)
+    assert b[1].u1 == pytest.approx(0.90) and b[2].u0 == pytest.approx(0.92)
+    assert (b[3].u0, b[3].u1) == (pytest.approx(0.95), pytest.approx(1.35))
