@@ -10,7 +10,8 @@
    set): dataset-level shelf IoU >= 60 and box IoU >= 40 in both views.
 3. The hand-labelled real photos of `datasets/real-photos/` (an `annotate` project, exported to a
    temporary RackLay dataset), scored at their own resolution: dataset-level IoU, precision,
-   recall and AP, metric and of the shape alone (`--scale-from-truth`).
+   recall and AP, metric and of the shape alone (`--scale-from-truth`), and on how many photos
+   whose labels show separate boxes on a shelf the model shows them too.
 4. The model issue's targets for the shipped model (SHIPPED_TARGETS: complex box IoU >= 60 / 70,
    proxy-real box IoU >= 45 / 50, real photos box IoU >= 35 / 35 and, shape alone, shelf >= 70 and
    box >= 50), the real-photo ones only for a model that never saw the photos.
@@ -77,6 +78,30 @@ def print_model_issue_targets(rows: list[dict], saw_photos: bool) -> None:
         print(f"| {set_} | {cls} | >= {tgt['top']:g} / {tgt['front']:g} | {got['top']:.1f} / {got['front']:.1f} | {verdict} |")
 
 
+def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
+    """The model issue's "separate boxes where the photo shows separate boxes", counted: a photo
+    shows them when some shelf of its front-view labels holds two or more box runs along x
+    (`racklay.layout.box_runs`); the same test on the prediction."""
+    from racklay import layout as L
+    from racklay.data import RackLayRoot
+
+    truth, pred = RackLayRoot(truth_root), RackLayRoot(pred_root)
+    want, got, extra = [], [], []
+    for sid in truth.ids():
+        name = (truth.read_meta(sid) or {}).get("source_image", sid).split(".")[0]
+        t = L.box_runs(truth.read_layouts("front", sid)).max() >= 2
+        p = L.box_runs(pred.read_layouts("front", sid)).max() >= 2
+        (want if t else []).append(name)
+        if t and p:
+            got.append(name)
+        if p and not t:
+            extra.append(name)
+    also = f" and on {len(extra)} where the labels do not ({', '.join(extra)})" if extra else ""
+    print(f"separate boxes (>= 2 box runs on a shelf, front view): the labels show them on {len(want)} photos; "
+          f"the model on {len(got)} of these ({', '.join(got) or '-'}){also}")
+    return {"labelled": want, "predicted": got, "extra": extra}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
@@ -112,8 +137,9 @@ def main() -> int:
         sets += [("real photos", real, True, False), ("real photos, shape", real, True, True)]
     for name, root, native, scale_from_truth in sets:
         t0 = time.time()
+        pred_out = Path(tmp.name) / "pred" if name == "real photos" else None
         res = evaluate(pred, root, split="test", native=native, limit=args.limit, progress=True,
-                       scale_from_truth=scale_from_truth)
+                       scale_from_truth=scale_from_truth, pred_out=pred_out)
         out[name] = {"result": res, "seconds": time.time() - t0}
 
     rows = []
@@ -167,6 +193,8 @@ def main() -> int:
             d = sh[view]["dataset"]
             rows.append({"set": "real photos, shape", "view": view, "shelf_IoU": 100 * d["shelf"]["IoU"],
                          "box_IoU": 100 * d["box"]["IoU"]})
+    if "real photos" in out:
+        print_separate_boxes(Path(tmp.name) / "real", Path(tmp.name) / "pred")
     print_model_issue_targets(rows, bool(pred.meta.get("fine_tuned_on_photos")))
     tmp.cleanup()
     if args.json:
