@@ -398,7 +398,6 @@ class _Builder:
             if shelf_infos is not None:
                 shelf_infos[si].items = idx
 
-
     def pallet_rack(self, x0, y0, length, depth, boards, beam_h, top_z, steel_tint, beam_tint, deck,
                     shelf_infos=None, uprights=(True, True)):
         """A pallet-rack bay centred at (x0, y0): perforated uprights with footplates and side-frame
@@ -439,7 +438,8 @@ class _Builder:
         single cartons/crates, fewer of them in background bays (not `detailed`)."""
         rng = self.rng
         cx, cy = b.cx + x_off, b.cy + y_off
-        unit = self.add((cx, cy, z_board + b.sz / 2), (b.sx, b.sy, b.sz), "pallet", SEM["box"],
+        unit = self.add((cx, cy, z_board + b.sz / 2), (b.sx, b.sy, b.sz), "pallet",
+                        SEM["crate"] if kind == "crates" else SEM["box"],
                         shape="none", category=PALLET_UNITS[kind], shelf=shelf,
                         layout_box=b if shelf >= 0 else None)
         self.add((cx, cy, z_board + PALLET_HEIGHT / 2), (b.sx, b.sy, PALLET_HEIGHT), "pallet", SEM["pallet"],
