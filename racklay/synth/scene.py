@@ -45,6 +45,7 @@ CRATES = tuple(i for i, c in enumerate(CATEGORY_NAMES) if c.startswith("crate"))
 PALLET_UNITS = {c[len("pallet_"):]: i for i, c in enumerate(CATEGORY_NAMES) if c.startswith("pallet_")}
 PALLET_HEIGHT = 0.144     # a euro pallet's height, metres
 PALLET_FOOTPRINTS = ((1.2, 0.8), (1.2, 1.0))   # euro and UK/industrial pallets, metres
+DECK_LOOSE = 0.35         # a wire-deck level holds loose cartons / crates (no pallets) this often
 
 
 @dataclass
@@ -402,7 +403,8 @@ class _Builder:
                     shelf_infos=None, uprights=(True, True)):
         """A pallet-rack bay centred at (x0, y0): perforated uprights with footplates and side-frame
         braces, a beam pair under every level off the floor (a wire deck on them where `deck`),
-        and load units on pallets. A level whose board top is 0 is the floor position."""
+        and load units on pallets, or, on some wire-deck levels, cartons and crates straight on
+        the deck. A level whose board top is 0 is the floor position."""
         r, uw = self.r, self.r.upright_width
         for side, want in zip((-1, 1), uprights):
             if not want:
@@ -422,12 +424,18 @@ class _Builder:
                          "beam", SEM["rack"], tint=beam_tint)
             if deck:   # sits in the beams' step, 2 mm below their tops, which carry the pallets
                 self.add((x0, y0, z_top - 0.007), (length, depth - 0.02, 0.01), "deck", SEM["shelf"], tint=(1, 1, 1))
+        shelf_of = (lambda si: si) if shelf_infos is not None else (lambda si: -1)
         for si, (z_top, _h, max_top) in enumerate(boards):
             density = _u(self.rng, r.box_density)
-            units = fill_pallet_level(self.rng, r, length, depth, max_top, density)
-            idx = [self.pallet_unit(kind, b, z_top, x0, y0, si if shelf_infos is not None else -1,
-                                    detailed=shelf_infos is not None)
-                   for kind, b in units]
+            if deck and z_top > 0 and self.rng.uniform() < DECK_LOOSE:
+                # cartons and crates straight on the wire deck, as on shelving
+                items = fill_shelf(self.rng, r, length, depth, max_top, density, _ui(self.rng, r.max_stack))
+                idx = [self.item(cat, b, z_top, x0, y0, shelf=shelf_of(si), keep_layout=shelf_infos is not None)
+                       for cat, b in items]
+            else:
+                units = fill_pallet_level(self.rng, r, length, depth, max_top, density)
+                idx = [self.pallet_unit(kind, b, z_top, x0, y0, shelf_of(si), detailed=shelf_infos is not None)
+                       for kind, b in units]
             if shelf_infos is not None:
                 shelf_infos[si].items = idx
 
