@@ -19,12 +19,14 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--per-recipe", type=int, default=2)
     ap.add_argument("--seed", type=int, default=2)
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "img" / "waresynth_examples.png"))
+    ap.add_argument("--out", default=None, help="output image (default docs/img/waresynth_examples.png, "
+                    "with --sheet docs/img/waresynth_<recipe>.jpg)")
     ap.add_argument("--sheet", default=None, metavar="RECIPE", help="a 4 x 4 contact sheet of this recipe instead")
     args = ap.parse_args(argv)
+    img_dir = Path(__file__).resolve().parents[1] / "docs" / "img"
     if args.sheet:
-        return contact_sheet(args.sheet, args.seed, args.out if "--out" in (argv or sys.argv) else
-                             str(Path(__file__).resolve().parents[1] / "docs" / "img" / f"waresynth_{args.sheet}.jpg"))
+        return contact_sheet(args.sheet, args.seed, args.out or str(img_dir / f"waresynth_{args.sheet}.jpg"))
+    args.out = args.out or str(img_dir / "waresynth_examples.png")
 
     import cv2
     import numpy as np
