@@ -59,17 +59,11 @@ def main(argv=None) -> int:
         models["shipped weights, light decoder"] = as_light
     ort_runners = {}
     if args.onnx:   # what `racklay predict --backend onnx` runs
-        import onnxruntime as ort
+        from racklay.onnx import export_onnx_bytes, onnx_session
 
-        from racklay.onnx import export_onnx_bytes
-
-        so = ort.SessionOptions()
-        if args.threads:
-            so.intra_op_num_threads = args.threads
         xn = x.numpy()
         for k, (m, c) in (("shipped, onnxruntime", (shipped, cfg)), ("reference, onnxruntime", (reference, ref_cfg))):
-            sess = ort.InferenceSession(export_onnx_bytes(m, c), so,
-                                        providers=["CPUExecutionProvider"])
+            sess, _ = onnx_session(export_onnx_bytes(m, c), threads=args.threads, source=k)
             feed = {sess.get_inputs()[0].name: xn}
             ort_runners[k] = (lambda s_=sess, f_=feed: s_.run(None, f_))
     if args.memory_format == "channels_last":
