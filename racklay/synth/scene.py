@@ -372,15 +372,29 @@ class _Builder:
                         mat, sem, yaw=box.yaw, category=cat, shelf=shelf,
                         layout_box=box if keep_layout else None)
 
+    def uprights(self, x0, y0, length, depth, top_z, tint, which=(True, True), frame=False):
+        """The uprights of a bay centred at (x0, y0), front and back, on the sides `which` says
+        (left, right; a side shared with the neighbouring bay is drawn once). `frame`: pallet
+        racking's footplates and the horizontal braces of each side frame too."""
+        uw = self.r.upright_width
+        for side, want in zip((-1, 1), which):
+            if not want:
+                continue
+            xs = x0 + side * (length / 2 + uw / 2)
+            for yy in (-1, 1):
+                ys = y0 + yy * (depth / 2 - uw / 2)
+                self.add((xs, ys, top_z / 2), (uw, uw, top_z), "steel", SEM["rack"], tint=tint)
+                if frame:
+                    self.add((xs, ys, 0.004), (uw + 0.06, uw + 0.06, 0.008), "steel", SEM["rack"], tint=tint)
+            if frame:
+                for zb in np.arange(0.3, top_z - 0.2, 1.1):
+                    self.add((xs, y0, float(zb)), (0.03, depth - 2 * uw, 0.04), "steel", SEM["rack"], tint=tint)
+
     def rack(self, x0, y0, length, depth, boards, beam_h, top_z, steel_tint, beam_tint, filled,
              shelf_infos=None, uprights=(True, True)):
         """A rack bay centred at (x0, y0): uprights, beams, boards and (optionally) items."""
-        r, uw = self.r, self.r.upright_width
-        for side, want in zip((-1, 1), uprights):
-            if want:
-                for yy in (-1, 1):
-                    self.add((x0 + side * (length / 2 + uw / 2), y0 + yy * (depth / 2 - uw / 2), top_z / 2),
-                             (uw, uw, top_z), "steel", SEM["rack"], tint=steel_tint)
+        r = self.r
+        self.uprights(x0, y0, length, depth, top_z, steel_tint, uprights)
         for zi, (z_top, _h, _mt) in enumerate(boards):
             t = r.board_thickness
             self.add((x0, y0, z_top - t / 2), (length, depth, t), "board", SEM["shelf"],
@@ -405,17 +419,8 @@ class _Builder:
         braces, a beam pair under every level off the floor (a wire deck on them where `deck`),
         and load units on pallets, or, on some wire-deck levels, cartons and crates straight on
         the deck. A level whose board top is 0 is the floor position."""
-        r, uw = self.r, self.r.upright_width
-        for side, want in zip((-1, 1), uprights):
-            if not want:
-                continue
-            xs = x0 + side * (length / 2 + uw / 2)
-            for yy in (-1, 1):
-                ys = y0 + yy * (depth / 2 - uw / 2)
-                self.add((xs, ys, top_z / 2), (uw, uw, top_z), "steel", SEM["rack"], tint=steel_tint)
-                self.add((xs, ys, 0.004), (uw + 0.06, uw + 0.06, 0.008), "steel", SEM["rack"], tint=steel_tint)
-            for zb in np.arange(0.3, top_z - 0.2, 1.1):   # horizontal braces of the side frame
-                self.add((xs, y0, float(zb)), (0.03, depth - 2 * uw, 0.04), "steel", SEM["rack"], tint=steel_tint)
+        r = self.r
+        self.uprights(x0, y0, length, depth, top_z, steel_tint, uprights, frame=True)
         for z_top, _h, _mt in boards:
             if z_top <= 0:
                 continue   # the floor position: no beams
