@@ -266,11 +266,15 @@ class Camera:
         h = (X @ self.R.T + self.t) @ self.K.T
         return h[:, :2] / h[:, 2:3]
 
+    @property
+    def center(self) -> np.ndarray:
+        """The camera centre in the rack frame (x along the rack, y into it, z up)."""
+        return -self.R.T @ self.t
+
     def ray(self, pt) -> tuple[np.ndarray, np.ndarray]:
         """(camera centre, direction) in the rack frame of the ray through image point pt."""
-        c = -self.R.T @ self.t
         d = self.R.T @ np.linalg.solve(self.K, [float(pt[0]), float(pt[1]), 1.0])
-        return c, d
+        return self.center, d
 
 
 #: focal length (in pixels, per pixel of the photo's longer side) assumed when a near-frontal

@@ -72,7 +72,7 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
             q["box_depth"].append(b.depth)
         cam = G.camera_from_plane(sc.plane, ann["image_size"], aspect)
         if cam.focal_from_photo:
-            c = -cam.R.T @ cam.t          # rack frame: x along, y into the rack, z up from its bottom
+            c = cam.center                # rack frame: x along, y into the rack, z up from its bottom
             q["cam_distance"] = [float(-c[1])]
             q["cam_height"] = [float(c[2])]
             q["focal"] = [float(cam.K[1, 1] / (ann["image_size"][0] * aspect))]
