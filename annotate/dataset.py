@@ -56,6 +56,38 @@ def check_fractions(fractions: dict[str, float], what: str = "--split-fractions"
         raise ValueError(f"{what}: the fractions must sum to 1, but {given} sum to {total:.6g}")
 
 
+def read_split_file(path: str | os.PathLike) -> dict[str, str]:
+    """photo file name -> split name, from a tab-separated file with a header row naming a `file`
+    and a `split` column (e.g. a project's SOURCES.tsv with a split chosen by site). Strict: a
+    missing column, an empty split or a photo listed twice is an error naming the file and line."""
+    import csv
+
+    path = Path(path)
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f, delimiter="\t")
+            cols = reader.fieldnames or []
+            missing = [c for c in ("file", "split") if c not in cols]
+            if missing:
+                raise ValueError(f"{path}: no {' and no '.join(repr(c) for c in missing)} column in the header "
+                                 f"(columns: {', '.join(cols) or 'none'})")
+            out: dict[str, str] = {}
+            for line, row in enumerate(reader, start=2):
+                name, split = (row.get("file") or "").strip(), (row.get("split") or "").strip()
+                if not name or not split:
+                    raise ValueError(f"{path}: line {line}: empty {'file' if not name else 'split'}")
+                if name in out:
+                    raise ValueError(f"{path}: line {line}: {name} is listed twice")
+                out[name] = split
+    except OSError as e:
+        raise ValueError(f"{path}: cannot read the split file ({e.strerror or e})") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a UTF-8 text file") from None
+    if not out:
+        raise ValueError(f"{path}: lists no photo")
+    return out
+
+
 def split_ids(ids: list[str], counts: dict[str, float] | None = None,
               fractions: dict[str, float] | None = None, seed: int = 0) -> dict[str, list[str]]:
     """Reproducible splits by exact counts or by fractions (default train=0.8,test=0.2): the
@@ -109,9 +141,12 @@ def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict
 
 
 def export_project(project: Project, out: str | os.PathLike, counts=None, fractions=None, seed: int = 0,
-                   only_status=("done", "approved"), progress: bool = False, skip_invalid: bool = False) -> dict:
+                   only_status=("done", "approved"), progress: bool = False, skip_invalid: bool = False,
+                   split_of: dict[str, str] | None = None) -> dict:
     """Write every annotation whose status is in `only_status` as a RackLay sample. Returns a
-    summary dict. Refuses a non-empty output folder.
+    summary dict. Refuses a non-empty output folder. `split_of` (photo name -> split, see
+    read_split_file) fixes each photo's split instead of a shuffle: every exported photo must be
+    in it, and every photo it names must be in the project.
 
     Every annotation, its layouts and its photo are checked before anything is written: the photo
     must be readable, and the annotation must fit it (schema.photo_problems: same name and size,
@@ -132,6 +167,11 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         raise ValueError(f"--only-status: unknown status {bad[0]!r} (statuses: {', '.join(S.STATUSES)})")
     if fractions is not None:
         check_fractions(fractions)
+    if split_of is not None:
+        stray = sorted(set(split_of) - set(project.images()))
+        if stray:
+            raise ValueError(f"the split file names {len(stray)} photo(s) that are not in {project.root} "
+                             f"(first: {stray[0]})")
     chosen, other_status, unannotated = [], {}, 0
     skipped: list[tuple[str, str]] = []
     warnings: list[str] = []
@@ -173,7 +213,16 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         why = f" ({len(skipped)} invalid, first: {skipped[0][1]})" if skipped else ""
         raise ValueError(f"{project.root}: no annotation with status {', '.join(only_status)} to export{why}")
     sids = [f"{k:06d}" for k in range(len(chosen))]
-    splits = split_ids(sids, counts, fractions, seed)
+    if split_of is not None:
+        unsplit = [name for name, _, _ in chosen if name not in split_of]
+        if unsplit:
+            raise ValueError(f"the split file gives no split for {len(unsplit)} exported photo(s) "
+                             f"(first: {unsplit[0]})")
+        splits: dict[str, list[str]] = {}
+        for sid, (name, _, _) in zip(sids, chosen):
+            splits.setdefault(split_of[name], []).append(sid)
+    else:
+        splits = split_ids(sids, counts, fractions, seed)
     # everything checked: build the dataset beside `out`, then rename it into place
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))

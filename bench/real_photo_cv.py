@@ -3,8 +3,8 @@
   .venv/bin/python bench/real_photo_cv.py --weights MODEL --replay /data/release [--soup 0.3,0.5]
 
 The labelled photos of an `annotate` project (default `datasets/real-photos/`) are grouped by
-where they come from (the `repo` column of the project's SOURCES.tsv: each source is one site,
-camera and labeller). For each group, the model (`--weights`; it must not have seen these photos,
+where they come from (`--group-by`, a column of the project's SOURCES.tsv: `site` by default, one
+site and camera per group; `repo` gives the coarser grouping of the earlier runs). For each group, the model (`--weights`; it must not have seen these photos,
 so not the shipped model, which was fine-tuned on them: the bench refuses it) is fine-tuned on the
 photos of every *other* group, with synthetic replay (`--replay`: a rendered set's train split,
 `--replay-ratio` renders per photo and epoch) and the model's own augmentation and loss (from
@@ -33,14 +33,17 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 
-def photo_groups(project: Path, source_of: dict[str, str]) -> dict[str, list[str]]:
-    """group (source repo) -> exported sample ids (`source_of`: sample id -> photo file name), from
-    the project's SOURCES.tsv."""
+def photo_groups(project: Path, source_of: dict[str, str], column: str = "site") -> dict[str, list[str]]:
+    """group (the SOURCES.tsv `column`) -> exported sample ids (`source_of`: sample id -> photo
+    file name), from the project's SOURCES.tsv."""
     src = project / "SOURCES.tsv"
     if not src.is_file():
         raise SystemExit(f"{src}: not found (the bench groups photos by their source)")
     with open(src, newline="") as f:
-        repo_of = {r["file"]: r["repo"] for r in csv.DictReader(f, delimiter="\t")}
+        reader = csv.DictReader(f, delimiter="\t")
+        if column not in (reader.fieldnames or []):
+            raise SystemExit(f"{src}: no {column!r} column to group by (columns: {', '.join(reader.fieldnames or [])})")
+        repo_of = {r["file"]: r[column] for r in reader}
     groups: dict[str, list[str]] = {}
     for sid, name in source_of.items():
         if name not in repo_of:
@@ -84,6 +87,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--project", type=Path, default=REPO / "datasets" / "real-photos",
                     help="annotate project of labelled photos with a SOURCES.tsv (default datasets/real-photos)")
+    ap.add_argument("--group-by", default="site",
+                    help="SOURCES.tsv column whose values are the cross-validation groups (default site; "
+                         "repo: by source repository)")
     ap.add_argument("--weights", default=None, help="model to fine-tune (default: the shipped one)")
     ap.add_argument("--replay", type=Path, required=True,
                     help="synthetic RackLay root mixed into every epoch (its train split), e.g. the set the model "
@@ -120,7 +126,7 @@ def main() -> int:
             raise SystemExit(f"{args.project}: annotate export failed")
     root = RackLayRoot(export)
     source_of = {sid: (root.read_meta(sid) or {}).get("source_image") for sid in root.ids()}
-    groups = photo_groups(args.project, source_of)
+    groups = photo_groups(args.project, source_of, args.group_by)
     onto = Path(args.onto).resolve() if args.onto else None
     metas = {model: load_checkpoint(model).meta for model in (weights, onto) if model is not None}
     for model, meta in metas.items():

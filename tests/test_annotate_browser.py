@@ -8,7 +8,6 @@ typing numbers and moving on (stored exactly as typed), hotkeys after a field.
 Needs /usr/bin/chromium (`apt-get install -y chromium`). Skipped without it, except in CI
 (CI=true), where a missing browser fails the test."""
 import os
-import shutil
 import socket
 import time
 from contextlib import contextmanager
@@ -20,13 +19,23 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PHOTO = REPO / "datasets" / "real-photos" / "10_loco_orange_crates_a.jpg"
-# clicks in image pixels (the photo is 416 x 416)
+# clicks in image pixels of the photo as its source stored it, squeezed to 416 x 416 (the dataset
+# keeps it restored to 16:9; `put_photo` writes the squeezed copy the clicks below were aimed on)
 # (the right-hand bay, seen obliquely: lowest beam to the third beam)
 CORNERS = [(222, 68), (395, 133), (390, 253), (222, 298)]
 SHELVES = [(300, 279), (300, 191)]
 BOXES = [((228, 297), (262, 232)), ((268, 282), (337, 210)), ((228, 189), (305, 155))]
 
 pytestmark = pytest.mark.browser
+
+
+def put_photo(proj_dir):
+    """The test photo as its source stored it (416 x 416, squeezed from 16:9) in `proj_dir`."""
+    import cv2
+
+    img = cv2.imread(str(PHOTO))
+    cv2.imwrite(str(proj_dir / PHOTO.name), cv2.resize(img, (416, 416), interpolation=cv2.INTER_AREA),
+                [cv2.IMWRITE_JPEG_QUALITY, 92])
 
 
 def _free_port():
@@ -53,7 +62,7 @@ def server(tmp_path):
     require_browser()
     proj_dir = tmp_path / "project"
     proj_dir.mkdir()
-    shutil.copy(PHOTO, proj_dir / PHOTO.name)
+    put_photo(proj_dir)
     project, demo, url = serve(proj_dir)
     yield project, url
     demo.close()
@@ -291,7 +300,7 @@ def test_server_away_banner_and_recovery(tmp_path):
     require_browser()
     proj_dir = tmp_path / "project"
     proj_dir.mkdir()
-    shutil.copy(PHOTO, proj_dir / PHOTO.name)
+    put_photo(proj_dir)
     port = _free_port()
     project, demo, url = serve(proj_dir, port)
     try:
@@ -324,7 +333,7 @@ def test_unreadable_photos_listed_and_skipped(tmp_path):
     proj_dir.mkdir()
     (proj_dir / "00_broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 not a jpeg")
     write_png_bomb(proj_dir / "00_huge.png", 30000, 30000)
-    shutil.copy(PHOTO, proj_dir / PHOTO.name)
+    put_photo(proj_dir)
     project, demo, url = serve(proj_dir)
     try:
         with browser_page(url, tmp_path / "chrome-profile") as page:
@@ -386,7 +395,7 @@ def test_squeezed_photo_shown_as_taken_and_clicked_where_aimed(tmp_path):
     require_browser()
     proj_dir = tmp_path / "project"
     proj_dir.mkdir()
-    shutil.copy(PHOTO, proj_dir / PHOTO.name)     # 416 x 416 as stored
+    put_photo(proj_dir)     # 416 x 416 as stored
     from annotate.store import Project
     p = Project(proj_dir)
     p.save_settings(dict(p.settings, pixel_aspect=16 / 9))

@@ -148,6 +148,32 @@ def test_export_split_fractions_must_sum_to_one(tmp_path, capsys):
     assert rc == 0 and check_dataset(out).splits == {"train": 1, "val": 0, "test": 1}
 
 
+def test_export_split_file_puts_each_photo_in_its_split(tmp_path, capsys):
+    """--split-file (e.g. SOURCES.tsv with a split chosen by site): each photo goes to the split its
+    row names, whatever the shuffle; a photo without a row, a row naming no photo of the project or
+    a file without the columns stops the export with one line, and nothing is written."""
+    proj = make_project(tmp_path, 4)
+    tsv = tmp_path / "SOURCES.tsv"
+    tsv.write_text("file\tsite\tsplit\np0.png\ta\ttest\np1.png\tb\ttrain\np2.png\ta\ttest\np3.png\tc\ttrain\n")
+    out = tmp_path / "ds"
+    assert annotate_main(["export", str(proj.root), "--out", str(out), "--split-file", str(tsv)]) == 0
+    assert "splits: test=2, train=2" in capsys.readouterr().out
+    ds = RackLayRoot(out)
+    assert {ds.read_meta(s)["source_image"] for s in ds.resolve("test")} == {"p0.png", "p2.png"}
+    assert check_dataset(out).ok
+    for text, why in (("file\tsplit\np0.png\ttest\np1.png\ttrain\n", "no split for 2 exported photo(s) (first: p2.png)"),
+                      ("file\tsplit\np0.png\ttest\np1.png\ttrain\np2.png\ttest\np3.png\ttrain\nzz.png\ttest\n",
+                       "not in"),
+                      ("file\tsite\np0.png\ta\n", "no 'split' column"),
+                      ("file\tsplit\np0.png\ttest\np0.png\ttrain\n", "line 3: p0.png is listed twice")):
+        tsv.write_text(text)
+        bad = tmp_path / "bad"
+        assert annotate_main(["export", str(proj.root), "--out", str(bad), "--split-file", str(tsv)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert why in err and len(err.splitlines()) == 1, err
+        assert not bad.exists() and not list(tmp_path.glob(".bad.*"))
+
+
 def exported(tmp_path, n=5):
     proj = make_project(tmp_path, n)
     out = tmp_path / "ds"

@@ -7,7 +7,6 @@ from __future__ import annotations
 import pytest
 import torch
 
-from conftest import REAL_PHOTOS
 from racklay.data import read_image
 from racklay.model import (
     EfficientNetLite0Encoder,
@@ -18,8 +17,8 @@ from racklay.model import (
     load_lite0_weights,
 )
 from racklay.torchdata import image_to_tensor, prepare_image
+from transfer.demo import PHOTOS  # the demo's real photos: one of each kind
 
-PHOTOS = REAL_PHOTOS
 #: ImageNet classes a rack photo plausibly shows: carton, crate, bookcase, bookshop, grocery store,
 #: file cabinet, tobacco shop, shoe shop, library, forklift
 PLAUSIBLE = {478, 519, 453, 454, 582, 553, 860, 788, 624, 561}

@@ -16,16 +16,27 @@ def test_recipes_are_package_data():
 
 
 def test_demo_photos_are_identical_copies_of_datasets_real_photos():
-    """transfer/photos/ (package data) mirrors datasets/real-photos/ (the annotation project):
-    same photos, same bytes, same attribution file."""
+    """transfer/photos/ (package data) holds the demo's photos, each a byte-for-byte copy of its
+    namesake in datasets/real-photos/ (the annotation project, their one home), with their rows of
+    its SOURCES.tsv (the attribution travels with them)."""
+    import csv
+
     from transfer.demo import PHOTOS
 
-    home = REAL_PHOTOS
-    want = sorted(p.name for p in home.iterdir() if p.suffix == ".jpg") + ["SOURCES.tsv"]
-    got = sorted(p.name for p in PHOTOS.iterdir() if p.name != "README.md")
-    assert sorted(got) == sorted(want), "copy datasets/real-photos/*.jpg and SOURCES.tsv to transfer/photos/"
-    for name in want:
-        assert (PHOTOS / name).read_bytes() == (home / name).read_bytes(), f"transfer/photos/{name} differs"
+    photos = sorted(p.name for p in PHOTOS.glob("*.jpg"))
+    assert len(photos) >= 20
+    assert sorted(p.name for p in PHOTOS.iterdir()) == sorted(photos + ["README.md", "SOURCES.tsv"])
+    for name in photos:
+        assert (REAL_PHOTOS / name).is_file(), f"transfer/photos/{name} is not in datasets/real-photos/"
+        assert (PHOTOS / name).read_bytes() == (REAL_PHOTOS / name).read_bytes(), f"transfer/photos/{name} differs"
+
+    def rows(path):
+        with open(path, newline="") as f:
+            return {r["file"]: r for r in csv.DictReader(f, delimiter="\t")}
+
+    home, here = rows(REAL_PHOTOS / "SOURCES.tsv"), rows(PHOTOS / "SOURCES.tsv")
+    assert sorted(here) == photos
+    assert all(here[n] == home[n] for n in photos), "copy the photos' rows of datasets/real-photos/SOURCES.tsv"
 
 
 def test_package_data_patterns_cover_what_the_code_reads():

@@ -184,7 +184,9 @@ def test_quick_demo_runs_end_to_end_from_the_shipped_model(tmp_path, capsys):
     out = tmp_path / "demo"
     assert transfer_main(["demo", "--quick", "--out", str(out)]) == 0
     log = capsys.readouterr().out
-    photos = sorted(p.stem for p in REAL_PHOTOS.iterdir() if p.suffix == ".jpg")
+    from transfer.demo import PHOTOS
+
+    photos = sorted(p.stem for p in PHOTOS.iterdir() if p.suffix == ".jpg")
     figs = out / "real-photo-predictions"
     assert sorted(p.stem for p in figs.glob("*.png") if p.stem != "contact_sheet") == photos
     assert (figs / "contact_sheet.png").is_file() and (figs / "SOURCES.tsv").is_file()

@@ -23,6 +23,10 @@ def register(sub) -> None:
     g.add_argument("--split", default=None, help="exact split sizes, e.g. train=442,test=100")
     g.add_argument("--split-fractions", default=None,
                    help="split fractions summing to 1, e.g. train=0.8,test=0.2 (the default)")
+    g.add_argument("--split-file", default=None, metavar="TSV",
+                   help="the split of every photo from a tab-separated file with 'file' and 'split' "
+                        "columns (e.g. the project's SOURCES.tsv, split by site so that no site is in "
+                        "two splits); every exported photo must be listed")
     p.add_argument("--seed", type=int, default=0, help="seed of the split shuffle (default 0)")
     p.add_argument("--only-status", default="done,approved",
                    help="export images with these statuses (default done,approved)")
@@ -33,15 +37,17 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from annotate.dataset import export_project, parse_counts
+    from annotate.dataset import export_project, parse_counts, read_split_file
     from annotate.store import Project
 
     counts = parse_counts(args.split, "--split") if args.split else None
     fractions = parse_counts(args.split_fractions, "--split-fractions") if args.split_fractions else None
+    split_of = read_split_file(args.split_file) if args.split_file else None
     statuses = tuple(s.strip() for s in args.only_status.split(",") if s.strip())
     project = Project(args.project, create=False)
     res = export_project(project, args.out, counts=counts, fractions=fractions, seed=args.seed,
-                         only_status=statuses, progress=sys.stderr.isatty(), skip_invalid=args.skip_invalid)
+                         only_status=statuses, progress=sys.stderr.isatty(), skip_invalid=args.skip_invalid,
+                         split_of=split_of)
     for path, why in res["skipped"]:
         print(f"annotate export: skipped: {why}", file=sys.stderr)
     for w in res["warnings"]:
