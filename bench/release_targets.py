@@ -9,7 +9,8 @@
 2. Cross-domain, no fine-tuning: the proxy-real test split (100 images of `transfer`'s benchmark
    set): dataset-level shelf IoU >= 60 and box IoU >= 40 in both views.
 3. The hand-labelled real photos of `datasets/real-photos/` (an `annotate` project, exported to a
-   temporary RackLay dataset), scored at their own resolution: dataset-level IoU, precision,
+   temporary RackLay dataset; its test split when the project's SOURCES.tsv gives a split per
+   photo, all of them otherwise), scored at their own resolution: dataset-level IoU, precision,
    recall and AP, metric and of the shape alone (`--scale-from-truth`), and on how many photos
    whose labels show separate boxes on a shelf the model shows them too.
 4. The model issue's targets for the shipped model (SHIPPED_TARGETS: complex box IoU >= 60 / 70,
@@ -87,7 +88,8 @@ def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
 
     truth, pred = RackLayRoot(truth_root), RackLayRoot(pred_root)
     want, got, extra = [], [], []
-    for sid in truth.ids():
+    # the test split, or its first --limit photos (the prediction root holds layouts, no images)
+    for sid in [s for s in truth.resolve("test") if pred.layout_path("front", s).is_file()]:
         name = (truth.read_meta(sid) or {}).get("source_image", sid).split(".")[0]
         t = L.box_runs(truth.read_layouts("front", sid)).max() >= 2
         p = L.box_runs(pred.read_layouts("front", sid)).max() >= 2
@@ -96,9 +98,12 @@ def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
             got.append(name)
         if p and not t:
             extra.append(name)
-    also = f" and on {len(extra)} where the labels do not ({', '.join(extra)})" if extra else ""
+    def names(xs):
+        return ", ".join(xs[:6]) + (f", ... ({len(xs)})" if len(xs) > 6 else "") if xs else "-"
+
+    also = f" and on {len(extra)} where the labels do not ({names(extra)})" if extra else ""
     print(f"separate boxes (>= 2 box runs on a shelf, front view): the labels show them on {len(want)} photos; "
-          f"the model on {len(got)} of these ({', '.join(got) or '-'}){also}")
+          f"the model on {len(got)} of these ({names(got)}){also}")
     return {"labelled": want, "predicted": got, "extra": extra}
 
 
@@ -132,7 +137,10 @@ def main() -> int:
         from annotate.cli import main as annotate_main
 
         real = Path(tmp.name) / "real"
-        if annotate_main(["export", str(args.real_photos), "--out", str(real), "--split-fractions", "test=1"]) != 0:
+        src = args.real_photos / "SOURCES.tsv"
+        by_site = src.is_file() and "split" in src.read_text(encoding="utf-8").split("\n", 1)[0].split("\t")
+        split_args = ["--split-file", str(src)] if by_site else ["--split-fractions", "test=1"]
+        if annotate_main(["export", str(args.real_photos), "--out", str(real)] + split_args) != 0:
             raise SystemExit(f"{args.real_photos}: annotate export failed")
         sets += [("real photos", real, True, False), ("real photos, shape", real, True, True)]
     for name, root, native, scale_from_truth in sets:
@@ -171,8 +179,13 @@ def main() -> int:
         rows.append({"set": "proxy-real", "view": view, "shelf_IoU": s, "box_IoU": b})
     if "real photos" in out:
         r = out["real photos"]["result"]
-        print(f"\nhand-labelled real photos ({args.real_photos}), {r['top']['images']} images, their own resolution")
-        seen = pred.meta.get("fine_tuned_on_photos", [])
+        print(f"\nhand-labelled real photos ({args.real_photos}, test split), {r['top']['images']} images, "
+              "their own resolution")
+        from racklay.data import RackLayRoot
+
+        rr = RackLayRoot(real)
+        test_photos = {(rr.read_meta(s) or {}).get("source_image") for s in rr.resolve("test")}
+        seen = sorted(set(pred.meta.get("fine_tuned_on_photos", [])) & test_photos)
         if seen:
             print(f"IN-SAMPLE: this model was fine-tuned on {len(seen)} labelled photos ({', '.join(seen[:3])}, ...); "
                   "bench/real_photo_cv.py gives the estimate for photos from a source it has not seen")
@@ -195,7 +208,7 @@ def main() -> int:
                          "box_IoU": 100 * d["box"]["IoU"]})
     if "real photos" in out:
         print_separate_boxes(Path(tmp.name) / "real", Path(tmp.name) / "pred")
-    print_model_issue_targets(rows, bool(pred.meta.get("fine_tuned_on_photos")))
+    print_model_issue_targets(rows, bool(seen) if "real photos" in out else False)
     tmp.cleanup()
     if args.json:
         Path(args.json).write_text(json.dumps({"weights": str(weights), "rows": rows, "raw": out}, indent=1))
