@@ -28,7 +28,7 @@ browser:
 	  else echo "chromium missing: sudo apt-get install -y chromium (browser tests will be skipped)"; fi; }
 
 demo: setup
-	$(VENV)/bin/transfer demo
+	$(VENV)/bin/transfer demo --real-photos datasets/real-photos
 
 test: setup browser
 	$(VENV)/bin/ruff check .

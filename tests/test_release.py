@@ -199,6 +199,38 @@ def test_quick_demo_runs_end_to_end_from_the_shipped_model(tmp_path, capsys):
         assert row in table
 
 
+@pytest.mark.slow
+def test_quick_demo_table2_on_labelled_real_photos(tmp_path, capsys):
+    """`transfer demo --real-photos PROJECT` (what `make demo` runs): Table 2 on labelled photos,
+    each in the split its SOURCES.tsv row names (here 6 photos of datasets/real-photos: three
+    training sites, one test site); a SOURCES.tsv without a test photo is a one-line error."""
+    from racklay.data import check_dataset
+    from transfer.cli import main as transfer_main
+
+    proj = tmp_path / "photos"
+    (proj / "annotations").mkdir(parents=True)
+    split = {"04_blueshelf_surf.jpg": "train", "05_blueshelf_tulip.jpg": "train", "16_loco_red_rack_bins.jpg": "train",
+             "19_mock_white_shelf_3lvl.jpg": "train", "30_palletvid0263_f051.jpg": "test",
+             "49_palletvid0265_f043.jpg": "test"}
+    for name in split:
+        shutil.copy(REAL_PHOTOS / name, proj / name)
+        shutil.copy(REAL_PHOTOS / "annotations" / f"{name}.json", proj / "annotations" / f"{name}.json")
+    shutil.copy(REAL_PHOTOS / "project.json", proj / "project.json")
+    (proj / "SOURCES.tsv").write_text("file\tsplit\n" + "".join(f"{n}\t{s}\n" for n, s in split.items()))
+    out = tmp_path / "demo"
+    assert transfer_main(["demo", "--quick", "--out", str(out), "--photos", str(proj),
+                          "--real-photos", str(proj)]) == 0
+    log = capsys.readouterr().out
+    assert "splits train=4, test=2" in log and "Table 2 on the labelled real photos' test split" in log
+    assert check_dataset(out / "data" / "real-photos").splits == {"train": 4, "test": 2}
+    assert "real only" in (out / "compare" / "table.md").read_text().lower()
+    (proj / "SOURCES.tsv").write_text("file\tsplit\n" + "".join(f"{n}\ttrain\n" for n in split))
+    assert transfer_main(["demo", "--quick", "--out", str(tmp_path / "demo2"), "--photos", str(proj),
+                          "--real-photos", str(proj)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "SOURCES.tsv" in err[0] and "both train and test" in err[0], err
+
+
 def test_toy_demo_builds_checks_scores_and_draws(tmp_path, capsys):
     """`transfer demo --toy`: the seconds-long schematic demo of the data and metrics layer."""
     from transfer.cli import main as transfer_main

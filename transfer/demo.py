@@ -6,12 +6,15 @@ On a fresh machine with no GPU and nothing downloaded (under 10 minutes on 2 cor
    every real photo (the copies of `datasets/real-photos/` shipped in `transfer/photos/`): a
    figure per photo and one contact sheet. Those
    photos carry no labels here: they are shown, not scored;
-2. WareSynth renders a small `proxy_real` set (train/test). **Proxy-real is rendered, not
-   real**: a deliberately different domain (textures, lighting, camera noise/blur/JPEG, lens
-   distortion) standing in for the authors' 542 annotated photos, which cannot be downloaded;
+2. the real set of Table 2: with `real_photos` (an `annotate` project of labelled photos whose
+   SOURCES.tsv gives each photo its split, e.g. `datasets/real-photos`, split by site; what
+   `make demo` passes) it is exported with that split; without, WareSynth renders a small
+   `proxy_real` set (train/test). **Proxy-real is rendered, not real**: a deliberately different
+   domain (textures, lighting, camera noise/blur/JPEG, lens distortion) standing in for real
+   photos where no labelled ones are at hand;
 3. a reduced `transfer compare` (1 seed): synthetic only (the shipped model as it is), real only
-   (ImageNet encoder trained on the proxy-real training split) and synthetic -> real fine-tune
-   (the shipped model fine-tuned on it), all scored on the proxy-real test split;
+   (ImageNet encoder trained on the real training split) and synthetic -> real fine-tune
+   (the shipped model fine-tuned on it), all scored on the real test split;
 4. prints Table 2 with the fine-tune's gain over real only, and writes the bar chart and
    learning curve.
 
@@ -44,6 +47,7 @@ class DemoConfig:
     batch_size: int = 8
     amp: str = "auto"               # bf16 only where the machine computes it natively
     photos: str = str(PHOTOS)
+    real_photos: str | None = None  # labelled annotate project for Table 2 (None: proxy-real renders)
     workers: int = 1                # WareSynth workers
 
     @property
@@ -63,6 +67,26 @@ def _synth(recipe: str, n: int, out: Path, seed: int, D: int, workers: int, log)
     res = generate_dataset(load_recipe(recipe, {"layout_size": D}), n, out, seed=seed, workers=workers)
     splits = ", ".join(f"{k}={v}" for k, v in res.splits.items())
     log(f"      {out}: {len(res.generated)} rendered, {res.skipped} already there ({time.time() - t0:.0f} s); splits {splits}")
+    return out
+
+
+def _export_real(project: Path, out: Path, log) -> Path:
+    """The labelled photos of an annotate project as a RackLay set, each in the split its
+    SOURCES.tsv row names (exported once; a later run reuses it)."""
+    from annotate.dataset import export_project, read_split_file
+    from annotate.store import Project
+
+    if (out / "splits" / "test.txt").is_file():
+        log(f"      {out}: exported before, reused")
+        return out
+    src = project / "SOURCES.tsv"
+    if not src.is_file():
+        raise ValueError(f"{src}: not found (the demo splits the labelled photos as its 'split' column says)")
+    res = export_project(Project(project, create=False), out, split_of=read_split_file(src))
+    splits = ", ".join(f"{k}={v}" for k, v in res["splits"].items())
+    log(f"      {out}: {res['images']} labelled photos exported from {project}; splits {splits}")
+    if not res["splits"].get("train") or not res["splits"].get("test"):
+        raise ValueError(f"{src}: the 'split' column must put photos in both train and test (got {splits})")
     return out
 
 
@@ -112,17 +136,23 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     figs = predict_photos(weights, photos, out / "real-photo-predictions", log)
     if figs:
         log(f"      {len(figs) - 1} figures and a contact sheet -> {figs[-1]}")
-    log(f"[2/4] WareSynth: {cfg.n_real} 'proxy_real' images (RENDERED stand-in for real photos, "
-        f"train/test) -> {data / 'proxy_real'}")
-    real = _synth("proxy_real", cfg.n_real, data / "proxy_real", cfg.real_seed, cfg.layout_d, cfg.workers, log)
-    log(f"[3/4] transfer compare on proxy-real: synthetic only (the shipped model) / real only (ImageNet "
+    if cfg.real_photos:
+        what = "the labelled real photos' test split"
+        log(f"[2/4] the labelled real photos of {cfg.real_photos}, split as its SOURCES.tsv says -> {data / 'real-photos'}")
+        real = _export_real(Path(cfg.real_photos), data / "real-photos", log)
+    else:
+        what = "the proxy-real test split (rendered, not real)"
+        log(f"[2/4] WareSynth: {cfg.n_real} 'proxy_real' images (RENDERED stand-in for real photos, "
+            f"train/test) -> {data / 'proxy_real'}")
+        real = _synth("proxy_real", cfg.n_real, data / "proxy_real", cfg.real_seed, cfg.layout_d, cfg.workers, log)
+    log(f"[3/4] transfer compare on {real.name}: synthetic only (the shipped model) / real only (ImageNet "
         f"encoder) / synthetic -> real fine-tune, {cfg.seeds} seed(s), at most {cfg.max_minutes:g} min per run")
     ccfg = CompareConfig(real=str(real), out=str(out / "compare"), pretrained=str(weights), seeds=list(range(cfg.seeds)),
                          fractions=list(cfg.fractions), disc=False, epochs=cfg.epochs, batch_size=cfg.batch_size,
                          max_minutes=cfg.max_minutes, workers=0,
                          train_overrides={"amp": cfg.amp, "warmup_steps": 20, "progress": False})
     res = compare(ccfg, log=lambda m: log("      " + m))
-    log("[4/4] Table 2 on the proxy-real test split (rendered, not real):")
+    log(f"[4/4] Table 2 on {what}:")
     log("")
     log(res["paths"]["table_md"].read_text())
     from .report import summarize
@@ -137,7 +167,8 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     wall = time.time() - t_start
     log("")
     log(f"demo finished in {wall / 60:.1f} min. Outputs:")
-    rows = [("shipped weights", weights), ("proxy-real dataset", real), ("comparison runs", Path(ccfg.out) / "runs"),
+    rows = [("shipped weights", weights), ("real dataset" if cfg.real_photos else "proxy-real dataset", real),
+            ("comparison runs", Path(ccfg.out) / "runs"),
             *[(k, v) for k, v in res["paths"].items()], ("fine-tuned weights", ft)]
     rows += [("photo prediction", f) for f in figs]
     for k, v in rows:

@@ -20,8 +20,12 @@ def add_demo_args(p) -> None:
                    help=f"training precision (default {d.amp}: bf16 only where the CPU computes it natively, "
                         "fp32 elsewhere; emulated bf16 is many times slower)")
     p.add_argument("--photos", default=d.photos, metavar="DIR",
-                   help="real photos to predict in step 1 (default: the 21 shipped with the package, "
-                        "copies of datasets/real-photos/)")
+                   help="real photos to predict in step 1 (default: the 24 shipped with the package, "
+                        "copies of photos of datasets/real-photos/)")
+    p.add_argument("--real-photos", default=None, metavar="PROJECT",
+                   help="Table 2 on labelled real photos: an annotate project whose SOURCES.tsv gives each "
+                        "photo its split (`make demo` passes datasets/real-photos: split by site); without it, "
+                        "on a rendered proxy-real set")
     p.add_argument("--quick", action="store_true", help="a smoke run of about a minute (not meaningful numbers)")
     p.add_argument("--toy", action="store_true",
                    help="instead: the schematic demo of the data/metrics layer (seconds, no training; "
@@ -30,9 +34,10 @@ def add_demo_args(p) -> None:
 
 
 DESCRIPTION = ("The toolkit's main job end to end, starting from the shipped model, with nothing "
-               "downloaded: predict every photo in datasets/real-photos/ (a figure per photo and a contact "
-               "sheet; no labels: shown, not scored), render a small WareSynth 'proxy_real' set (a different "
-               "look and camera effects: a stand-in for real photos, NOT real data), run a reduced `transfer "
+               "downloaded: predict the demo photos (copies of photos of datasets/real-photos/; a figure per photo and "
+               "a contact sheet), take the labelled real photos of --real-photos split by site (or, without it, "
+               "render a small WareSynth 'proxy_real' set: a different look and camera effects, a stand-in for "
+               "real photos, NOT real data), run a reduced `transfer "
                "compare` (synthetic only = the shipped model / real only / shipped model fine-tuned; 1 seed) and "
                "print the paper's Table 2 with the fine-tune's gain, plus the bar chart and learning curve. "
                "Under 10 minutes on 2 CPU cores without native bf16 (docs/transfer.md); each training run has "
@@ -57,7 +62,7 @@ def run(args) -> int:
 
         return toy_demo("outputs/demo" if args.out == DemoConfig.out else args.out, n=args.n, seed=args.seed)
     kw = dict(out=args.out, seed=args.seed, weights=args.weights, n_real=args.n_real, amp=args.amp,
-              max_minutes=args.max_minutes, photos=args.photos)
+              max_minutes=args.max_minutes, photos=args.photos, real_photos=args.real_photos)
     if args.quick:
         kw.update(QUICK)
     run_demo(DemoConfig(**kw))
