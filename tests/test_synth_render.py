@@ -105,3 +105,30 @@ def test_proxy_real_distortion_keeps_maps_aligned(tmp_path):
             x0, y0, x1, y1 = o["bbox_visible"]
             a0, b0, a1, b1 = o["bbox_amodal"]
             assert x0 >= a0 - 1.5 and y0 >= b0 - 1.5 and x1 <= a1 + 1.5 and y1 <= b1 + 1.5, o["id"]
+
+
+def test_wide_lens_distortion_is_bounded_and_inverted_exactly():
+    """A wide lens (focal 0.4 x the image width) with strong barrel k1: sample_scene bounds k1 so
+    the farthest corner's pinhole radius is stretched at most MAX_CORNER_STRETCH times (before: the
+    model folded, the corners were garbage and the padded render was 6x the image); the maps'
+    source of every output pixel lies inside the padded render and distorts back onto that pixel."""
+    from racklay.synth.effects import MAX_CORNER_STRETCH, distort_points, distortion_maps, k1_limit
+
+    r = load_recipe("proxy_real", ["image_width=200", "image_height=120", "focal_px=[80,80]",
+                                   "distortion_k1=[-0.3,-0.3]", "layout_size=64"])
+    px, py = render_padding(r)
+    assert px <= 0.25 * 100 + 2 and py <= 0.25 * 60 + 2       # at most the bounded stretch of a half-image
+    cam = sample_scene(r, 0, 0).camera
+    assert cam.k1 == pytest.approx(k1_limit(cam.K, 200, 120)) and cam.k1 > -0.3
+    mx, my = distortion_maps(cam.K, cam.k1, 200, 120, offset=(px, py))
+    assert mx.min() >= -0.5 and mx.max() <= 200 + 2 * px - 0.5 and my.min() >= -0.5 and my.max() <= 120 + 2 * py - 0.5
+    # corner: undistorted source -> distorted again = the output pixel's centre
+    src = np.array([[mx[0, 0] + 0.5 - px, my[0, 0] + 0.5 - py], [mx[-1, -1] + 0.5 - px, my[-1, -1] + 0.5 - py]])
+    np.testing.assert_allclose(distort_points(cam.K, cam.k1, src), [[0.5, 0.5], [199.5, 119.5]], atol=1e-3)
+    K = cam.K
+    stretch = np.hypot(*(src[0] - K[:2, 2])) / np.hypot(0.5 - K[0, 2], 0.5 - K[1, 2])
+    assert stretch <= MAX_CORNER_STRETCH + 1e-6
+    # a milder k1 the lens can take is left as drawn
+    mild = load_recipe("proxy_real", ["image_width=200", "image_height=120", "focal_px=[80,80]",
+                                      "distortion_k1=[-0.02,-0.02]", "layout_size=64"])
+    assert sample_scene(mild, 0, 0).camera.k1 == -0.02

@@ -6,20 +6,45 @@ from __future__ import annotations
 
 import numpy as np
 
+#: barrel distortion never stretches the image corner's pinhole radius more than this (see k1_limit)
+MAX_CORNER_STRETCH = 1.25
+
+
+def k1_limit(K: np.ndarray, width: int, height: int) -> float:
+    """The most negative k1 a camera gets: barrel distortion stretches the pinhole radius of the
+    image's farthest corner at most MAX_CORNER_STRETCH times. Stronger k1 with a wide lens folds
+    the image (x_d = x_u (1 + k1 r_u^2) has no inverse past r_u = 1 / sqrt(-3 k1): the corners
+    become garbage) and needs a render many times the image's size."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    xd, yd = max(cx, width - cx) / fx, max(cy, height - cy) / fy
+    s = MAX_CORNER_STRETCH
+    return float((1 / s - 1) / (s * s * (xd * xd + yd * yd)))
+
+
+def undistort_normalised(xd, yd, k1: float):
+    """Pinhole (undistorted) normalised coordinates of distorted ones (arrays or floats), by
+    fixed-point iteration: 8 steps, then on until it has converged (k1 within k1_limit)."""
+    xu, yu = xd, yd
+    for it in range(200):
+        f = 1 + k1 * (xu * xu + yu * yu)
+        nx, ny = xd / f, yd / f
+        done = it >= 7 and np.max(np.abs(nx - xu)) < 1e-9 and np.max(np.abs(ny - yu)) < 1e-9
+        xu, yu = nx, ny
+        if done:
+            break
+    return xu, yu
+
 
 def distortion_maps(K: np.ndarray, k1: float, width: int, height: int,
                     offset: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
     """cv2.remap maps that turn an undistorted (pinhole) render into the image of a camera with
     radial distortion x_d = x_u (1 + k1 r_u^2) (normalised coordinates, OpenCV's model with
     only k1). For every distorted output pixel the undistorted source is found by fixed-point
-    iteration. `offset` = (px, py): the render has px / py extra pixels on each side."""
+    iteration (undistort_normalised). `offset` = (px, py): the render has px / py extra pixels on each side."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     u, v = np.meshgrid(np.arange(width, dtype=np.float64) + 0.5, np.arange(height, dtype=np.float64) + 0.5)
     xd, yd = (u - cx) / fx, (v - cy) / fy
-    xu, yu = xd.copy(), yd.copy()
-    for _ in range(8):
-        f = 1 + k1 * (xu * xu + yu * yu)
-        xu, yu = xd / f, yd / f
+    xu, yu = undistort_normalised(xd, yd, k1)
     # remap uses pixel-index coordinates (pixel i's centre is at i)
     return ((xu * fx + cx + offset[0] - 0.5).astype(np.float32),
             (yu * fy + cy + offset[1] - 0.5).astype(np.float32))

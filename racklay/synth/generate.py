@@ -62,17 +62,22 @@ def png_bytes(arr: np.ndarray) -> bytes:
 
 def render_padding(recipe: Recipe) -> tuple[int, int]:
     """Extra pixels rendered on each side (x, y) so that barrel distortion (k1 < 0) never
-    samples outside the rendered frame."""
-    k1 = min(recipe.distortion_k1[0], 0.0)
-    if k1 == 0:
+    samples outside the rendered frame: the largest over the recipe's focal lengths, each with the
+    strongest k1 it can get (the recipe's, bounded by effects.k1_limit as sample_scene bounds it)."""
+    from .effects import k1_limit, undistort_normalised
+
+    k1_min = min(recipe.distortion_k1[0], 0.0)
+    if k1_min == 0:
         return 0, 0
-    f = recipe.focal_px[0]
-    xd, yd = recipe.image_width / 2 / f, recipe.image_height / 2 / f
-    xu, yu = xd, yd
-    for _ in range(20):
-        s = 1 + k1 * (xu * xu + yu * yu)
-        xu, yu = xd / s, yd / s
-    return int(np.ceil((xu - xd) * f)) + 2, int(np.ceil((yu - yd) * f)) + 2
+    W, H = recipe.image_width, recipe.image_height
+    px = py = 0
+    for f in np.linspace(recipe.focal_px[0], recipe.focal_px[1], 33):
+        K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+        k1 = max(k1_min, k1_limit(K, W, H))
+        xd, yd = W / 2 / f, H / 2 / f
+        xu, yu = undistort_normalised(xd, yd, k1)
+        px, py = max(px, int(np.ceil((xu - xd) * f)) + 2), max(py, int(np.ceil((yu - yd) * f)) + 2)
+    return px, py
 
 
 class Generator:

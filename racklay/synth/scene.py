@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import layout as L
+from .effects import k1_limit
 from .recipe import Recipe
 
 # --- semantic classes ---------------------------------------------------------------------
@@ -649,6 +650,8 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     cam, visible = _sample_camera(rng, r, length, depth, shelves, corridor if background == "busy" else None,
                                   max_camera_tries)
     effects = _sample_effects(rng, r)
+    # a wide lens gets at most the barrel distortion that keeps its corners (effects.k1_limit)
+    effects["distortion_k1"] = max(effects["distortion_k1"], k1_limit(cam.K, cam.width, cam.height))
     cam.k1 = effects["distortion_k1"]
     occ_rows = ["".join("#" if v else "." for v in row) for row in occ]
     return Scene(index=index, seed=seed, recipe=r.name, objects=B.objects, shelves=shelves, rack_length=length,
