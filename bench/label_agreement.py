@@ -1,6 +1,6 @@
 """How far apart are two labellings of the same photos? The noise floor of every real-photo score.
 
-    .venv/bin/python bench/label_agreement.py [--a datasets/real-photos] [--b datasets/real-photos/second-pass]
+    .venv/bin/python bench/label_agreement.py [--a datasets/real-photos] [--b datasets/real-photos/agreement]
 
 `--a` is an `annotate` project (photos + annotations/); `--b` a folder whose `annotations/`
 holds a second, independent labelling of some of the same photos (same file names). Both
@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--a", type=Path, default=REPO / "datasets" / "real-photos", help="annotate project (reference)")
-    ap.add_argument("--b", type=Path, default=REPO / "datasets" / "real-photos" / "second-pass",
+    ap.add_argument("--b", type=Path, default=REPO / "datasets" / "real-photos" / "agreement",
                     help="folder with annotations/ of a second labelling of photos of --a")
     args = ap.parse_args()
 

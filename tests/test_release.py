@@ -231,6 +231,34 @@ def test_quick_demo_table2_on_labelled_real_photos(tmp_path, capsys):
     assert len(err) == 1 and "SOURCES.tsv" in err[0] and "both train and test" in err[0], err
 
 
+def test_demo_reuses_the_real_export_until_labels_or_splits_change(tmp_path):
+    """The demo's export of the labelled photos is reused on a second run, and made again (not
+    silently reused) once a label or a split has changed."""
+    import shutil
+
+    from annotate.store import Project
+    from transfer.demo import _export_real
+
+    proj = tmp_path / "photos"
+    (proj / "annotations").mkdir(parents=True)
+    split = {"04_blueshelf_surf.jpg": "train", "30_palletvid0263_f051.jpg": "test"}
+    for name in split:
+        shutil.copy(REAL_PHOTOS / name, proj / name)
+        shutil.copy(REAL_PHOTOS / "annotations" / f"{name}.json", proj / "annotations" / f"{name}.json")
+    shutil.copy(REAL_PHOTOS / "project.json", proj / "project.json")
+    (proj / "SOURCES.tsv").write_text("file\tsplit\n" + "".join(f"{n}\t{s}\n" for n, s in split.items()))
+    out, logs = tmp_path / "data" / "real-photos", []
+    _export_real(proj, out, logs.append)
+    _export_real(proj, out, logs.append)
+    assert "labelled photos exported" in logs[0] and "reused" in logs[1]
+    project = Project(proj)
+    ann = project.load("04_blueshelf_surf.jpg")
+    ann["rack"]["width"] = 1.5
+    project.save(ann)
+    _export_real(proj, out, logs.append)
+    assert "changed since the last run" in logs[2] and "labelled photos exported" in logs[3]
+
+
 def test_toy_demo_builds_checks_scores_and_draws(tmp_path, capsys):
     """`transfer demo --toy`: the seconds-long schematic demo of the data and metrics layer."""
     from transfer.cli import main as transfer_main

@@ -72,21 +72,37 @@ def _synth(recipe: str, n: int, out: Path, seed: int, D: int, workers: int, log)
 
 def _export_real(project: Path, out: Path, log) -> Path:
     """The labelled photos of an annotate project as a RackLay set, each in the split its
-    SOURCES.tsv row names (exported once; a later run reuses it)."""
+    SOURCES.tsv row names. Exported once and reused while the labels and splits stay the same
+    (a fingerprint of every annotation's version and split is kept beside the export)."""
+    import json
+    import shutil
+
     from annotate.dataset import export_project, read_split_file
     from annotate.store import Project
+    from racklay.atomic import atomic_write_json
 
-    if (out / "splits" / "test.txt").is_file():
-        log(f"      {out}: exported before, reused")
-        return out
     src = project / "SOURCES.tsv"
     if not src.is_file():
         raise ValueError(f"{src}: not found (the demo splits the labelled photos as its 'split' column says)")
-    res = export_project(Project(project, create=False), out, split_of=read_split_file(src))
+    split_of = read_split_file(src)
+    if not {"train", "test"} <= set(split_of.values()):
+        raise ValueError(f"{src}: the 'split' column must put photos in both train and test "
+                         f"(it names {', '.join(sorted(set(split_of.values())))})")
+    proj = Project(project, create=False)
+    stamp = {name: [split_of.get(name), (proj.read_annotation(name) or {}).get("version")]
+             for name in proj.images()}
+    stamp_path = out.parent / f"{out.name}.source.json"
+    if out.is_dir() and stamp_path.is_file() and json.loads(stamp_path.read_text()) == stamp:
+        log(f"      {out}: exported before from the same labels, reused")
+        return out
+    if out.exists():   # derived data of an earlier run whose labels or splits have changed since
+        log(f"      {out}: the labels or splits changed since the last run: exported again "
+            f"(delete the compare folder to retrain on them)")
+        shutil.rmtree(out)
+    res = export_project(proj, out, split_of=split_of)
+    atomic_write_json(stamp_path, stamp, indent=1)
     splits = ", ".join(f"{k}={v}" for k, v in res["splits"].items())
     log(f"      {out}: {res['images']} labelled photos exported from {project}; splits {splits}")
-    if not res["splits"].get("train") or not res["splits"].get("test"):
-        raise ValueError(f"{src}: the 'split' column must put photos in both train and test (got {splits})")
     return out
 
 
