@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -199,6 +200,19 @@ def test_quick_demo_runs_end_to_end_from_the_shipped_model(tmp_path, capsys):
         assert row in table
 
 
+def labelled_project(tmp_path, split: dict) -> Path:
+    """A small annotate project of photos of datasets/real-photos with their labels and a
+    SOURCES.tsv giving each its split ({photo name: split})."""
+    proj = tmp_path / "photos"
+    (proj / "annotations").mkdir(parents=True)
+    for name in split:
+        shutil.copy(REAL_PHOTOS / name, proj / name)
+        shutil.copy(REAL_PHOTOS / "annotations" / f"{name}.json", proj / "annotations" / f"{name}.json")
+    shutil.copy(REAL_PHOTOS / "project.json", proj / "project.json")
+    (proj / "SOURCES.tsv").write_text("file\tsplit\n" + "".join(f"{n}\t{s}\n" for n, s in split.items()))
+    return proj
+
+
 @pytest.mark.slow
 def test_quick_demo_table2_on_labelled_real_photos(tmp_path, capsys):
     """`transfer demo --real-photos PROJECT` (what `make demo` runs): Table 2 on labelled photos,
@@ -207,16 +221,10 @@ def test_quick_demo_table2_on_labelled_real_photos(tmp_path, capsys):
     from racklay.data import check_dataset
     from transfer.cli import main as transfer_main
 
-    proj = tmp_path / "photos"
-    (proj / "annotations").mkdir(parents=True)
     split = {"04_blueshelf_surf.jpg": "train", "05_blueshelf_tulip.jpg": "train", "16_loco_red_rack_bins.jpg": "train",
              "19_mock_white_shelf_3lvl.jpg": "train", "30_palletvid0263_f051.jpg": "test",
              "49_palletvid0265_f043.jpg": "test"}
-    for name in split:
-        shutil.copy(REAL_PHOTOS / name, proj / name)
-        shutil.copy(REAL_PHOTOS / "annotations" / f"{name}.json", proj / "annotations" / f"{name}.json")
-    shutil.copy(REAL_PHOTOS / "project.json", proj / "project.json")
-    (proj / "SOURCES.tsv").write_text("file\tsplit\n" + "".join(f"{n}\t{s}\n" for n, s in split.items()))
+    proj = labelled_project(tmp_path, split)
     out = tmp_path / "demo"
     assert transfer_main(["demo", "--quick", "--out", str(out), "--photos", str(proj),
                           "--real-photos", str(proj)]) == 0
@@ -234,19 +242,10 @@ def test_quick_demo_table2_on_labelled_real_photos(tmp_path, capsys):
 def test_demo_reuses_the_real_export_until_labels_or_splits_change(tmp_path):
     """The demo's export of the labelled photos is reused on a second run, and made again (not
     silently reused) once a label or a split has changed."""
-    import shutil
-
     from annotate.store import Project
     from transfer.demo import _export_real
 
-    proj = tmp_path / "photos"
-    (proj / "annotations").mkdir(parents=True)
-    split = {"04_blueshelf_surf.jpg": "train", "30_palletvid0263_f051.jpg": "test"}
-    for name in split:
-        shutil.copy(REAL_PHOTOS / name, proj / name)
-        shutil.copy(REAL_PHOTOS / "annotations" / f"{name}.json", proj / "annotations" / f"{name}.json")
-    shutil.copy(REAL_PHOTOS / "project.json", proj / "project.json")
-    (proj / "SOURCES.tsv").write_text("file\tsplit\n" + "".join(f"{n}\t{s}\n" for n, s in split.items()))
+    proj = labelled_project(tmp_path, {"04_blueshelf_surf.jpg": "train", "30_palletvid0263_f051.jpg": "test"})
     out, logs = tmp_path / "data" / "real-photos", []
     _export_real(proj, out, logs.append)
     _export_real(proj, out, logs.append)
