@@ -13,8 +13,8 @@ from importlib import resources
 from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
-RELEASE_NAME = "racklay-lite0-struct-v6.safetensors"
-RELEASE_SHA256 = "3c051a5ef81d996758f1b6378460a2cc51f0e30dfd18e9dfc2689f68881d3ffd"
+RELEASE_NAME = "racklay-lite0-struct-v7.safetensors"
+RELEASE_SHA256 = "c79282f738f0154021cf91b2d4c9513b142b034052b4ca46288737b7de2064ff"
 WEIGHTS_DIR = Path(str(resources.files("racklay") / "weights"))   # package data
 
 _verified: set[str] = set()
