@@ -159,7 +159,7 @@ def test_predict_without_weights_uses_the_shipped_model_finds_the_shelves_and_ta
 
 @pytest.mark.slow
 def test_shipped_model_draws_separate_boxes_where_a_photo_shows_them_apart():
-    """Two wrapped pallet loads with a gap between them (photo 54, a frame of the pallet-racking
+    """Wrapped pallet loads standing apart (photo 54, a frame of the pallet-racking
     test site the model never saw): the shipped struct model draws them as separate rectangles on
     their board, not one band per shelf (v5 drew bands): in the front view (rows top-down in z)
     every shelf's lowest box row is its board's row. (v7 separates loads on 2 of the 106 labelled
