@@ -88,6 +88,10 @@ class ModelConfig:
     #: scores into classes, fitted on a validation split by `racklay calibrate` (racklay/calibrate.py);
     #: None: plain argmax. Probabilities (and so average precision) are not changed by it.
     decision_bias: dict | None = None
+    #: struct decoder only: also read the 1/4-resolution encoder features along image columns (a
+    #: detail branch, StructDecoder), so gaps between boxes narrower than a 1/8 feature column can
+    #: show; grows from a struct checkpoint without it (`racklay train --init`)
+    struct_fine: bool = False
 
     def __post_init__(self):
         self.views = tuple(self.views)
@@ -104,6 +108,8 @@ class ModelConfig:
             raise ValueError(f"views must be a non-empty subset of {VIEWS}, got {self.views}")
         if self.decoder not in DECODERS:
             raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
+        if self.struct_fine and self.decoder != "struct":
+            raise ValueError(f"struct_fine needs the struct decoder, got {self.decoder!r}")
         if self.R < 1:
             raise ValueError(f"R must be >= 1, got {self.R}")
         if any(v % 32 or v < 32 for v in self.input_hw):
@@ -512,13 +518,28 @@ class StructDecoder(nn.Module):
     run along it. Each shelf's position in the image is explicit: a centre and half-width in image
     widths (it may lie partly outside the frame) place its T positions on the image columns, read
     with a Gaussian window (differentiable in the placement); 1-D convs along the shelf then give
-    the per-position outputs."""
+    the per-position outputs.
+
+    `fine=True` adds a detail branch at 1/4 resolution: the same per-shelf row attention pools the
+    1/4 features into a sequence twice as long, 1-D convs (which also see the 1/8 sequence) turn it
+    into a correction of the 1/8 sequence linearly upsampled, and the window reads that. A 1/8
+    column is ~9 cm of a 2.3 m shelf filling 80 % of a 256-px input, about the gap between two
+    pallets; the 1/4 features halve it. Its last conv starts at zero (`GROWN`), so a struct
+    checkpoint without the branch initialises it and it starts computing (up to the upsampling)
+    what that checkpoint computed."""
+
+    #: the submodules a checkpoint without the detail branch lacks (see `grown_tensor_names`)
+    GROWN = ("red4", "detail")
 
     def __init__(self, view: str, R: int, layout_size: int, extent: float, enc_channels, T: int = DEFAULT_T,
-                 width: int = 128):
+                 width: int = 128, fine: bool = False):
         super().__init__()
         self.view, self.R, self.layout_size, self.extent, self.T = view, R, layout_size, extent, T
-        c8, c16, c32 = enc_channels[2], enc_channels[3], enc_channels[4]
+        self.fine = fine
+        c4, c8, c16, c32 = enc_channels[1], enc_channels[2], enc_channels[3], enc_channels[4]
+        if fine:
+            self.red4 = conv_bn_relu(c4, 32, 1)
+            self.detail = nn.Sequential(_conv1d_bn_relu(32 + width, 64, 5), nn.Conv1d(64, width, 3, 1, 1))
         self.red8 = conv_bn_relu(c8, 64, 1)
         self.red16 = conv_bn_relu(c16, 64, 1)
         self.red32 = conv_bn_relu(c32, 128, 1)
@@ -543,16 +564,25 @@ class StructDecoder(nn.Module):
         x = self.fuse(x)                                                         # (N, C, H8, W8)
         N, C, _, W = x.shape
         R, T = self.R, self.T
-        att = self.row_att(x).softmax(2)                                         # (N, R, H8, W8)
+        att_logits = self.row_att(x)
+        att = att_logits.softmax(2)                                              # (N, R, H8, W8)
         cols = torch.einsum("nrhw,nchw->nrcw", att, x) + self.shelf_emb          # (N, R, C, W8)
         cols = self.img_seq(cols.reshape(N * R, C, W)).reshape(N, R, C, W)
         g = self.glob(torch.cat([cols.mean(-1), cols.amax(-1), x.mean((2, 3)).unsqueeze(1).expand(N, R, C)], -1))
+        W8 = W
+        if self.fine:                                                            # the 1/4 detail branch
+            f4 = self.red4(feats[1])                                             # (N, 32, H4, W4)
+            W = f4.shape[-1]
+            att4 = F.interpolate(att_logits, size=f4.shape[-2:], mode="bilinear", align_corners=False).softmax(2)
+            d = torch.einsum("nrhw,nchw->nrcw", att4, f4).reshape(N * R, -1, W)
+            up = F.interpolate(cols.reshape(N * R, C, W8), size=W, mode="linear", align_corners=False)
+            cols = (up + self.detail(torch.cat([d, up], 1))).reshape(N, R, C, W)
         pres, log_len, log_ext, centre, log_half, log_win = self.shelf_head(g).float().unbind(-1)
         t = (torch.arange(T, device=x.device, dtype=torch.float32) + 0.5) / T    # positions along the shelf
         half = torch.exp(log_half).clamp(0.02, 4.0)
         mu = (0.5 + centre).unsqueeze(-1) + (2 * t - 1) * half.unsqueeze(-1)    # (N, R, T) image widths
         u = (torch.arange(W, device=x.device, dtype=torch.float32) + 0.5) / W
-        win = torch.exp(log_win).clamp(0.25, 8.0).unsqueeze(-1).unsqueeze(-1) / W
+        win = torch.exp(log_win).clamp(0.25, 8.0).unsqueeze(-1).unsqueeze(-1) / W8   # in 1/8 columns
         w = (-0.5 * ((u - mu.unsqueeze(-1)) / win) ** 2).softmax(-1)             # (N, R, T, W8)
         seq = torch.einsum("nrtw,nrcw->nrct", w.to(cols.dtype), cols)          # (N, R, C, T)
         freqs = torch.arange(1, self.n_freq + 1, device=x.device, dtype=torch.float32) * math.pi
@@ -589,6 +619,9 @@ class StructDecoder(nn.Module):
                               math.log(0.4), 0.0]))
         self.pos_head.weight.mul_(0.1)
         self.pos_head.bias.copy_(torch.tensor([-1.5, 0.0] if self.view == "front" else [-1.5, -1.0, 1.0]))
+        if self.fine:
+            self.detail[-1].weight.zero_()
+            self.detail[-1].bias.zero_()
 
 
 def _conv1d_bn_relu(cin: int, cout: int, k: int) -> nn.Sequential:
@@ -597,10 +630,11 @@ def _conv1d_bn_relu(cin: int, cout: int, k: int) -> nn.Sequential:
 
 def grown_tensor_names(model: nn.Module) -> set[str]:
     """State-dict names of the branches a grown decoder adds to the one it grows from (the
-    `GROWN` submodules of every `ColumnsDecoder` in `model`)."""
+    `GROWN` submodules of every `ColumnsDecoder`, and of every `StructDecoder` with its 1/4
+    detail branch, in `model`)."""
     names = set()
     for prefix, m in model.named_modules():
-        if isinstance(m, ColumnsDecoder):
+        if isinstance(m, ColumnsDecoder) or (isinstance(m, StructDecoder) and m.fine):
             for sub in m.GROWN:
                 names |= {f"{prefix}.{sub}.{k}" for k in getattr(m, sub).state_dict()}
     return names
@@ -619,7 +653,8 @@ class RackLayNet(nn.Module):
 
         def make(view):
             if cfg.decoder == "struct":
-                return StructDecoder(view, cfg.R, cfg.layout_size, cfg.extent, self.encoder.channels)
+                return StructDecoder(view, cfg.R, cfg.layout_size, cfg.extent, self.encoder.channels,
+                                     fine=cfg.struct_fine)
             if cfg.decoder == "paper":
                 return PaperDecoder(out, cfg.layout_size, cin)
             if cfg.decoder == "columns":

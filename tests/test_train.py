@@ -186,22 +186,27 @@ def test_soft_iou_loss_measures_overlap_and_is_logged(tmp_path, toy):
     assert float(row["train_loss"]) == pytest.approx(float(row["train_ce"]) + float(row["train_iou"]), rel=1e-4)
 
 
-@pytest.mark.parametrize("decoder", ["columns", "fast"])
-def test_fine_tune_a_light_checkpoint_into_another_decoder(tmp_path, toy, decoder):
+@pytest.mark.parametrize("decoder", ["columns", "fast", "struct-fine"])
+def test_fine_tune_a_checkpoint_into_another_decoder(tmp_path, toy, decoder):
     """--init a light checkpoint with --decoder columns (grown: the column branch is added and
-    trained) or fast (same tensors, last conv before the resize): every tensor of the checkpoint is
-    loaded, the run fine-tunes the decoder, and the result is a checkpoint of the new decoder."""
-    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32, disc=False)
+    trained) or fast (same tensors, last conv before the resize), or a struct checkpoint with
+    --struct-fine (grown: the 1/4 detail branch): every tensor of the checkpoint is loaded, the run
+    fine-tunes the decoder, and the result is a checkpoint of the new decoder."""
+    fine = decoder == "struct-fine"
+    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32, disc=False, decoder="struct" if fine else "light")
     src = RackLayNet(cfg0)
-    init = save_checkpoint(tmp_path / "light.safetensors", src, cfg0)
-    cfg = TrainConfig(data=str(toy), out=str(tmp_path), name=decoder, init=str(init), decoder=decoder, epochs=1,
-                      disc=False, freeze_encoder_epochs=1, patience=None, checkpoint_every=0, **TINY)
+    init = save_checkpoint(tmp_path / "src.safetensors", src, cfg0)
+    cfg = TrainConfig(data=str(toy), out=str(tmp_path), name=decoder, init=str(init), decoder=cfg0.decoder if fine
+                      else decoder, struct_fine=fine, epochs=1, disc=False, freeze_encoder_epochs=1, patience=None,
+                      checkpoint_every=0, **TINY)
     model, mcfg, _ = load_model(train(cfg) / "last.safetensors")
-    assert mcfg.decoder == decoder
+    assert (mcfg.decoder, mcfg.struct_fine) == (("struct", True) if fine else (decoder, False))
     for (k, a), b in zip(src.encoder.state_dict().items(), model.encoder.state_dict().values()):
         assert torch.equal(a, b), k
     if decoder == "columns":
         assert model.decoders["top"].col_map.weight.abs().sum() > 0
+    elif fine:
+        assert model.decoders["front"].detail[-1].weight.abs().sum() > 0
     else:
         assert not torch.equal(src.decoders["top"].final[0].weight, model.decoders["top"].final[0].weight)
 

@@ -355,7 +355,7 @@ def test_letterbox_pads_other_aspects_and_resizes_the_same_aspect():
 
 @pytest.mark.parametrize("given, expected", [(None, (1.0, 3.0, 7.0)), ((1.0, 2.0, 2.0), (1.0, 2.0, 2.0))])
 def test_finetune_keeps_the_loss_the_checkpoint_was_trained_with(tiny_data, tmp_path, monkeypatch, given, expected):
-    """A fine-tune uses the init model's loss (class weights and soft-IoU weight, from its
+    """A fine-tune uses the init model's loss (class weights, soft-IoU and gap weights, from its
     metadata) unless told otherwise: the release model learned boxes with the box class weighted
     10, and fine-tuning it with the default 5 pushed its decisions back to "shelf"."""
     import racklay.train as rt
@@ -365,15 +365,15 @@ def test_finetune_keeps_the_loss_the_checkpoint_was_trained_with(tiny_data, tmp_
 
     mcfg = ModelConfig(image_size=64, layout_size=64, encoder="resnet18", decoder="light", disc=False)
     init = save_checkpoint(tmp_path / "init.safetensors", build_model(mcfg), mcfg,
-                           extra={"train_config": {"class_weights": [1, 3, 7], "iou_weight": 0.5}})
-    assert checkpoint_loss(init) == {"class_weights": (1.0, 3.0, 7.0), "iou_weight": 0.5}
+                           extra={"train_config": {"class_weights": [1, 3, 7], "iou_weight": 0.5, "gap_weight": 4}})
+    assert checkpoint_loss(init) == {"class_weights": (1.0, 3.0, 7.0), "iou_weight": 0.5, "gap_weight": 4.0}
     seen = []
     monkeypatch.setattr(rt, "train", lambda cfg, transform=None: seen.append(cfg) or str(tmp_path / "run"))
     finetune(init, tiny_data / "real", tmp_path, name="ft", class_weights=given)
     assert seen[0].class_weights == expected and seen[0].init == str(init)
-    assert seen[0].iou_weight == 0.5
-    finetune(init, tiny_data / "real", tmp_path, name="ft2", iou_weight=0.0)
-    assert seen[1].iou_weight == 0.0
+    assert seen[0].iou_weight == 0.5 and seen[0].gap_weight == 4.0
+    finetune(init, tiny_data / "real", tmp_path, name="ft2", iou_weight=0.0, gap_weight=1.0)
+    assert seen[1].iou_weight == 0.0 and seen[1].gap_weight == 1.0
 
 
 def test_finetune_cli_mixes_synthetic_replay(tiny_data, tmp_path, monkeypatch):

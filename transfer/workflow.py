@@ -80,7 +80,7 @@ def checkpoint_config(path: str | os.PathLike):
 
 def checkpoint_loss(path: str | os.PathLike) -> dict:
     """The loss settings the checkpoint was trained with, from its `train_config` metadata:
-    `class_weights` (tuple) and `iou_weight` (float), each only when the file records it. A
+    `class_weights` (tuple), `iou_weight` and `gap_weight` (floats), each only when the file records it. A
     fine-tune keeps them: the release model was trained with boxes weighted 10, and fine-tuning it
     with another weighting moves its decisions (measured in docs/model-card.md, "Fine-tuning keeps
     the model's class weights")."""
@@ -92,6 +92,8 @@ def checkpoint_loss(path: str | os.PathLike) -> dict:
         own["class_weights"] = tuple(float(v) for v in tc["class_weights"])
     if tc.get("iou_weight") is not None:
         own["iou_weight"] = float(tc["iou_weight"])
+    if tc.get("gap_weight") is not None:
+        own["gap_weight"] = float(tc["gap_weight"])
     return own
 
 
@@ -151,6 +153,7 @@ def train_on_real(real, out, name: str, seed: int = 0, init=None, augment: bool 
         kw.setdefault("R", mcfg.R)
         kw.setdefault("views", tuple(mcfg.views))
         kw.setdefault("decoder", mcfg.decoder)
+        kw.setdefault("struct_fine", mcfg.struct_fine)
         kw.setdefault("encoder", mcfg.encoder)
         kw.setdefault("letterbox", mcfg.letterbox)
         kw.setdefault("disc", mcfg.disc)

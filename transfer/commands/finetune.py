@@ -33,15 +33,17 @@ def register(sub) -> None:
     p.add_argument("--val-fraction", type=float, default=REAL_VAL_FRACTION,
                    help=f"share of the training split held out for early stopping (default {REAL_VAL_FRACTION:g})")
     p.add_argument("--freeze-encoder-epochs", type=at_least(0), default=0,
-                   help="keep the ResNet encoder frozen for the first N epochs (default 0)")
+                   help="keep the encoder frozen for the first N epochs (default 0)")
     p.add_argument("--no-augment", action="store_true", help="disable the paper's augmentation")
     add_model_args(p, from_checkpoint=True)
     add_train_args(p, helps={"lr": f"learning rate (default {FINETUNE_LR_RATIO:g} x TrainConfig's {{default}})"})
-    add_train_flags(p.add_argument_group("loss"), ["class_weights", "iou_weight"], default=None, helps={
+    add_train_flags(p.add_argument_group("loss"), ["class_weights", "iou_weight", "gap_weight"], default=None, helps={
         "class_weights": "cross-entropy weights background,shelf,box (default: the ones the checkpoint was "
                          "trained with, from its metadata; else TrainConfig's {default})",
         "iou_weight": "weight of the soft-IoU loss (default: the checkpoint's, from its metadata; else "
-                      "TrainConfig's {default})"})
+                      "TrainConfig's {default})",
+        "gap_weight": "struct models: weight of the box loss at gaps between boxes (default: the checkpoint's, "
+                      "from its metadata; else TrainConfig's {default})"})
     add_train_flags(p.add_argument_group("synthetic replay"), ["replay", "replay_ratio"], default=None, helps={
         "replay": "synthetic RackLay root (e.g. the release set, or `racklay synth` output) whose train split "
                   "is mixed into every epoch, so a fine-tune on a few dozen photos does not forget the "
@@ -58,7 +60,7 @@ def run(args) -> int:
 
     out, name = split_out(args.out)
     kw = train_kwargs(args)
-    for k in ("class_weights", "iou_weight", "replay", "replay_ratio"):   # absent: the checkpoint's / TrainConfig's
+    for k in ("class_weights", "iou_weight", "gap_weight", "replay", "replay_ratio"):   # absent: the checkpoint's / TrainConfig's
         if getattr(args, k) is not None:
             kw[k] = getattr(args, k)
     run_dir = finetune(weights_for_cli(args.init), args.real, out, name=name, seed=args.seed, lr=args.lr,
