@@ -30,7 +30,8 @@ Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3,
 - `struct`: structured and scale-explicit (`StructDecoder`): per shelf its presence, length and
   extent, per position along it a box or not and the box's height or depth interval as fractions
   of the shelf, drawn by `racklay.structure.rasterize` as rectangles on their board. Beat `light`
-  by 9-12 box-IoU points at equal CPU time (docs/accuracy.md).
+  by 9-12 box-IoU points at equal CPU time (docs/accuracy.md). `ModelConfig.struct_fine` adds a
+  1/4-resolution detail branch that grows from a struct checkpoint (StructDecoder).
 - `fast`: `light`'s layers (the same tensors) with its last conv3x3-BN-ReLU and 1x1 head run at
   the 1/2-input resolution of the last stage; only the 3·R logits are resized to S x S (bilinear,
   as segmentation heads do). At the release size (160x256 in, 256 out) that conv is 10x cheaper,
@@ -583,7 +584,7 @@ class StructDecoder(nn.Module):
         mu = (0.5 + centre).unsqueeze(-1) + (2 * t - 1) * half.unsqueeze(-1)    # (N, R, T) image widths
         u = (torch.arange(W, device=x.device, dtype=torch.float32) + 0.5) / W
         win = torch.exp(log_win).clamp(0.25, 8.0).unsqueeze(-1).unsqueeze(-1) / W8   # in 1/8 columns
-        w = (-0.5 * ((u - mu.unsqueeze(-1)) / win) ** 2).softmax(-1)             # (N, R, T, W8)
+        w = (-0.5 * ((u - mu.unsqueeze(-1)) / win) ** 2).softmax(-1)             # (N, R, T, W)
         seq = torch.einsum("nrtw,nrcw->nrct", w.to(cols.dtype), cols)          # (N, R, C, T)
         freqs = torch.arange(1, self.n_freq + 1, device=x.device, dtype=torch.float32) * math.pi
         pos = torch.cat([torch.sin(freqs[:, None] * t), torch.cos(freqs[:, None] * t)], 0)   # (n_pos, T)
