@@ -50,6 +50,7 @@ from .model import (
     Discriminators,
     ModelConfig,
     RackLayNet,
+    StructDecoder,
     grown_tensor_names,
     load_imagenet_weights,
     load_lite0_weights,
@@ -578,7 +579,7 @@ def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
     if extra:
         raise ValueError(f"{path}: tensors {extra[:3]} have no place in a {model.cfg.decoder} model"
                          + (" (a struct model with the 1/4 detail branch? train with --struct-fine)"
-                            if any(".detail." in k or ".red4." in k for k in extra) else ""))
+                            if any(f".{sub}." in k for k in extra for sub in StructDecoder.GROWN) else ""))
     grown = grown_tensor_names(model) if (decoder, model.cfg.decoder) not in SAME_TENSOR_DECODERS else set()
     lacking = sorted(set(own) - set(sd) - grown)   # only the new branches may be new
     if lacking:

@@ -90,10 +90,9 @@ def checkpoint_loss(path: str | os.PathLike) -> dict:
     own = {}
     if tc.get("class_weights"):
         own["class_weights"] = tuple(float(v) for v in tc["class_weights"])
-    if tc.get("iou_weight") is not None:
-        own["iou_weight"] = float(tc["iou_weight"])
-    if tc.get("gap_weight") is not None:
-        own["gap_weight"] = float(tc["gap_weight"])
+    for k in ("iou_weight", "gap_weight"):
+        if tc.get(k) is not None:
+            own[k] = float(tc[k])
     return own
 
 
