@@ -82,29 +82,35 @@ def print_model_issue_targets(rows: list[dict], saw_photos: bool) -> None:
 def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
     """The model issue's "separate boxes where the photo shows separate boxes", counted: a photo
     shows them when some shelf of its front-view labels holds two or more box runs along x
-    (`racklay.layout.box_runs`); the same test on the prediction."""
+    (`racklay.layout.box_runs`); the model shows them there when it separates that same shelf
+    (a separation on another shelf is counted apart: it is what a phantom shelf looks like)."""
     from racklay import layout as L
     from racklay.data import RackLayRoot
 
     truth, pred = RackLayRoot(truth_root), RackLayRoot(pred_root)
-    want, got, extra = [], [], []
+    want, got, elsewhere, extra = [], [], [], []
     # the test split, or its first --limit photos (the prediction root holds layouts, no images)
     for sid in [s for s in truth.resolve("test") if pred.layout_path("front", s).is_file()]:
         name = (truth.read_meta(sid) or {}).get("source_image", sid).split(".")[0]
-        t = L.box_runs(truth.read_layouts("front", sid)).max() >= 2
-        p = L.box_runs(pred.read_layouts("front", sid)).max() >= 2
-        (want if t else []).append(name)
-        if t and p:
-            got.append(name)
-        if p and not t:
+        t = L.box_runs(truth.read_layouts("front", sid)) >= 2          # per shelf
+        p = L.box_runs(pred.read_layouts("front", sid)) >= 2
+        if t.any():
+            want.append(name)
+            if (t & p).any():
+                got.append(name)
+            elif p.any():
+                elsewhere.append(name)
+        elif p.any():
             extra.append(name)
+
     def names(xs):
         return ", ".join(xs[:6]) + (f", ... ({len(xs)})" if len(xs) > 6 else "") if xs else "-"
 
-    also = f" and on {len(extra)} where the labels do not ({names(extra)})" if extra else ""
+    also = f"; on another shelf than the labels' on {len(elsewhere)} ({names(elsewhere)})" if elsewhere else ""
+    also += f"; on {len(extra)} where the labels show none ({names(extra)})" if extra else ""
     print(f"separate boxes (>= 2 box runs on a shelf, front view): the labels show them on {len(want)} photos; "
-          f"the model on {len(got)} of these ({names(got)}){also}")
-    return {"labelled": want, "predicted": got, "extra": extra}
+          f"the model on the same shelf on {len(got)} of these ({names(got)}){also}")
+    return {"labelled": want, "predicted": got, "other_shelf": elsewhere, "extra": extra}
 
 
 def main() -> int:

@@ -33,7 +33,8 @@ BOX_TARGET = {"top": 70.0, "front": 75.0}            # reproduction row, dataset
 def separation(pred, root, split, limit, per_image: bool = False):
     """Front-view channels with >= 2 box runs: (in the truth, in the truth and the prediction,
     in the prediction); `per_image`: the same counts over images (an image counts when any of its
-    channels does; for photos: "does the prediction show separate boxes where the photo does")."""
+    channels does, and "both" needs one shelf that is separated in both: for photos, "does the prediction
+    show separate boxes on the shelf where the photo does")."""
     import torch
     from torch.utils.data import DataLoader
 
@@ -49,9 +50,10 @@ def separation(pred, root, split, limit, per_image: bool = False):
             c = pred.predict_batch(batch["image"])[0]["front"]
             gt_sep = L.box_runs(batch["front"].numpy()) >= 2
             pr_sep = L.box_runs(c) >= 2
+            hit = gt_sep & pr_sep                       # the same shelf (channel), not just the same image
             if per_image:
-                gt_sep, pr_sep = gt_sep.any(-1), pr_sep.any(-1)
-            t, both, p = t + int(gt_sep.sum()), both + int((gt_sep & pr_sep).sum()), p + int(pr_sep.sum())
+                gt_sep, pr_sep, hit = gt_sep.any(-1), pr_sep.any(-1), hit.any(-1)
+            t, both, p = t + int(gt_sep.sum()), both + int(hit.sum()), p + int(pr_sep.sum())
     return t, both, p
 
 
