@@ -78,6 +78,11 @@ def checkpoint_config(path: str | os.PathLike):
     return cfg
 
 
+#: the loss settings a checkpoint records and a fine-tune keeps (`checkpoint_loss`; `transfer finetune`
+#: flags that override them)
+CHECKPOINT_LOSS = ("class_weights", "iou_weight", "gap_weight")
+
+
 def checkpoint_loss(path: str | os.PathLike) -> dict:
     """The loss settings the checkpoint was trained with, from its `train_config` metadata:
     `class_weights` (tuple), `iou_weight` and `gap_weight` (floats), each only when the file records it. A
@@ -90,8 +95,8 @@ def checkpoint_loss(path: str | os.PathLike) -> dict:
     own = {}
     if tc.get("class_weights"):
         own["class_weights"] = tuple(float(v) for v in tc["class_weights"])
-    for k in ("iou_weight", "gap_weight"):
-        if tc.get(k) is not None:
+    for k in CHECKPOINT_LOSS:
+        if k != "class_weights" and tc.get(k) is not None:
             own[k] = float(tc[k])
     return own
 

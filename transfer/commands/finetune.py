@@ -8,7 +8,7 @@ from . import add_model_args, add_train_args, print_run, split_out, train_kwargs
 
 
 def register(sub) -> None:
-    from ..workflow import FINETUNE_LR_RATIO, REAL_VAL_FRACTION
+    from ..workflow import CHECKPOINT_LOSS, FINETUNE_LR_RATIO, REAL_VAL_FRACTION
 
     p = sub.add_parser(
         "finetune", formatter_class=TrainHelpFormatter,
@@ -37,7 +37,7 @@ def register(sub) -> None:
     p.add_argument("--no-augment", action="store_true", help="disable the paper's augmentation")
     add_model_args(p, from_checkpoint=True)
     add_train_args(p, helps={"lr": f"learning rate (default {FINETUNE_LR_RATIO:g} x TrainConfig's {{default}})"})
-    add_train_flags(p.add_argument_group("loss"), ["class_weights", "iou_weight", "gap_weight"], default=None, helps={
+    add_train_flags(p.add_argument_group("loss"), list(CHECKPOINT_LOSS), default=None, helps={
         "class_weights": "cross-entropy weights background,shelf,box (default: the ones the checkpoint was "
                          "trained with, from its metadata; else TrainConfig's {default})",
         "iou_weight": "weight of the soft-IoU loss (default: the checkpoint's, from its metadata; else "
@@ -52,7 +52,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ..workflow import finetune
+    from ..workflow import CHECKPOINT_LOSS, finetune
 
     if args.fraction is not None and not 0 < args.fraction <= 1:
         raise ValueError(f"--fraction must be in (0, 1], got {args.fraction}")
@@ -60,7 +60,7 @@ def run(args) -> int:
 
     out, name = split_out(args.out)
     kw = train_kwargs(args)
-    for k in ("class_weights", "iou_weight", "gap_weight", "replay", "replay_ratio"):   # absent: the checkpoint's / TrainConfig's
+    for k in (*CHECKPOINT_LOSS, "replay", "replay_ratio"):   # absent: the checkpoint's / TrainConfig's
         if getattr(args, k) is not None:
             kw[k] = getattr(args, k)
     run_dir = finetune(weights_for_cli(args.init), args.real, out, name=name, seed=args.seed, lr=args.lr,
