@@ -322,3 +322,23 @@ def test_load_unit_annotation_owns_the_pixels_of_its_parts():
     assert a["visible_pixels"] == 300 and a["bbox_visible"] == [30, 0, 50, 20]
     assert a["category"].startswith("pallet_") and a["channel"] == 0
     assert not any(x["id"] == p + 1 for x in object_annotations(scene, inst) for p in parts), "parts are not objects"
+
+
+def test_packed_pallet_levels_stand_their_loads_a_gap_apart():
+    """`pallet_packing`: loads on a packed level stand `pallet_gap` apart (the labelled pallet
+    photos' gaps are 3-15 cm; the default spreads one pallet per 1/n of the beam, often 0.3 m+),
+    still inside the bay and never overlapping."""
+    gap = 0.05
+    r = load_recipe("pallet", {"pallet_packing": 1.0, "pallet_gap": [gap, gap], "box_density": [1.0, 1.0],
+                               "wire_deck": 0.0})
+    spread = load_recipe("pallet", {"box_density": [1.0, 1.0], "wire_deck": 0.0})
+    seen, spread_gaps = [], []
+    for recipe, out in ((r, seen), (spread, spread_gaps)):
+        for index in range(12):
+            scene = sample_scene(recipe, 3, index)
+            for sh in scene.shelves:
+                xs = sorted(scene.objects[i].layout_box.x_range() for i in sh.items)
+                assert all(-scene.rack_length / 2 - 1e-9 <= a and b <= scene.rack_length / 2 + 1e-9 for a, b in xs)
+                out += [b0 - a1 for (_, a1), (b0, _) in zip(xs, xs[1:])]
+    assert len(seen) > 10 and all(0.7 * gap - 1e-9 <= g <= 1.3 * gap + 1e-9 for g in seen), seen
+    assert np.median(spread_gaps) > 0.15, np.median(spread_gaps)

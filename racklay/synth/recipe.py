@@ -66,6 +66,8 @@ class Recipe:
     floor_level: float = _f(0.5, "float", 0.0, 1.0, "pallet racking: probability that the floor under the first beam is a storage level (shelf channel 0, its board is the floor)")
     wire_deck: float = _f(0.3, "float", 0.0, 1.0, "pallet racking: probability of wire-mesh decks on the beams (else open beams)")
     pallet_load: dict = _f({"cartons": 0.5, "wrapped": 0.35, "crates": 0.15}, "weights:cartons|wrapped|crates", doc="pallet racking: what stands on a pallet")
+    pallet_gap: list = _f([0.06, 0.15], "frange", 0.0, 1.0, "pallet racking: clearance between neighbouring pallets, metres (one draw per level)")
+    pallet_packing: float = _f(0.0, "float", 0.0, 1.0, "pallet racking: probability that a level's pallets stand packed at pallet_gap from each other (as in a bay sized for them) rather than spread evenly along the beams")
     # --- warehouse ------------------------------------------------------------------------
     background: dict = _f({"wall": 0.4, "busy": 0.6}, "weights:wall|busy", doc="probability of each background")
     wall_gap: list = _f([0.05, 0.6], "frange", 0.0, 5.0, "gap between the rack's back and the wall (wall background)")

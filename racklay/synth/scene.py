@@ -338,16 +338,26 @@ def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: floa
     if rng.uniform() < 0.5 and along <= depth + 0.05:   # turned: the long side across the beams
         along, deep = deep, along
     deep = min(deep, depth - 0.02)
-    gap = float(rng.uniform(0.06, 0.15))
+    gap = _u(rng, r.pallet_gap)
     n = int((length - gap) // (along + gap))
     if n < 1:
         along, n = length - 2 * gap, 1
     pitch = length / n
+    # packed: neighbours stand `gap` apart and the row sits anywhere along the beams (a bay sized
+    # for its pallets, gaps of a hand's width); spread: one pallet per 1/n of the beam
+    packed = r.pallet_packing > 0 and rng.uniform() < r.pallet_packing
+    if packed:
+        pitch = along + gap
+        start = -length / 2 + float(rng.uniform(0, max(0.0, length - n * along - (n - 1) * gap))) - gap / 2
     for k in range(n):
         if rng.uniform() >= density:
             continue
         kind = rng.choice(list(r.pallet_load), p=list(r.pallet_load.values()))
-        cx = -length / 2 + pitch * (k + 0.5) + float(rng.uniform(-0.25, 0.25)) * (pitch - along)
+        if packed:
+            cx = start + pitch * (k + 0.5) + float(rng.uniform(-0.15, 0.15)) * gap
+            cx = min(max(cx, -length / 2 + along / 2), length / 2 - along / 2)
+        else:
+            cx = -length / 2 + pitch * (k + 0.5) + float(rng.uniform(-0.25, 0.25)) * (pitch - along)
         cy = -depth / 2 + 0.01 + deep / 2 + float(rng.uniform(0, max(0.0, depth - 0.02 - deep)))
         sz = PALLET_HEIGHT + float(rng.uniform(0.35, 1.0)) * (max_top - PALLET_HEIGHT)
         units.append((kind, L.Box(cx=cx, cy=cy, sx=along, sy=deep, sz=sz, z0=0.0, yaw=0.0)))
