@@ -92,11 +92,10 @@ def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
     # the test split, or its first --limit photos (the prediction root holds layouts, no images)
     for sid in [s for s in truth.resolve("test") if pred.layout_path("front", s).is_file()]:
         name = (truth.read_meta(sid) or {}).get("source_image", sid).split(".")[0]
-        t = L.box_runs(truth.read_layouts("front", sid)) >= 2          # per shelf
-        p = L.box_runs(pred.read_layouts("front", sid)) >= 2
+        t, p, hit = L.separated_shelves(truth.read_layouts("front", sid), pred.read_layouts("front", sid))
         if t.any():
             want.append(name)
-            if (t & p).any():
+            if hit.any():
                 got.append(name)
             elif p.any():
                 elsewhere.append(name)

@@ -48,9 +48,7 @@ def separation(pred, root, split, limit, per_image: bool = False):
     with torch.inference_mode():
         for batch in DataLoader(ds, batch_size=8):
             c = pred.predict_batch(batch["image"])[0]["front"]
-            gt_sep = L.box_runs(batch["front"].numpy()) >= 2
-            pr_sep = L.box_runs(c) >= 2
-            hit = gt_sep & pr_sep                       # the same shelf (channel), not just the same image
+            gt_sep, pr_sep, hit = L.separated_shelves(batch["front"].numpy(), c)
             if per_image:
                 gt_sep, pr_sep, hit = gt_sep.any(-1), pr_sep.any(-1), hit.any(-1)
             t, both, p = t + int(gt_sep.sum()), both + int(hit.sum()), p + int(pr_sep.sum())

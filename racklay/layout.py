@@ -388,6 +388,15 @@ def box_runs(layouts: np.ndarray) -> np.ndarray:
     return (np.diff(np.concatenate([pad, cols, pad], -1), axis=-1) > 0).sum(-1)
 
 
+def separated_shelves(truth: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The structured-model issue's "separate boxes where the photo shows separate boxes", per
+    shelf: for (..., R, D, D) front-view class-id layouts, (truth has >= 2 box runs, prediction
+    has >= 2, both on the same shelf channel). A separation on another channel than the truth's
+    is not a hit (it is what a phantom shelf looks like)."""
+    t, p = box_runs(truth) >= 2, box_runs(pred) >= 2
+    return t, p, t & p
+
+
 def shelf_lengths(layouts: np.ndarray, grid: Grid) -> np.ndarray:
     """Metric length of each channel's shelf in (R, D, D) class-id layouts of either view: the
     longest run of adjacent columns holding a shelf or box pixel, times the pixel size (stray

@@ -212,6 +212,19 @@ def test_box_runs_counts_boxes_with_a_gap_as_two_and_touching_ones_as_one():
     assert L.box_runs(f) == 1
 
 
+def test_a_separation_counts_only_on_the_shelf_the_truth_separates():
+    _, front = _two_box_shelf()                    # channel 0: two boxes apart
+    bridged = front[0].copy()                      # the gap painted over: one run
+    cols = np.nonzero((bridged == L.BOX).any(0))[0]
+    bridged[np.ix_((bridged == L.BOX).any(1), np.arange(cols[0], cols[-1] + 1))] = L.BOX
+    assert L.box_runs(bridged) == 1
+    elsewhere = np.stack([bridged, front[0], front[2]])     # separated, but on channel 1
+    t, p, hit = L.separated_shelves(front, front)
+    assert t.tolist() == [True, False, False] and hit.tolist() == [True, False, False]
+    t, p, hit = L.separated_shelves(front, elsewhere)
+    assert p.tolist() == [False, True, False] and not hit.any()
+
+
 def test_shelf_length_ignores_stray_pixels_beside_the_shelf():
     top, _ = _two_box_shelf(length=2.0)
     top[0, 10, 3:6] = L.BOX                          # a stray blob far to the left
