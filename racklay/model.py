@@ -31,7 +31,8 @@ Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3,
   extent, per position along it a box or not and the box's height or depth interval as fractions
   of the shelf, drawn by `racklay.structure.rasterize` as rectangles on their board. Beat `light`
   by 9-12 box-IoU points at equal CPU time (docs/accuracy.md). `ModelConfig.struct_fine` adds a
-  1/4-resolution detail branch that grows from a struct checkpoint (StructDecoder).
+  1/4-resolution detail branch and `ModelConfig.struct_gap` a gap output that cuts box runs,
+  both grown from a struct checkpoint (StructDecoder).
 - `fast`: `light`'s layers (the same tensors) with its last conv3x3-BN-ReLU and 1x1 head run at
   the 1/2-input resolution of the last stage; only the 3·R logits are resized to S x S (bilinear,
   as segmentation heads do). At the release size (160x256 in, 256 out) that conv is 10x cheaper,
@@ -93,6 +94,10 @@ class ModelConfig:
     #: detail branch, StructDecoder), so gaps between boxes narrower than a 1/8 feature column can
     #: show; grows from a struct checkpoint without it (`racklay train --init`)
     struct_fine: bool = False
+    #: struct decoder only: a gap output of its own, per position along each shelf (the logit that
+    #: the position is a gap between two boxes), trained by its own loss; a confident gap cuts the
+    #: box run there (StructDecoder). Grows from a struct checkpoint without it.
+    struct_gap: bool = False
 
     def __post_init__(self):
         self.views = tuple(self.views)
@@ -109,8 +114,9 @@ class ModelConfig:
             raise ValueError(f"views must be a non-empty subset of {VIEWS}, got {self.views}")
         if self.decoder not in DECODERS:
             raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
-        if self.struct_fine and self.decoder != "struct":
-            raise ValueError(f"struct_fine needs the struct decoder, got {self.decoder!r}")
+        for k in ("struct_fine", "struct_gap"):
+            if getattr(self, k) and self.decoder != "struct":
+                raise ValueError(f"{k} needs the struct decoder, got {self.decoder!r}")
         if self.R < 1:
             raise ValueError(f"R must be >= 1, got {self.R}")
         if any(v % 32 or v < 32 for v in self.input_hw):
@@ -527,16 +533,23 @@ class StructDecoder(nn.Module):
     column is ~9 cm of a 2.3 m shelf filling 80 % of a 256-px input, about the gap between two
     pallets; the 1/4 features halve it. Its last conv starts at zero (`GROWN`), so a struct
     checkpoint without the branch initialises it and it starts computing (up to the upsampling)
-    what that checkpoint computed."""
+    what that checkpoint computed.
 
-    #: the submodules a checkpoint without the detail branch lacks (see `grown_tensor_names`)
-    GROWN = ("red4", "detail")
+    `gap=True` adds a gap output: per position, the logit that the position is a gap between two
+    boxes (`racklay.structure.gap_positions` of the truth), from the same features as the box
+    logit and trained by its own loss (`structure_loss`). The box logit drawn is
+    min(box, -gap), so a confident gap cuts a run of boxes without the box loss being reweighted
+    (`--gap-weight` does that, and costs box IoU). Its bias starts at -6: a checkpoint without it
+    starts computing what it computed."""
+
+    #: the submodules a checkpoint without the detail branch / the gap output lacks (see `grown_tensor_names`)
+    GROWN = ("red4", "detail", "gap_head")
 
     def __init__(self, view: str, R: int, layout_size: int, extent: float, enc_channels, T: int = DEFAULT_T,
-                 width: int = 128, fine: bool = False):
+                 width: int = 128, fine: bool = False, gap: bool = False):
         super().__init__()
         self.view, self.R, self.layout_size, self.extent, self.T = view, R, layout_size, extent, T
-        self.fine = fine
+        self.fine, self.gap = fine, gap
         c4, c8, c16, c32 = enc_channels[1], enc_channels[2], enc_channels[3], enc_channels[4]
         if fine:
             self.red4 = conv_bn_relu(c4, 32, 1)
@@ -556,6 +569,8 @@ class StructDecoder(nn.Module):
         self.pos_seq = nn.Sequential(_conv1d_bn_relu(2 * width + n_pos, width, 5), _conv1d_bn_relu(width, width, 5),
                                      _conv1d_bn_relu(width, width, 5))
         self.pos_head = nn.Conv1d(width, 2 if view == "front" else 3, 1)
+        if gap:
+            self.gap_head = nn.Conv1d(width, 1, 1)
 
     def structure(self, feats) -> dict:
         f8, f16, f32 = feats[2], feats[3], feats[4]
@@ -590,9 +605,13 @@ class StructDecoder(nn.Module):
         pos = torch.cat([torch.sin(freqs[:, None] * t), torch.cos(freqs[:, None] * t)], 0)   # (n_pos, T)
         seq = torch.cat([seq, g.unsqueeze(-1).expand(N, R, C, T).to(seq.dtype),
                          pos.to(seq.dtype).expand(N, R, -1, T)], 2)
-        out = self.pos_head(self.pos_seq(seq.reshape(N * R, -1, T))).float().reshape(N, R, -1, T)
+        h = self.pos_seq(seq.reshape(N * R, -1, T))
+        out = self.pos_head(h).float().reshape(N, R, -1, T)
         st = {"presence": pres, "length": torch.exp(log_len.clamp(-4, 3)), "extent": torch.exp(log_ext.clamp(-4, 3)),
               "box": out[:, :, 0]}
+        if self.gap:
+            st["gap"] = self.gap_head(h).float().reshape(N, R, T)
+            st["box_raw"], st["box"] = st["box"], cut_at_gaps(st["box"], st["gap"])
         if self.view == "front":
             st["height"] = torch.sigmoid(out[:, :, 1])
         else:
@@ -623,6 +642,9 @@ class StructDecoder(nn.Module):
         if self.fine:
             self.detail[-1].weight.zero_()
             self.detail[-1].bias.zero_()
+        if self.gap:
+            self.gap_head.weight.zero_()
+            self.gap_head.bias.fill_(-6.0)
 
 
 def _conv1d_bn_relu(cin: int, cout: int, k: int) -> nn.Sequential:
@@ -631,13 +653,14 @@ def _conv1d_bn_relu(cin: int, cout: int, k: int) -> nn.Sequential:
 
 def grown_tensor_names(model: nn.Module) -> set[str]:
     """State-dict names of the branches a grown decoder adds to the one it grows from (the
-    `GROWN` submodules of every `ColumnsDecoder`, and of every `StructDecoder` with its 1/4
-    detail branch, in `model`)."""
+    `GROWN` submodules of every `ColumnsDecoder`, and those a `StructDecoder` has: its 1/4
+    detail branch, its gap output, in `model`)."""
     names = set()
     for prefix, m in model.named_modules():
-        if isinstance(m, ColumnsDecoder) or (isinstance(m, StructDecoder) and m.fine):
+        if isinstance(m, (ColumnsDecoder, StructDecoder)):
             for sub in m.GROWN:
-                names |= {f"{prefix}.{sub}.{k}" for k in getattr(m, sub).state_dict()}
+                if hasattr(m, sub):
+                    names |= {f"{prefix}.{sub}.{k}" for k in getattr(m, sub).state_dict()}
     return names
 
 
@@ -655,7 +678,7 @@ class RackLayNet(nn.Module):
         def make(view):
             if cfg.decoder == "struct":
                 return StructDecoder(view, cfg.R, cfg.layout_size, cfg.extent, self.encoder.channels,
-                                     fine=cfg.struct_fine)
+                                     fine=cfg.struct_fine, gap=cfg.struct_gap)
             if cfg.decoder == "paper":
                 return PaperDecoder(out, cfg.layout_size, cin)
             if cfg.decoder == "columns":
@@ -710,7 +733,17 @@ def tie_views(structs: dict) -> dict:
     shared = {"presence": (a["presence"] + b["presence"]) / 2,
               "length": torch.exp((a["length"].log() + b["length"].log()) / 2),
               "box": (a["box"] + b["box"]) / 2}
+    if "gap" in a:     # the gap output: both estimates averaged, then the cut (StructDecoder)
+        shared["gap"], shared["box_raw"] = (a["gap"] + b["gap"]) / 2, (a["box_raw"] + b["box_raw"]) / 2
+        shared["box"] = cut_at_gaps(shared["box_raw"], shared["gap"])
     return {v: {**st, **shared} for v, st in structs.items()}
+
+
+def cut_at_gaps(box: torch.Tensor, gap: torch.Tensor) -> torch.Tensor:
+    """The box logit a gap output leaves: min(box, -gap). A position the gap output calls a gap
+    (logit > 0) is drawn without a box, whatever the box output says; elsewhere the box logit is
+    kept, capped at the gap output's confidence that there is no gap."""
+    return torch.minimum(box, -gap)
 
 
 # ----------------------------------------------------------------------------- discriminator

@@ -185,12 +185,20 @@ def gap_positions(box: torch.Tensor) -> torch.Tensor:
     return ~box & left & right
 
 
+#: the gap output's loss weights a true gap position this many times a non-gap one (gaps are
+#: ~4 of 96 positions on a shelf with two loads)
+GAP_POS_WEIGHT = 5.0
+
+
 def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, gap_weight: float = 1.0) -> torch.Tensor:
     """Direct supervision of a predicted structure with the truth's: BCE on shelf presence; for
     shelves that exist, L1 of log length and log extent (scale) and, per position, BCE on box and
     L1 of the box fractions where a box is (shape, sampled at the true length). `gap_weight`
     weights the box BCE at the gaps between boxes (`gap_positions`): a gap of 10 cm is ~4 of the 96
-    positions of a 2.3 m shelf, so without it bridging two boxes costs the loss next to nothing."""
+    positions of a 2.3 m shelf, so without it bridging two boxes costs the loss next to nothing.
+    A structure with a gap output (`StructDecoder(gap=True)`: "gap" and "box_raw") has its box BCE
+    on the box logit before the cut and a BCE of its own on the gap logit at `gap_positions`
+    (positives weighted `GAP_POS_WEIGHT`)."""
     T = st["box"].shape[-1]
     tr = truth_structure(view, layouts, extent, T)
     pres = tr["presence"]
@@ -203,7 +211,12 @@ def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, ga
     w = None
     if gap_weight != 1.0:
         w = 1.0 + (gap_weight - 1.0) * gap_positions(tr["box"][pres]).float()
-    loss = loss + F.binary_cross_entropy_with_logits(st["box"].float()[pres], tr["box"][pres].float(), weight=w)
+    box = st["box_raw"] if "gap" in st else st["box"]
+    loss = loss + F.binary_cross_entropy_with_logits(box.float()[pres], tr["box"][pres].float(), weight=w)
+    if "gap" in st:
+        loss = loss + F.binary_cross_entropy_with_logits(
+            st["gap"].float()[pres], gap_positions(tr["box"][pres]).float(),
+            pos_weight=torch.tensor(GAP_POS_WEIGHT, device=st["gap"].device))
     has_box = tr["box"] & pres.unsqueeze(-1)
     if has_box.any():
         for k in (("height",) if view == "front" else ("near", "far")):
@@ -220,4 +233,4 @@ def rescale_structure(st: dict, length: float | torch.Tensor) -> dict:
 
 
 __all__ = ["DEFAULT_T", "DEFAULT_TAU_PX", "HARD_TAU_PX", "NUM_CLASSES", "pixel_centres", "sample_positions", "rasterize",
-           "truth_structure", "gap_positions", "structure_loss", "rescale_structure"]
+           "truth_structure", "gap_positions", "GAP_POS_WEIGHT", "structure_loss", "rescale_structure"]

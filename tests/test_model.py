@@ -104,6 +104,39 @@ def test_struct_detail_branch_grows_from_a_struct_checkpoint():
         ModelConfig(decoder="light", struct_fine=True)
 
 
+def test_struct_gap_output_grows_from_a_struct_checkpoint_and_cuts_box_runs():
+    """`struct_gap` (the gap output) grown from a struct checkpoint starts by predicting the same
+    layouts (its bias is -6: it cuts nothing a box logit below 6 calls a box); both views share one
+    gap estimate; the drawn box logit is min(box, -gap), so a position with a positive gap logit
+    has no box and a run of boxes is cut there; the output learns from its own scores; and it needs the struct decoder."""
+    from racklay.model import cut_at_gaps
+    from racklay.train import load_grown
+
+    base = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="struct")
+    gapped = ModelConfig.from_dict({**base.to_dict(), "struct_gap": True})
+    torch.manual_seed(0)
+    a = RackLayNet(base).eval()
+    b = RackLayNet(gapped).eval()
+    load_grown(b, a.state_dict(), "struct", "struct.safetensors")
+    x = torch.randn(2, 3, 64, 128, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        ya, (yb, sb) = a(x), b(x, with_structure=True)
+    for v in ("top", "front"):
+        assert torch.equal(ya[v], yb[v])
+        assert torch.equal(sb[v]["box"], cut_at_gaps(sb[v]["box_raw"], sb[v]["gap"]))
+    assert torch.equal(sb["top"]["gap"], sb["front"]["gap"])
+    box = torch.full((1, 1, 6), 3.0)
+    gap = torch.tensor([[[-6.0, -6.0, 5.0, -2.0, -6.0, -6.0]]])   # a gap at 2 only (logit > 0)
+    assert (cut_at_gaps(box, gap) > 0).tolist() == [[[True, True, False, True, True, True]]]
+    b.train()
+    b(x, with_structure=True)[1]["front"]["gap"].square().sum().backward()
+    assert b.decoders["front"].gap_head.weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="no place in a struct model.*--struct-gap"):
+        load_grown(a, b.state_dict(), "struct", "gap.safetensors")
+    with pytest.raises(ValueError, match="struct_gap needs the struct decoder"):
+        ModelConfig(decoder="light", struct_gap=True)
+
+
 def test_fast_decoder_is_light_with_its_last_conv_before_the_resize():
     """`fast` has exactly `light`'s tensors (a light checkpoint loads into it strictly, both ways),
     computes the logits at the last stage's resolution and only then resizes them to S, so it

@@ -113,6 +113,26 @@ def test_gap_weight_makes_bridging_two_boxes_cost_more():
             > 5 * structure_loss("front", bridged, lay, EXT, gap_weight=1.0))
 
 
+def test_a_gap_output_is_trained_on_the_gaps_and_its_cut_costs_the_box_loss_nothing():
+    """With a gap output (StructDecoder(gap=True)) the loss has a term of its own on the gap logit at
+    the gaps between boxes; the box loss is taken before the cut, so a gap output that cuts where
+    the truth has a gap does not change it."""
+    from racklay.model import cut_at_gaps
+    from racklay.structure import gap_positions
+
+    _, front = _two_box_shelf()
+    lay = torch.from_numpy(front)[None].long()
+    tr = truth_structure("front", lay, EXT)
+    gaps = gap_positions(tr["box"])
+    right = _as_prediction(tr)
+    right["box_raw"], right["gap"] = right["box"], torch.where(gaps, 20.0, -20.0)
+    right["box"] = cut_at_gaps(right["box_raw"], right["gap"])
+    blind = {**right, "gap": -right["gap"]}            # calls every gap a non-gap and every box a gap
+    assert structure_loss("front", right, lay, EXT) < 1e-3
+    assert structure_loss("front", blind, lay, EXT) > 5.0
+    assert structure_loss("front", {k: v for k, v in right.items() if k not in ("gap", "box_raw")}, lay, EXT) < 1e-3
+
+
 def _struct_net(R=3, img=64, lay=S):
     torch.manual_seed(0)
     net = RackLayNet(ModelConfig(R=R, image_size=img, layout_size=lay, decoder="struct")).eval()
@@ -316,3 +336,29 @@ def test_struct_model_exports_to_onnx_with_the_same_layouts(struct_ckpt, tmp_pat
     a, b = Predictor(struct_ckpt).predict_batch(x)[0], Predictor(out).predict_batch(x)[0]
     for v in ("top", "front"):
         assert (a[v] == b[v]).mean() > 0.999
+
+
+def test_struct_model_with_a_gap_output_exports_to_onnx_and_its_cuts_show(tmp_path):
+    from racklay.checkpoint import save_checkpoint
+    from racklay.predict import Predictor
+
+    torch.manual_seed(0)
+    net = RackLayNet(ModelConfig(R=3, image_size=64, layout_size=64, decoder="struct", struct_gap=True)).eval()
+    x = torch.randn(2, 3, 64, 64)
+    with torch.no_grad():
+        for dec in net.decoders.values():   # boxes everywhere; no gap called yet
+            dec.pos_head.bias[0] = 2.0
+            dec.pos_head.weight.normal_(0, 0.05)
+            dec.gap_head.weight.normal_(0, 30.0)
+            dec.gap_head.bias.fill_(-100.0)
+        assert (L.box_runs(net(x)["front"].argmax(2).numpy()) == 1).all()
+        gap = net(x, with_structure=True)[1]["front"]["gap"] + 100.0
+        for dec in net.decoders.values():   # now half the positions are called gaps
+            dec.gap_head.bias.fill_(-float(gap.median()))
+    ck = save_checkpoint(tmp_path / "gap.safetensors", net, net.cfg)
+    out = tmp_path / "gap.onnx"
+    assert racklay_main(["export", "--weights", str(ck), "--onnx", str(out)]) == 0
+    a, b = Predictor(ck).predict_batch(x)[0], Predictor(out).predict_batch(x)[0]
+    for v in ("top", "front"):
+        assert (a[v] == b[v]).mean() > 0.999
+    assert (L.box_runs(a["front"]) >= 2).any(), "the gap output cut no box run"

@@ -186,27 +186,31 @@ def test_soft_iou_loss_measures_overlap_and_is_logged(tmp_path, toy):
     assert float(row["train_loss"]) == pytest.approx(float(row["train_ce"]) + float(row["train_iou"]), rel=1e-4)
 
 
-@pytest.mark.parametrize("decoder", ["columns", "fast", "struct-fine"])
+@pytest.mark.parametrize("decoder", ["columns", "fast", "struct-fine", "struct-gap"])
 def test_fine_tune_a_checkpoint_into_another_decoder(tmp_path, toy, decoder):
     """--init a light checkpoint with --decoder columns (grown: the column branch is added and
     trained) or fast (same tensors, last conv before the resize), or a struct checkpoint with
-    --struct-fine (grown: the 1/4 detail branch): every tensor of the checkpoint is loaded, the run
-    fine-tunes the decoder, and the result is a checkpoint of the new decoder."""
-    fine = decoder == "struct-fine"
-    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32, disc=False, decoder="struct" if fine else "light")
+    --struct-fine (grown: the 1/4 detail branch) or --struct-gap (grown: the gap output): every
+    tensor of the checkpoint is loaded, the run fine-tunes the decoder, and the result is a
+    checkpoint of the new decoder."""
+    fine, gap = decoder == "struct-fine", decoder == "struct-gap"
+    grown = fine or gap
+    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32, disc=False, decoder="struct" if grown else "light")
     src = RackLayNet(cfg0)
     init = save_checkpoint(tmp_path / "src.safetensors", src, cfg0)
-    cfg = TrainConfig(data=str(toy), out=str(tmp_path), name=decoder, init=str(init), decoder=cfg0.decoder if fine
-                      else decoder, struct_fine=fine, epochs=1, disc=False, freeze_encoder_epochs=1, patience=None,
+    cfg = TrainConfig(data=str(toy), out=str(tmp_path), name=decoder, init=str(init), decoder=cfg0.decoder if grown
+                      else decoder, struct_fine=fine, struct_gap=gap, epochs=1, disc=False, freeze_encoder_epochs=1, patience=None,
                       checkpoint_every=0, **TINY)
     model, mcfg, _ = load_model(train(cfg) / "last.safetensors")
-    assert (mcfg.decoder, mcfg.struct_fine) == (("struct", True) if fine else (decoder, False))
+    assert (mcfg.decoder, mcfg.struct_fine, mcfg.struct_gap) == (("struct", fine, gap) if grown else (decoder, False, False))
     for (k, a), b in zip(src.encoder.state_dict().items(), model.encoder.state_dict().values()):
         assert torch.equal(a, b), k
     if decoder == "columns":
         assert model.decoders["top"].col_map.weight.abs().sum() > 0
     elif fine:
         assert model.decoders["front"].detail[-1].weight.abs().sum() > 0
+    elif gap:
+        assert model.decoders["front"].gap_head.weight.abs().sum() > 0
     else:
         assert not torch.equal(src.decoders["top"].final[0].weight, model.decoders["top"].final[0].weight)
 

@@ -158,6 +158,7 @@ def train_on_real(real, out, name: str, seed: int = 0, init=None, augment: bool 
         kw.setdefault("views", tuple(mcfg.views))
         kw.setdefault("decoder", mcfg.decoder)
         kw.setdefault("struct_fine", mcfg.struct_fine)
+        kw.setdefault("struct_gap", mcfg.struct_gap)
         kw.setdefault("encoder", mcfg.encoder)
         kw.setdefault("letterbox", mcfg.letterbox)
         kw.setdefault("disc", mcfg.disc)

