@@ -63,6 +63,11 @@ from .structure import structure_loss
 
 # fields a resumed run must share with the run it continues (others, e.g. epochs or
 # max_minutes, may change on resume)
+#: the training options that are the network's architecture (ModelConfig's fields, less the ones a
+#: run does not choose: extent, decision_bias): `TrainConfig.model_config` builds the model from
+#: them, and a fine-tune takes them from its checkpoint (transfer.workflow.train_on_real)
+ARCH_FIELDS = ("R", "image_size", "layout_size", "views", "decoder", "disc", "encoder", "letterbox",
+               "struct_fine", "struct_gap")
 _RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder", "struct_fine", "struct_gap",
                  "encoder", "pretrained", "augment", "letterbox",
                  "disc", "disc_weight", "disc_start", "class_weights", "iou_weight", "seed", "train_split",
@@ -195,10 +200,7 @@ class TrainConfig:
                 setattr(self, f.name, float(v))
 
     def model_config(self) -> ModelConfig:
-        return ModelConfig(R=self.R, image_size=self.image_size, layout_size=self.layout_size,
-                           views=self.views, decoder=self.decoder, disc=self.disc, encoder=self.encoder,
-                           letterbox=self.letterbox, struct_fine=self.struct_fine,
-                           struct_gap=self.struct_gap)
+        return ModelConfig(**{k: getattr(self, k) for k in ARCH_FIELDS})
 
     def run_name(self) -> str:
         return self.name or self.model_config().variant().lower()

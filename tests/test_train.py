@@ -35,6 +35,23 @@ _rows = metrics_rows
 
 
 @pytest.mark.slow
+
+def test_every_architecture_field_of_the_model_config_is_a_training_option():
+    """A new ModelConfig field is either chosen by a run (in train.ARCH_FIELDS: TrainConfig has it,
+    model_config passes it on, a fine-tune takes it from its checkpoint) or named here as one a
+    run does not choose."""
+    import dataclasses
+
+    from racklay.model import ModelConfig
+    from racklay.train import ARCH_FIELDS
+
+    model_fields = {f.name for f in dataclasses.fields(ModelConfig)}
+    assert set(ARCH_FIELDS) == model_fields - {"extent", "decision_bias"}
+    cfg = TrainConfig(data="x", decoder="struct", struct_fine=True, struct_gap=True, R=3, letterbox=True)
+    m = cfg.model_config()
+    assert all(getattr(m, k) == getattr(cfg, k) for k in ARCH_FIELDS if k not in ("views", "image_size"))
+    assert (m.struct_fine, m.struct_gap, m.R, m.letterbox) == (True, True, 3, True)
+
 def test_overfit_a_handful_of_samples(tmp_path, toy):
     """4 distinct samples (each stored 4 times, so an epoch has 4 steps): 60 steps must take the
     dataset-level IoU of shelf and box far above an all-background guess (0) and the untrained

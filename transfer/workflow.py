@@ -142,7 +142,7 @@ def train_on_real(real, out, name: str, seed: int = 0, init=None, augment: bool 
     """Fine-tune (`init` = a pretrain checkpoint) or train from scratch (`init=None`, the
     "real only" regime) on a real RackLay root, with the paper's augmentation and early
     stopping on a validation set carved from the training split."""
-    from racklay.train import train
+    from racklay.train import ARCH_FIELDS, train
 
     from .augment import PaperAugment
 
@@ -151,17 +151,8 @@ def train_on_real(real, out, name: str, seed: int = 0, init=None, augment: bool 
     require_split(real, train_split, "real")
     if init is not None:
         mcfg = check_init_compatible(init, real, train_split, layout_size=kw.get("layout_size"), R=kw.get("R"))
-        # the architecture comes from the checkpoint
-        kw.setdefault("layout_size", mcfg.layout_size)
-        kw.setdefault("image_size", mcfg.image_size)
-        kw.setdefault("R", mcfg.R)
-        kw.setdefault("views", tuple(mcfg.views))
-        kw.setdefault("decoder", mcfg.decoder)
-        kw.setdefault("struct_fine", mcfg.struct_fine)
-        kw.setdefault("struct_gap", mcfg.struct_gap)
-        kw.setdefault("encoder", mcfg.encoder)
-        kw.setdefault("letterbox", mcfg.letterbox)
-        kw.setdefault("disc", mcfg.disc)
+        for k in ARCH_FIELDS:   # the architecture comes from the checkpoint
+            kw.setdefault(k, getattr(mcfg, k))
         for k, v in checkpoint_loss(init).items():   # the model's own loss, unless given
             kw.setdefault(k, v)
         if lr is None:
