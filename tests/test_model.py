@@ -76,6 +76,19 @@ def test_columns_decoder_grows_from_light_and_learns_per_column():
         load_grown(b, cut, "light", "light.safetensors")
 
 
+def _struct_grown_with(field: str):
+    """A small struct model, the same grown with `field` (a ModelConfig flag) from its weights
+    (racklay.train.load_grown), both in eval mode, and an input batch."""
+    from racklay.train import load_grown
+
+    base = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="struct")
+    torch.manual_seed(0)
+    a = RackLayNet(base).eval()
+    b = RackLayNet(ModelConfig.from_dict({**base.to_dict(), field: True})).eval()
+    load_grown(b, a.state_dict(), "struct", "struct.safetensors")
+    return a, b, torch.randn(2, 3, 64, 128, generator=torch.Generator().manual_seed(1))
+
+
 def test_struct_detail_branch_grows_from_a_struct_checkpoint():
     """`struct_fine` (the 1/4 detail branch) grown from a struct checkpoint starts by predicting the
     same layouts (its last conv is zero; only the 1/8 sequence's upsampling differs) and the branch
@@ -83,13 +96,7 @@ def test_struct_detail_branch_grows_from_a_struct_checkpoint():
     without the branch (the error says which flag), and the branch needs the struct decoder."""
     from racklay.train import load_grown
 
-    base = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="struct")
-    fine = ModelConfig.from_dict({**base.to_dict(), "struct_fine": True})
-    torch.manual_seed(0)
-    a = RackLayNet(base).eval()
-    b = RackLayNet(fine).eval()
-    load_grown(b, a.state_dict(), "struct", "struct.safetensors")
-    x = torch.randn(2, 3, 64, 128, generator=torch.Generator().manual_seed(1))
+    a, b, x = _struct_grown_with("struct_fine")
     with torch.no_grad():
         (ya, sa), (yb, sb) = a(x, with_structure=True), b(x, with_structure=True)
         for v in ("top", "front"):
@@ -108,17 +115,12 @@ def test_struct_gap_output_grows_from_a_struct_checkpoint_and_cuts_box_runs():
     """`struct_gap` (the gap output) grown from a struct checkpoint starts by predicting the same
     layouts (its bias is -6: it cuts nothing a box logit below 6 calls a box); both views share one
     gap estimate; the drawn box logit is min(box, -gap), so a position with a positive gap logit
-    has no box and a run of boxes is cut there; the output learns from its own scores; and it needs the struct decoder."""
+    has no box and a run of boxes is cut there; the output learns from its own scores; and it
+    needs the struct decoder."""
     from racklay.model import cut_at_gaps
     from racklay.train import load_grown
 
-    base = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="struct")
-    gapped = ModelConfig.from_dict({**base.to_dict(), "struct_gap": True})
-    torch.manual_seed(0)
-    a = RackLayNet(base).eval()
-    b = RackLayNet(gapped).eval()
-    load_grown(b, a.state_dict(), "struct", "struct.safetensors")
-    x = torch.randn(2, 3, 64, 128, generator=torch.Generator().manual_seed(1))
+    a, b, x = _struct_grown_with("struct_gap")
     with torch.no_grad():
         ya, (yb, sb) = a(x), b(x, with_structure=True)
     for v in ("top", "front"):
