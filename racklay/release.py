@@ -13,8 +13,8 @@ from importlib import resources
 from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
-RELEASE_NAME = "racklay-lite0-struct-v7.safetensors"
-RELEASE_SHA256 = "c79282f738f0154021cf91b2d4c9513b142b034052b4ca46288737b7de2064ff"
+RELEASE_NAME = "racklay-lite0-struct-v8.safetensors"
+RELEASE_SHA256 = "229fa3f5886aaee1487f084f8dd88b0185caa26a4a9fd944aa80f124ef23d9d4"
 WEIGHTS_DIR = Path(str(resources.files("racklay") / "weights"))   # package data
 
 _verified: set[str] = set()
