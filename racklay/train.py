@@ -61,13 +61,13 @@ from .model import (
 from .precision import AMP_MODES, resolve_amp
 from .structure import structure_loss
 
-# fields a resumed run must share with the run it continues (others, e.g. epochs or
-# max_minutes, may change on resume)
 #: the training options that are the network's architecture (ModelConfig's fields, less the ones a
 #: run does not choose: extent, decision_bias): `TrainConfig.model_config` builds the model from
 #: them, and a fine-tune takes them from its checkpoint (transfer.workflow.train_on_real)
 ARCH_FIELDS = ("R", "image_size", "layout_size", "views", "decoder", "disc", "encoder", "letterbox",
                "struct_fine", "struct_gap")
+# fields a resumed run must share with the run it continues (others, e.g. epochs or
+# max_minutes, may change on resume)
 _RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder", "struct_fine", "struct_gap",
                  "encoder", "pretrained", "augment", "letterbox",
                  "disc", "disc_weight", "disc_start", "class_weights", "iou_weight", "seed", "train_split",
@@ -576,9 +576,9 @@ def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
     differently (SAME_TENSOR_DECODERS: the model starts close to the checkpoint): every tensor,
     strictly. A decoder grown from the checkpoint's (GROWABLE_DECODERS, or a struct decoder given
     the 1/4 detail branch or the gap output, `ModelConfig.struct_fine` / `struct_gap`): every
-    tensor the checkpoint has, strictly;
-    the new branches keep their initialisation (their last layer is zero, so the model starts by
-    computing what the checkpoint computed)."""
+    tensor the checkpoint has, strictly; the new branches keep their initialisation (made so that
+    the model starts by computing what the checkpoint computed: a zero last layer, the gap output's
+    bias at -6)."""
     own = model.state_dict()
     extra = sorted(set(sd) - set(own))
     if extra:
