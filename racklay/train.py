@@ -67,10 +67,9 @@ from .structure import structure_loss
 ARCH_FIELDS = ("R", "image_size", "layout_size", "views", "decoder", "disc", "encoder", "letterbox",
                "struct_fine", "struct_gap")
 # fields a resumed run must share with the run it continues (others, e.g. epochs or
-# max_minutes, may change on resume)
-_RUN_DEFINING = ("data", "batch_size", "lr", "image_size", "layout_size", "R", "views", "decoder", "struct_fine", "struct_gap",
-                 "encoder", "pretrained", "augment", "letterbox",
-                 "disc", "disc_weight", "disc_start", "class_weights", "iou_weight", "seed", "train_split",
+# max_minutes, may change on resume): the architecture and these
+_RUN_DEFINING = (*ARCH_FIELDS, "data", "batch_size", "lr", "pretrained", "augment",
+                 "disc_weight", "disc_start", "class_weights", "iou_weight", "seed", "train_split",
                  "replay", "replay_ratio", "teacher", "distill_weight", "label_weight", "struct_weight", "gap_weight",
                  "val_split", "val_fraction", "train_fraction", "init", "freeze_encoder_epochs", "freeze_bn",
                  "imagenet_weights", "amp", "warmup_steps", "weight_decay", "disc_lr")

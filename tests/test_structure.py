@@ -133,9 +133,9 @@ def test_a_gap_output_is_trained_on_the_gaps_and_its_cut_costs_the_box_loss_noth
     assert structure_loss("front", {k: v for k, v in right.items() if k not in ("gap", "box_raw")}, lay, EXT) < 1e-3
 
 
-def _struct_net(R=3, img=64, lay=S):
+def _struct_net(R=3, img=64, lay=S, **cfg):
     torch.manual_seed(0)
-    net = RackLayNet(ModelConfig(R=R, image_size=img, layout_size=lay, decoder="struct")).eval()
+    net = RackLayNet(ModelConfig(R=R, image_size=img, layout_size=lay, decoder="struct", **cfg)).eval()
     for dec in net.decoders.values():       # make boxes likely so the outputs are not all shelf
         with torch.no_grad():
             dec.pos_head.bias[0] = 2.0
@@ -342,13 +342,10 @@ def test_struct_model_with_a_gap_output_exports_to_onnx_and_its_cuts_show(tmp_pa
     from racklay.checkpoint import save_checkpoint
     from racklay.predict import Predictor
 
-    torch.manual_seed(0)
-    net = RackLayNet(ModelConfig(R=3, image_size=64, layout_size=64, decoder="struct", struct_gap=True)).eval()
+    net = _struct_net(R=3, img=64, lay=64, struct_gap=True)     # boxes likely everywhere
     x = torch.randn(2, 3, 64, 64)
     with torch.no_grad():
-        for dec in net.decoders.values():   # boxes everywhere; no gap called yet
-            dec.pos_head.bias[0] = 2.0
-            dec.pos_head.weight.normal_(0, 0.05)
+        for dec in net.decoders.values():   # no gap called yet
             dec.gap_head.weight.normal_(0, 30.0)
             dec.gap_head.bias.fill_(-100.0)
         assert (L.box_runs(net(x)["front"].argmax(2).numpy()) == 1).all()
