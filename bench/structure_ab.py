@@ -3,8 +3,8 @@
   .venv/bin/python bench/structure_ab.py --arm light=/work/runs/ab-light --arm struct=/work/runs/ab-struct \\
       --data /work/data/complex [--split test] [--limit N] [--photos datasets/real-photos]
 
-For every arm (a `racklay train` run folder: its best.safetensors, config.yaml and metrics.csv) it
-prints, on the held-out split of `--data` (WareSynth `complex` for the reproduction row):
+For every arm (a `racklay train` run folder: its best.safetensors, config.yaml and metrics.csv; or
+a checkpoint file such as a release, which has no training cost to report) it prints, on the held-out split of `--data` (WareSynth `complex` for the reproduction row):
 - dataset-level shelf / box IoU (top / front) and the paper-protocol mIoU, metric and with
   `--scale-from-truth` (each predicted shelf scaled to its true length: shape alone);
 - boxes as boxes: the front-view shelf channels whose truth has two or more separate runs of box
@@ -87,7 +87,7 @@ def fmt(s: dict) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--arm", action="append", required=True, metavar="NAME=RUN",
-                    help="an arm: a name and a `racklay train` run folder (repeat)")
+                    help="an arm: a name and a `racklay train` run folder or a checkpoint file (repeat)")
     ap.add_argument("--data", required=True, type=Path, help="RackLay dataset with the held-out split")
     ap.add_argument("--split", default="test", help="held-out split (default test)")
     ap.add_argument("--limit", type=int, default=None, help="only the first N images of the split")
@@ -111,14 +111,15 @@ def main() -> int:
     for item in args.arm:
         name, _, run = item.partition("=")
         run = Path(run)
-        pred = Predictor(str(run / args.weights), precision="auto")
-        print(f"{name}: {run / args.weights} ({pred.cfg.decoder} decoder, {pred.precision})", file=sys.stderr, flush=True)
+        ckpt = run if run.is_file() else run / args.weights
+        pred = Predictor(str(ckpt), precision="auto")
+        print(f"{name}: {ckpt} ({pred.cfg.decoder} decoder, {pred.precision})", file=sys.stderr, flush=True)
         row = {"decoder": pred.cfg.decoder}
         row["metric"] = scores(evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False))
         row["shape"] = scores(evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False,
                                        scale_from_truth=True))
         row["separation"] = separation(pred, args.data, args.split, args.limit)
-        row["cpu_minutes"], row["best_val"] = run_cost(run)
+        row["cpu_minutes"], row["best_val"] = run_cost(run) if run.is_dir() else (None, None)
         if photos is not None:
             row["photos_metric"] = scores(evaluate(pred, photos, split="test", native=True, progress=False))
             row["photos_shape"] = scores(evaluate(pred, photos, split="test", native=True, progress=False,
@@ -136,8 +137,9 @@ def main() -> int:
         m, sep = r["metric"], r["separation"]
         paper = " / ".join(f"{m[v]['rack_mIoU']:.1f}, {m[v]['box_mIoU']:.1f}" for v in ("top", "front") if v in m)
         sep_s = f"{sep[1]} / {sep[0]}; {sep[2]}" if sep else "-"
-        print(f"| {name} | {fmt(m)} | {fmt(r['shape'])} | {paper} | {sep_s} | {r['cpu_minutes']:.0f} | "
-              f"{r['best_val']:.1f} | {r['cpu_minutes'] / max(r['best_val'], 1e-9):.2f} |")
+        cost = ("- | - | -" if r["cpu_minutes"] is None else f"{r['cpu_minutes']:.0f} | {r['best_val']:.1f} | "
+                f"{r['cpu_minutes'] / max(r['best_val'], 1e-9):.2f}")
+        print(f"| {name} | {fmt(m)} | {fmt(r['shape'])} | {paper} | {sep_s} | {cost} |")
     print("\ntargets (reproduction row, a model trained on complex): paper-protocol mIoU >= the paper's "
           "RackLay-D-disc, dataset-level box IoU >= 70 / 75")
     for name, r in out.items():
