@@ -6,7 +6,7 @@ Per view, on N images spread over the split: dataset-level shelf / box / footpri
 IoU; box IoU inside the true footprint and the box-vs-shelf accuracy there; visible-shelf
 channels in truth and prediction; per shelf channel, the footprint IoU before and after the x / y
 rescale about the map centre (0.6-1.6) that fits the truth best, the median best scale, and box
-IoU after applying that scale. docs/accuracy.md ("Where the error is") was measured with it.
+IoU after applying that scale. docs/results/2026-11-22-to-26-accuracy-log.md ("Where the error is") was measured with it.
 Prints numbers; asserts nothing.
 """
 import argparse

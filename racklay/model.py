@@ -19,7 +19,7 @@ Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3,
   output resolution), conv3x3-BN-ReLU and a 1x1 head. No skip connections: the layouts live in
   shelf-centric metric frames, not in the image plane, so image-aligned encoder features do not
   line up with them (an A/B with 1x1 skips from every encoder stage: validation score 0.299 with
-  skips vs 0.309 without, 600 steps at 128 px, docs/accuracy.md), and without them the decoder
+  skips vs 0.309 without, 600 steps at 128 px, docs/results/2026-11-22-to-26-accuracy-log.md), and without them the decoder
   is cheaper.
 - `columns`: `light` plus a column branch that gives it the finer 1/16 features without
   pretending they are aligned with the layout: each image column of the 1/16 map (all of its
@@ -30,7 +30,7 @@ Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3,
 - `struct`: structured and scale-explicit (`StructDecoder`): per shelf its presence, length and
   extent, per position along it a box or not and the box's height or depth interval as fractions
   of the shelf, drawn by `racklay.structure.rasterize` as rectangles on their board. Beat `light`
-  by 9-12 box-IoU points at equal CPU time (docs/accuracy.md). `ModelConfig.struct_fine` adds a
+  by 9-12 box-IoU points at equal CPU time (docs/results/2026-11-22-to-26-accuracy-log.md). `ModelConfig.struct_fine` adds a
   1/4-resolution detail branch and `ModelConfig.struct_gap` a gap output that cuts box runs,
   both grown from a struct checkpoint (StructDecoder).
 - `fast`: `light`'s layers (the same tensors) with its last conv3x3-BN-ReLU and 1x1 head run at
@@ -726,7 +726,7 @@ def tie_views(structs: dict) -> dict:
     predicted, each view's structure gets the mean of the two estimates (presence and per-position
     box logits; length geometrically); depth, clear height and the box fractions stay per view.
     Measured on a struct model trained untied: every shelf and box IoU up 0.1-1.0 points on WareSynth
-    complex and on the real photos (docs/accuracy.md), and the views can no longer disagree."""
+    complex and on the real photos (docs/results/2026-11-22-to-26-accuracy-log.md), and the views can no longer disagree."""
     if set(structs) != {"top", "front"}:
         return structs
     a, b = structs["top"], structs["front"]

@@ -17,7 +17,7 @@ Per shelf channel and view (the layout convention of racklay.layout; grid of S p
 Shape (the per-position fractions) does not depend on the shelf's metric size; scale is L and E.
 A known dimension (a shelf length) therefore fixes the scale without touching the shape.
 Measured on WareSynth renders, rasterising this form back reproduces front layouts exactly and top
-layouts up to yawed corners and a box behind another in the same column (docs/accuracy.md).
+layouts up to yawed corners and a box behind another in the same column (docs/results/2026-11-22-to-26-accuracy-log.md).
 
 `rasterize` turns the form into (N, R, 3, S, S) log-probabilities with edges softened over `tau`
 pixels (`tau` -> 0: exact rectangles on the convention's pixel-centre rule), so the dense losses
