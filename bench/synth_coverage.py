@@ -6,8 +6,10 @@ camera recovered from the rack's homography), and the same quantities are measur
 sampled from each recipe (`racklay.synth.scene.sample_scene`, no rendering):
 
     rack length, rack depth, visible shelves, level height (board to board, shelves below the
-    top one), box width / height / depth, camera distance to the rack front, camera height,
-    focal length per pixel of image width.
+    top one), box width / height / depth, box run width (boxes on one shelf that touch or
+    overlap along it, less than RUN_GAP apart, merged: what the front layout draws as one run and
+    what a labeller draws as one box for a wall of cartons), camera distance to the rack front,
+    camera height, focal length per pixel of image width.
 
 It prints, per recipe and quantity, the recipe's 5-95 % and min-max range, how many photo values
 fall inside [min, max] (the recipe's support) and which photos fall outside, and draws one panel
@@ -37,12 +39,30 @@ QUANTITIES = {   # key: (label, unit)
     "shelves": ("visible shelves", ""),
     "level_height": ("level height", "m"),
     "box_width": ("box width", "m"),
+    "run_width": ("box run width", "m"),
     "box_height": ("box height", "m"),
     "box_depth": ("box depth", "m"),
     "cam_distance": ("camera distance", "m"),
     "cam_height": ("camera height", "m"),
     "focal": ("focal / image width", ""),
 }
+
+
+#: boxes closer than this along a shelf count as one run (about one cell of the 512² layout grid,
+#: 8 m / 512 = 1.6 cm: the layout cannot show a narrower gap)
+RUN_GAP = 0.02
+
+
+def run_widths(intervals) -> list[float]:
+    """Widths of the runs that [x0, x1) intervals along one shelf form when those less than
+    RUN_GAP apart (or overlapping, e.g. stacked) are merged."""
+    runs: list[list[float]] = []
+    for x0, x1 in sorted(intervals):
+        if runs and x0 - runs[-1][1] < RUN_GAP:
+            runs[-1][1] = max(runs[-1][1], x1)
+        else:
+            runs.append([x0, x1])
+    return [x1 - x0 for x0, x1 in runs]
 
 
 def photo_quantities(project: Path) -> tuple[dict, list[str]]:
@@ -70,6 +90,8 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
             q["box_width"].append(b.u1 - b.u0)
             q["box_height"].append(b.v1 - b.v0)
             q["box_depth"].append(b.depth)
+        for k in {b.shelf for b in sc.boxes if b.shelf is not None}:
+            q["run_width"] += run_widths([(b.u0, b.u1) for b in sc.boxes if b.shelf == k])
         cam = G.camera_from_plane(sc.plane, ann["image_size"], aspect)
         if cam.focal_from_photo:
             c = cam.center                # rack frame: x along, y into the rack, z up from its bottom
@@ -82,11 +104,11 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
     return out, notes
 
 
-def recipe_quantities(name: str, n: int, seed: int) -> dict:
+def recipe_quantities(name: str, n: int, seed: int, sets=()) -> dict:
     from racklay.synth.recipe import load_recipe
     from racklay.synth.scene import sample_scene
 
-    r = load_recipe(name)
+    r = load_recipe(name, list(sets))
     q = {k: [] for k in QUANTITIES}
     for i in range(n):
         s = sample_scene(r, seed, i)
@@ -96,11 +118,15 @@ def recipe_quantities(name: str, n: int, seed: int) -> dict:
         tops = [s.shelves[k].board_top for k in s.visible]
         q["level_height"] += list(np.diff(tops))
         for k in s.visible:
+            spans = []
             for j in s.shelves[k].items:
                 b = s.objects[j].layout_box
                 q["box_width"].append(b.sx)
                 q["box_height"].append(b.z0 + b.sz)     # a stack's height above its board
                 q["box_depth"].append(b.sy)
+                half = 0.5 * (abs(b.sx * np.cos(b.yaw)) + abs(b.sy * np.sin(b.yaw)))   # its footprint along x
+                spans.append((b.cx - half, b.cx + half))
+            q["run_width"] += run_widths(spans)
         c = s.camera.center
         q["cam_distance"].append(float(-s.rack_depth / 2 - c[1]))
         q["cam_height"].append(float(c[2]))
@@ -112,6 +138,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--recipe", action="append", default=None, help="recipe name or YAML path (repeatable; "
                     "default: complex, release, pallet)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a recipe key for every recipe, as `racklay synth --set` does (repeatable)")
     ap.add_argument("--n", type=int, default=1500, help="scenes sampled per recipe (default 1500)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--project", type=Path, default=REPO / "datasets" / "real-photos", help="annotate project folder")
@@ -126,7 +154,7 @@ def main(argv=None) -> int:
     from racklay.synth.recipe import RecipeError
 
     try:
-        rq = {name: recipe_quantities(name, args.n, args.seed) for name in recipes}
+        rq = {name: recipe_quantities(name, args.n, args.seed, args.set) for name in recipes}
     except RecipeError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
