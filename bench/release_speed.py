@@ -22,11 +22,13 @@ from dataclasses import replace
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import add_common_args, ensure_malloc_env, interleaved, markdown_table, start, summarise  # noqa: E402
 
+from racklay.precision import PRECISIONS  # noqa: E402
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
-    ap.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+    ap.add_argument("--precision", choices=PRECISIONS, default="auto",
                     help="both models at this precision (default auto: bf16 only on CPUs with native bf16)")
     ap.add_argument("--memory-format", choices=("channels_last", "contiguous"), default="channels_last",
                     help="both models in this layout (default channels_last: what racklay predict uses)")
@@ -40,7 +42,7 @@ def main(argv=None) -> int:
 
     from racklay.checkpoint import load_model
     from racklay.model import ModelConfig, RackLayNet
-    from racklay.predict import resolve_precision
+    from racklay.precision import resolve_precision
     from racklay.release import resolve_weights
 
     prec = resolve_precision(args.precision)

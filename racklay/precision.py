@@ -1,13 +1,17 @@
-"""Numeric precision chosen by the machine, never by a hard-coded default.
+"""Numeric precision chosen by the machine, never by a hard-coded default: one vocabulary,
+`auto` | `fp32` | `bf16`, for training (`TrainConfig.amp`, `--amp`), evaluation and prediction
+(`--precision`).
 
 bf16 autocast roughly halves CPU time where the CPU computes bf16 natively (AVX512-BF16 or AMX,
-e.g. recent Xeons); elsewhere (e.g. AMD EPYC without them) torch emulates it and a training step
-is many times slower. On CUDA, bf16 is used where the GPU supports it. `auto` means exactly that,
-for training (`TrainConfig.amp`), evaluation and prediction (`--precision`).
+e.g. recent Xeons and Zen 4/5 EPYCs); elsewhere (e.g. a Zen 3 EPYC) torch emulates it and a
+training step is many times slower. On CUDA, bf16 is used where the GPU supports it. `auto`
+means exactly that. ONNX Runtime always runs fp32.
 """
 from __future__ import annotations
 
-AMP_MODES = ("auto", "none", "bf16")
+PRECISIONS = ("auto", "fp32", "bf16")
+#: older spellings still read (training configs written before one vocabulary said `amp: none`)
+ALIASES = {"none": "fp32"}
 
 
 def native_bf16() -> bool:
@@ -21,16 +25,27 @@ def native_bf16() -> bool:
         return False
 
 
-def resolve_amp(amp: str, device) -> str:
-    """Training autocast: 'auto' -> 'bf16' on a CUDA device with bf16 or a CPU with native bf16,
-    else 'none'. 'none' and 'bf16' are taken as given."""
-    if amp not in AMP_MODES:
-        raise ValueError(f"amp must be one of {AMP_MODES}, got {amp!r}")
-    if amp != "auto":
-        return amp
+def check_precision(precision: str, what: str = "precision") -> str:
+    """The precision in the one vocabulary (an older spelling translated); a one-line error
+    naming the allowed values otherwise."""
+    precision = ALIASES.get(precision, precision)
+    if precision not in PRECISIONS:
+        raise ValueError(f"{what} must be one of {PRECISIONS}, got {precision!r}")
+    return precision
+
+
+def resolve_precision(precision: str, device="cpu", backend: str = "torch") -> str:
+    """'auto' -> 'bf16' where `device` computes it natively (a CUDA GPU with bf16; a CPU with
+    AVX512-BF16 or AMX, torch backend only), else 'fp32'. 'fp32' and 'bf16' are taken as given."""
+    precision = check_precision(precision)
+    if precision != "auto":
+        return precision
+    if backend != "torch":
+        return "fp32"
     import torch
 
-    dev = torch.device(device)
-    if dev.type == "cuda":
-        return "bf16" if torch.cuda.is_bf16_supported() else "none"
-    return "bf16" if native_bf16() else "none"
+    if torch.device(device).type == "cuda":
+        return "bf16" if torch.cuda.is_bf16_supported() else "fp32"
+    from . import precision as _self  # looked up at call time: tests patch native_bf16 here
+
+    return "bf16" if _self.native_bf16() else "fp32"

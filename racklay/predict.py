@@ -22,17 +22,15 @@ import numpy as np
 
 from . import layout as L
 from .onnx import export_onnx_bytes, onnx_session
-from .precision import native_bf16  # noqa: F401  (resolve_precision uses it; tests patch it here)
+from .precision import PRECISIONS, resolve_precision  # noqa: F401  (the one home of precision)
 
 BACKENDS = ("torch", "onnx")
 #: photos with a shorter side than this are predicted with a warning (upscaled, they hold no rack)
 MIN_PHOTO_SIDE = 32
-PRECISIONS = ("fp32", "bf16", "auto")
-
 
 def add_precision_args(p) -> None:
     """--precision auto|fp32|bf16 (with --bf16 / --fp32 shorthands) for commands that run a model."""
-    p.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+    p.add_argument("--precision", choices=PRECISIONS, default="auto",
                    help="torch backend: auto (default) = bf16 autocast + channels_last on CPUs with "
                         "native bf16 (about 2x faster; argmax agrees with fp32 on >99%% of pixels, "
                         "docs/benchmarks.md), fp32 elsewhere; the onnx backend always runs fp32")
@@ -51,15 +49,6 @@ def add_shelf_length_arg(p) -> None:
                         "scale, which one photo cannot; every predicted shelf is scaled about its origin "
                         "to this length in all its dimensions, its shape unchanged (default: the model's "
                         "own estimate)")
-
-
-def resolve_precision(precision: str, backend: str = "torch") -> str:
-    """"auto" -> "bf16" for the torch backend on a CPU with native bf16, else "fp32"."""
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-    if precision != "auto":
-        return precision
-    return "bf16" if backend == "torch" and native_bf16() else "fp32"
 
 
 def softmax_classes(logits: np.ndarray, axis: int = -3) -> np.ndarray:
@@ -116,7 +105,7 @@ class Predictor:
         self.weights = Path(weights)
         if self.weights.suffix.lower() == ".onnx":
             backend = "onnx"
-        precision = resolve_precision(precision, backend)
+        precision = resolve_precision(precision, backend=backend)
         self.precision = precision
         if backend == "onnx" and precision != "fp32":
             raise ValueError("precision bf16 is for the torch backend; onnxruntime runs fp32")

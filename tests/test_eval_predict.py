@@ -258,11 +258,13 @@ def test_export_rejects_bad_file(tmp_path, capsys):
 
 def test_precision_auto_resolution(monkeypatch, ckpt, onnx_file):
     """--precision auto (the CLI default) is bf16 only for torch on a CPU with native bf16;
-    onnxruntime always runs fp32 and an explicit bf16 request for it is refused."""
-    import racklay.predict as P
+    onnxruntime always runs fp32 and an explicit bf16 request for it is refused. Training speaks
+    the same vocabulary (`amp`), reading the older `none` as fp32."""
+    import racklay.precision as P
+    from racklay.train import TrainConfig
 
     monkeypatch.setattr(P, "native_bf16", lambda: True)
-    assert P.resolve_precision("auto") == "bf16" and P.resolve_precision("auto", "onnx") == "fp32"
+    assert P.resolve_precision("auto") == "bf16" and P.resolve_precision("auto", backend="onnx") == "fp32"
     assert Predictor(ckpt, precision="auto").precision == "bf16"
     assert Predictor(onnx_file, precision="auto").precision == "fp32"
     monkeypatch.setattr(P, "native_bf16", lambda: False)
@@ -271,6 +273,9 @@ def test_precision_auto_resolution(monkeypatch, ckpt, onnx_file):
         Predictor(onnx_file, precision="bf16")
     with pytest.raises(ValueError, match="precision must be one of"):
         P.resolve_precision("fp16")
+    assert TrainConfig(data="x", amp="none").amp == "fp32" and P.resolve_precision("none") == "fp32"
+    with pytest.raises(ValueError, match="amp must be one of"):
+        TrainConfig(data="x", amp="fp16")
 
 
 def test_outputs_never_overwrite_ground_truth_and_bad_inputs_write_nothing(toy, ckpt, tmp_path, capsys):

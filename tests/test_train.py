@@ -361,7 +361,7 @@ def test_stale_checkpoint_temp_files_removed_at_next_start(tmp_path, toy):
 # It covers a frozen-encoder epoch, the discriminators joining in epoch 2, paper augmentation and
 # mid-epoch checkpoints. fp32 on one thread; CPUs differ in the last bits, hence the tolerance.
 GOLDEN = Path(__file__).parent / "data" / "train_golden_metrics.json"
-GOLDEN_CFG = dict(epochs=2, disc=True, disc_start=1, freeze_encoder_epochs=1, augment="paper", amp="none",
+GOLDEN_CFG = dict(epochs=2, disc=True, disc_start=1, freeze_encoder_epochs=1, augment="paper", amp="fp32",
                   checkpoint_every=3, seed=5, **TINY)
 WALL_CLOCK = ("seconds", "elapsed_min")
 

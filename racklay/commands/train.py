@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 
 from racklay.cli import at_least, positive_float
+from racklay.precision import ALIASES, PRECISIONS
 
 _S = argparse.SUPPRESS
 
@@ -133,9 +134,10 @@ FLAGS = [
      "(.pth or .safetensors); nothing is downloaded"),
     ("max_minutes", ["--max-minutes"], dict(type=positive_float),
      "time budget for the whole run (resumes included); stops after the current step, validates, saves"),
-    ("amp", ["--amp"], dict(choices=("auto", "none", "bf16")),
-     "bf16 autocast: auto = bf16 on CPUs with native bf16 (AVX512-BF16/AMX) and on CUDA GPUs with bf16, fp32 "
-     "elsewhere (emulated bf16 is many times slower); none; bf16 (default {default})"),
+    ("amp", ["--amp"], dict(choices=(*PRECISIONS, *ALIASES)),
+     "precision: auto = bf16 autocast on CPUs with native bf16 (AVX512-BF16/AMX) and on CUDA GPUs with bf16, "
+     "fp32 elsewhere (emulated bf16 is many times slower); fp32 (none: its older spelling); bf16 "
+     "(default {default})"),
     ("checkpoint_every", ["--checkpoint-every"], dict(type=at_least(0)),
      "also write last.safetensors every N steps (0: at epoch ends only; default {default})"),
     ("device", ["--device"], dict(choices=("auto", "cpu", "cuda")), "device (default {default})"),
