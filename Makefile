@@ -6,7 +6,8 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
-# glibc's allocator dominates torch on this kind of VM; these cut training steps ~2x.
+# glibc's allocator dominates torch on this kind of VM; these cut training steps ~2x
+# (the values of racklay.runtime.MALLOC_ENV, which the benchmarks and tests use).
 export MALLOC_MMAP_THRESHOLD_ ?= 4294967296
 export MALLOC_TRIM_THRESHOLD_ ?= 4294967296
 export GRADIO_ANALYTICS_ENABLED := False

@@ -13,7 +13,7 @@ import statistics
 import sys
 import time
 
-MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": "4294967296", "MALLOC_TRIM_THRESHOLD_": "4294967296"}
+from racklay.runtime import MALLOC_ENV  # the one home of the allocator settings
 
 
 def ensure_malloc_env() -> None:

@@ -27,8 +27,11 @@ MMAP_THRESHOLD = 32 * 1024 * 1024        # glibc refuses more (HEAP_MAX_SIZE / 2
 TRIM_THRESHOLD = 1024 * 1024 * 1024      # mallopt takes a C int
 #: set to 1 to leave the allocator alone (e.g. to measure what tuning it buys)
 OPT_OUT = "RACKLAY_NO_MALLOPT"
+#: the allocator environment the Makefile exports and the benchmarks and tests start processes with
+#: (glibc reads it at process start: from inside Python only `tune_allocator` can act)
+MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": "4294967296", "MALLOC_TRIM_THRESHOLD_": "4294967296"}
 #: the user's own glibc settings win
-USER_VARS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")
+USER_VARS = (*MALLOC_ENV, "GLIBC_TUNABLES")
 
 _applied: str | None = None
 

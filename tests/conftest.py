@@ -12,11 +12,13 @@ from pathlib import Path
 
 import pytest
 
+from racklay.runtime import MALLOC_ENV
+
 REPO = Path(__file__).resolve().parents[1]
 #: the 21 real photos (an annotation project with their labels)
 REAL_PHOTOS = REPO / "datasets" / "real-photos"
 #: glibc's allocator settings the Makefile uses (they halve torch step times on this kind of VM)
-ENV = {**os.environ, "MALLOC_MMAP_THRESHOLD_": "4294967296", "MALLOC_TRIM_THRESHOLD_": "4294967296"}
+ENV = {**os.environ, **MALLOC_ENV}
 
 
 @pytest.fixture(autouse=True)
