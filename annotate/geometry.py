@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from racklay import layout as L
+from racklay.camera import PinholeCamera
 
 
 class GeometryError(ValueError):
@@ -252,29 +253,11 @@ def snap_edges(boxes: list[MetricBox], width: float, snap: float) -> None:
 
 # --- the camera, from the rack plane: box depth and front offset by clicking -----------------
 @dataclass
-class Camera:
-    """A pinhole camera in the rack's frame: x along the rack (u), y into the rack (depth, away
-    from the camera), z up (v); image point ~ K (R X + t)."""
+class Camera(PinholeCamera):
+    """A pinhole camera (racklay.camera.PinholeCamera) in the rack's frame: x along the rack (u),
+    y into the rack (depth, away from the camera), z up (v); `center` and `ray` in that frame."""
 
-    K: np.ndarray
-    R: np.ndarray
-    t: np.ndarray
-    focal_from_photo: bool  # False: the view is too frontal; a typical phone focal length is assumed
-
-    def project(self, X) -> np.ndarray:
-        X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
-        h = (X @ self.R.T + self.t) @ self.K.T
-        return h[:, :2] / h[:, 2:3]
-
-    @property
-    def center(self) -> np.ndarray:
-        """The camera centre in the rack frame (x along the rack, y into it, z up)."""
-        return -self.R.T @ self.t
-
-    def ray(self, pt) -> tuple[np.ndarray, np.ndarray]:
-        """(camera centre, direction) in the rack frame of the ray through image point pt."""
-        d = self.R.T @ np.linalg.solve(self.K, [float(pt[0]), float(pt[1]), 1.0])
-        return self.center, d
+    focal_from_photo: bool = True  # False: the view is too frontal; a typical phone focal length is assumed
 
 
 #: focal length (in pixels, per pixel of the photo's longer side) assumed when a near-frontal

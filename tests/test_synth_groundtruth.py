@@ -87,7 +87,7 @@ def test_projected_hull_matches_instance_mask_and_depth(renderer):
         items = [i for i, o in enumerate(scene.objects) if o.shelf >= 0]
         corners = cuboid_corners([scene.objects[i] for i in items])
         for k, i in enumerate(items):
-            uv, z = scene.camera.project(corners[k])
+            uv, z = scene.camera.project_z(corners[k])
             if (z <= 0.1).any() or uv[:, 0].min() < 0 or uv[:, 1].min() < 0 or uv[:, 0].max() > W or uv[:, 1].max() > H:
                 continue  # only boxes fully inside the image
             hm = hull_mask(uv, W, H)

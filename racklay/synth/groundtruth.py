@@ -65,7 +65,7 @@ def object_annotations(scene: Scene, instance: np.ndarray, coco: bool = True) ->
     out = []
     sel = [i for i, o in enumerate(scene.objects) if o.category >= 0 and (counts[i + 1] > 0 or o.shelf >= 0)]
     all_corners = cuboid_corners([scene.objects[i] for i in sel])
-    uv_all, z_all = cam.project(all_corners.reshape(-1, 3))
+    uv_all, z_all = cam.project_z(all_corners.reshape(-1, 3))
     uv_all, z_all = uv_all.reshape(-1, 8, 2), z_all.reshape(-1, 8)
     c_cam_all = cam.to_cam(np.array([scene.objects[i].center for i in sel]).reshape(-1, 3))
     for k, i in enumerate(sel):

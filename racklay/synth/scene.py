@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import layout as L
+from ..camera import PinholeCamera
 from .effects import k1_limit
 from .recipe import Recipe
 
@@ -99,27 +100,12 @@ class ShelfInfo:
 
 
 @dataclass
-class Camera:
-    K: np.ndarray          # 3 x 3
-    R: np.ndarray          # 3 x 3 world -> camera
-    t: np.ndarray          # 3
-    width: int
-    height: int
-    k1: float = 0.0        # radial distortion applied to the image after rendering
-
-    @property
-    def center(self) -> np.ndarray:
-        return -self.R.T @ self.t
-
-    def to_cam(self, pts: np.ndarray) -> np.ndarray:
-        return np.asarray(pts, dtype=np.float64) @ self.R.T + self.t
-
-    def project(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World points -> (pixel coordinates (N, 2) with pixel centres at +0.5, camera z)."""
-        pc = self.to_cam(pts)
-        z = pc[:, 2]
-        uv = (pc @ self.K.T)[:, :2] / np.where(np.abs(z) < 1e-9, 1e-9, z)[:, None]
-        return uv, z
+class Camera(PinholeCamera):
+    """The render camera (racklay.camera.PinholeCamera, world frame) with its image size and the
+    radial distortion applied to the image after rendering."""
+    width: int = 0
+    height: int = 0
+    k1: float = 0.0
 
 
 @dataclass
@@ -724,7 +710,7 @@ def visible_shelves(cam: Camera, length: float, depth: float, shelves: list, fra
     out = []
     for i, sh in enumerate(shelves):
         pts = np.array([[x, -depth / 2, sh.board_top], [x, -depth / 2, sh.board_top + sh.clear_height]])
-        uv, zc = cam.project(pts)
+        uv, zc = cam.project_z(pts)
         if (zc <= 0.05).any():
             continue
         mid = pts.mean(axis=0)
