@@ -6,7 +6,7 @@ authors' `paper` decoder, in the same run.
 
 (the script re-executes itself with those MALLOC_* variables if they are missing: glibc reads
 them at process start). One step = forward, per-shelf weighted cross-entropy ([1, 5, 5]) over
-both views (`racklay.train.layout_loss`), backward and an Adam update, in the same sequence as
+both views (`racklay.losses.layout_loss`), backward and an Adam update, in the same sequence as
 the loop in `racklay.train.train` (which has no separate step function to call). With
 --disc the least-squares adversarial terms (generator + discriminator update, patch
 discriminators fed softmax probabilities) are included. Data come from random tensors, so the
@@ -31,15 +31,8 @@ CLASS_WEIGHTS = (1.0, 5.0, 5.0)
 def make_step(decoder: str, size: int, batch: int, disc: bool, bf16: bool, lr: float = 1e-4):
     import torch
 
-    from racklay.model import (
-        Discriminators,
-        ModelConfig,
-        RackLayNet,
-        lsgan_discriminator_loss,
-        lsgan_generator_loss,
-        one_hot_layouts,
-    )
-    from racklay.train import layout_loss
+    from racklay.losses import layout_loss, lsgan_discriminator_loss, lsgan_generator_loss, one_hot_layouts
+    from racklay.model import Discriminators, ModelConfig, RackLayNet
 
     torch.manual_seed(0)
     cfg = ModelConfig(image_size=size, layout_size=size, views=("top", "front"), decoder=decoder, disc=disc,

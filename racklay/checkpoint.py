@@ -24,7 +24,15 @@ from pathlib import Path
 import torch
 
 from .atomic import atomic_write_bytes
-from .model import Discriminators, ModelConfig, RackLayNet
+from .model import (
+    GROWABLE_DECODERS,
+    SAME_TENSOR_DECODERS,
+    Discriminators,
+    ModelConfig,
+    RackLayNet,
+    StructDecoder,
+    grown_tensor_names,
+)
 
 FORMAT = "racklay-checkpoint"
 VERSION = 1
@@ -184,4 +192,58 @@ def load_model(path: str | os.PathLike, map_location: str | torch.device = "cpu"
     return model, ck.cfg, ck.meta
 
 
-__all__ = ["save_checkpoint", "load_checkpoint", "load_model", "load_state_strict", "Checkpoint", "content_hash"]
+# ----------------------------------------------------------------------------- compatibility
+# of a checkpoint with the run that starts from it (racklay.train: --init, --teacher)
+
+
+def config_mismatches(ckpt_cfg: ModelConfig, run, keys, views) -> list[str]:
+    """What a checkpoint's config has that the run (a ModelConfig or TrainConfig) needs otherwise:
+    one phrase per differing key in `keys`, and the run's views the checkpoint lacks."""
+    problems = [f"{k} {getattr(ckpt_cfg, k)} (run: {getattr(run, k)})" for k in keys
+                if getattr(ckpt_cfg, k) != getattr(run, k)]
+    missing = [v for v in views if v not in ckpt_cfg.views]
+    if missing:
+        problems.append(f"views {list(ckpt_cfg.views)} lack {missing}")
+    return problems
+
+
+def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
+    """Load a checkpoint's weights into `model`. Same decoder, or one with the same tensors arranged
+    differently (SAME_TENSOR_DECODERS: the model starts close to the checkpoint): every tensor,
+    strictly. A decoder grown from the checkpoint's (GROWABLE_DECODERS, or a struct decoder given
+    the 1/4 detail branch or the gap output, `ModelConfig.struct_fine` / `struct_gap`): every
+    tensor the checkpoint has, strictly; the new branches keep their initialisation (made so that
+    the model starts by computing what the checkpoint computed: a zero last layer, the gap output's
+    bias at -6)."""
+    own = model.state_dict()
+    extra = sorted(set(sd) - set(own))
+    if extra:
+        raise ValueError(f"{path}: tensors {extra[:3]} have no place in a {model.cfg.decoder} model"
+                         + (" (a struct model with the 1/4 detail branch or the gap output? train with "
+                            "--struct-fine / --struct-gap)"
+                            if any(f".{sub}." in k for k in extra for sub in StructDecoder.GROWN) else ""))
+    grown = grown_tensor_names(model) if (decoder, model.cfg.decoder) not in SAME_TENSOR_DECODERS else set()
+    lacking = sorted(set(own) - set(sd) - grown)   # only the new branches may be new
+    if lacking:
+        raise ValueError(f"{path}: lacks tensors {lacking[:3]} that a {model.cfg.decoder} model has")
+    model.load_state_dict({**own, **sd}, strict=True)
+
+
+def check_init(ck: "Checkpoint", cfg) -> None:
+    """Before fine-tuning from checkpoint `ck`: the run (a TrainConfig) must predict the same
+    shelves and layout size with the same encoder and the same decoder, or one it grows into or
+    shares its tensors with (at the same input size when grown); else one error naming the file
+    and every difference."""
+    c = ck.cfg
+    problems = config_mismatches(c, cfg, ("R", "layout_size", "encoder"), cfg.views)
+    pair = (c.decoder, cfg.decoder)
+    if c.decoder != cfg.decoder and pair not in GROWABLE_DECODERS and pair not in SAME_TENSOR_DECODERS:
+        problems.append(f"decoder {c.decoder} (run: {cfg.decoder})")
+    if pair in GROWABLE_DECODERS and c.input_hw != cfg.model_config().input_hw:
+        problems.append(f"image_size {c.image_size} (run: {cfg.image_size}; a grown decoder keeps the input size)")
+    if problems:
+        raise ValueError(f"{ck.path}: cannot fine-tune from this checkpoint: it has " + "; ".join(problems))
+
+
+__all__ = ["save_checkpoint", "load_checkpoint", "load_model", "load_state_strict", "Checkpoint", "content_hash",
+           "config_mismatches", "load_grown", "check_init"]

@@ -781,21 +781,6 @@ class Discriminators(nn.Module):
         return self.nets[view](probs)
 
 
-def one_hot_layouts(target: torch.Tensor) -> torch.Tensor:
-    """(N, R, S, S) class ids -> (N, R, 3, S, S) float one-hot (the discriminator's "real")."""
-    return F.one_hot(target.long(), NUM_CLASSES).permute(0, 1, 4, 2, 3).float()
-
-
-def lsgan_generator_loss(d_fake: torch.Tensor) -> torch.Tensor:
-    """L_adv = E[(D(T̂) - 1)^2]."""
-    return ((d_fake - 1) ** 2).mean()
-
-
-def lsgan_discriminator_loss(d_real: torch.Tensor, d_fake: torch.Tensor) -> torch.Tensor:
-    """L_discr = E[(D(T) - 1)^2] + E[D(T̂)^2]."""
-    return ((d_real - 1) ** 2).mean() + (d_fake ** 2).mean()
-
-
 def init_weights(module: nn.Module) -> None:
     for m in module.modules():
         if isinstance(m, nn.Conv2d):
@@ -829,5 +814,5 @@ def count_parameters(module: nn.Module) -> int:
 
 __all__ = ["ModelConfig", "RackLayNet", "tie_views", "Discriminators", "PatchDiscriminator", "ResNet18Encoder",
            "EfficientNetLite0Encoder", "load_lite0_weights", "lite0_weights_path", "ENCODERS",
-           "PaperDecoder", "LightDecoder", "FastDecoder", "ColumnsDecoder", "StructDecoder", "GROWABLE_DECODERS", "SAME_TENSOR_DECODERS", "grown_tensor_names", "load_imagenet_weights", "build_model", "one_hot_layouts",
-           "lsgan_generator_loss", "lsgan_discriminator_loss", "DECODERS", "count_parameters"]
+           "PaperDecoder", "LightDecoder", "FastDecoder", "ColumnsDecoder", "StructDecoder", "GROWABLE_DECODERS", "SAME_TENSOR_DECODERS", "grown_tensor_names", "load_imagenet_weights", "build_model",
+           "DECODERS", "count_parameters"]

@@ -27,8 +27,6 @@ shard of every epoch, and only rank 0 validates and writes files.
 """
 from __future__ import annotations
 
-import csv
-import io
 import math
 import os
 import random
@@ -39,24 +37,26 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from .augment import PRESETS as AUGMENT_PRESETS
-from .layout import CLASS_NAMES, NUM_CLASSES
-from .model import (
-    DECODERS,
-    GROWABLE_DECODERS,
-    SAME_TENSOR_DECODERS,
-    Discriminators,
-    ModelConfig,
-    RackLayNet,
-    StructDecoder,
-    grown_tensor_names,
-    load_imagenet_weights,
-    load_lite0_weights,
+from .checkpoint import check_init, config_mismatches, load_grown
+from .history import history_row, write_history
+from .layout import CLASS_NAMES
+from .losses import (
+    distill_loss,
+    layout_iou_loss,
+    layout_loss,
     lsgan_discriminator_loss,
     lsgan_generator_loss,
     one_hot_layouts,
+)
+from .model import (
+    DECODERS,
+    Discriminators,
+    ModelConfig,
+    RackLayNet,
+    load_imagenet_weights,
+    load_lite0_weights,
 )
 from .precision import check_precision, resolve_precision
 from .structure import structure_loss
@@ -355,45 +355,6 @@ def lr_at(step: int, total: int, cfg: TrainConfig) -> float:
     return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
 
 
-def layout_loss(logits: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """Per-shelf weighted pixel cross-entropy. logits (N, R, 3, S, S), target (N, R, S, S)."""
-    return F.cross_entropy(logits.float().transpose(1, 2), target, weight=weight)
-
-
-def layout_iou_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """1 - soft IoU (Jaccard) of the softmax probabilities with the truth, per foreground class
-    (shelf, box) over every pixel of the batch (as the dataset-level IoU counts them), averaged over
-    the two classes. Weighted cross-entropy alone calls a pixel shelf or box as soon as it is
-    somewhat likely, so footprints come out too large when the rack's size is uncertain; this term
-    rewards the footprint that maximises the overlap instead."""
-    probs = logits.float().softmax(2)
-    loss = 0.0
-    for c in range(1, NUM_CLASSES):
-        p, g = probs[:, :, c], (target == c).float()
-        inter = (p * g).sum()
-        loss = loss + 1 - (inter + 1.0) / (p.sum() + g.sum() - inter + 1.0)
-    return loss / (NUM_CLASSES - 1)
-
-
-def distill_loss(logits: torch.Tensor, teacher_logits: torch.Tensor) -> torch.Tensor:
-    """Knowledge distillation: KL(teacher || model) of the per-pixel class distributions, summed
-    over the 3 classes and averaged over shelves and pixels (0 when the model's layout
-    probabilities equal the teacher's). logits, teacher_logits (N, R, 3, S, S)."""
-    t = teacher_logits.float().log_softmax(2)
-    return F.kl_div(logits.float().log_softmax(2), t, log_target=True, reduction="none").sum(2).mean()
-
-
-def _mismatches(ckpt_cfg: ModelConfig, run, keys, views) -> list[str]:
-    """What a checkpoint's config has that the run (a ModelConfig or TrainConfig) needs otherwise:
-    one phrase per differing key in `keys`, and the run's views the checkpoint lacks."""
-    problems = [f"{k} {getattr(ckpt_cfg, k)} (run: {getattr(run, k)})" for k in keys
-                if getattr(ckpt_cfg, k) != getattr(run, k)]
-    missing = [v for v in views if v not in ckpt_cfg.views]
-    if missing:
-        problems.append(f"views {list(ckpt_cfg.views)} lack {missing}")
-    return problems
-
-
 def load_teacher(cfg: TrainConfig, device) -> RackLayNet:
     """The distillation teacher in eval mode without gradients; it must see the same input (size,
     letterboxing) and give the run's layouts (R, layout size, views)."""
@@ -401,7 +362,7 @@ def load_teacher(cfg: TrainConfig, device) -> RackLayNet:
 
     teacher, tc, _ = load_model(cfg.teacher, map_location=device)
     mc = cfg.model_config()
-    problems = _mismatches(tc, mc, ("R", "layout_size", "letterbox"), cfg.views)
+    problems = config_mismatches(tc, mc, ("R", "layout_size", "letterbox"), cfg.views)
     if tc.input_hw != mc.input_hw:
         problems.append(f"input {tc.input_hw} (run: {mc.input_hw})")
     if problems:
@@ -488,77 +449,6 @@ def val_score(result: dict) -> float:
     return float(np.mean(vals)) if vals else 0.0
 
 
-def _history_row(epoch, step, lr, tr: dict, val: dict | None, seconds, elapsed) -> dict:
-    row = {"epoch": epoch, "step": step, "lr": lr, **{f"train_{k}": v for k, v in tr.items()},
-           "seconds": round(seconds, 1), "elapsed_min": round(elapsed / 60, 2)}
-    if val is not None:
-        row["val_loss"] = val["loss"]
-        row["val_score"] = val["score"]
-        for v, r in val["result"].items():
-            for c in ("shelf", "box"):
-                row[f"{v}_{c}_iou"] = r["dataset"][c]["IoU"]
-            for k in ("rack", "box"):
-                row[f"{v}_{k}_paper_miou"] = r["paper"][k]["mIoU"]
-    return row
-
-
-def write_history(run_dir: Path, history: list[dict]) -> None:
-    """metrics.csv and the curve figures, regenerated from the history kept in the checkpoint."""
-    from .atomic import atomic_write_text
-
-    if not history:
-        return
-    keys: list[str] = []
-    for row in history:
-        keys += [k for k in row if k not in keys]
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=keys)
-    w.writeheader()
-    for row in history:
-        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
-    atomic_write_text(run_dir / "metrics.csv", buf.getvalue())
-    try:
-        plot_curves(run_dir, history)
-    except Exception as e:  # noqa: BLE001 - a figure must never stop training
-        print(f"warning: could not draw curves: {e}")
-
-
-def plot_curves(run_dir: Path, history: list[dict]) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .viz import save_figure
-
-    ep = [r["epoch"] + 1 for r in history]
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for k in ("train_loss", "train_ce", "val_loss"):
-        ys = [r.get(k, float("nan")) for r in history]
-        if any(y == y for y in ys):
-            ax.plot(ep, ys, marker="o", label=k)
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("loss")
-    ax.set_title("losses")
-    ax.legend()
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    save_figure(fig, run_dir / "loss.png")
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    keys = [k for k in history[-1] if k.endswith("_iou") and not k.endswith("paper_miou")]
-    for k in keys + ["val_score"]:
-        ax.plot(ep, [r.get(k, float("nan")) for r in history], marker="o", label=k,
-                lw=2.5 if k == "val_score" else 1.2)
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("dataset-level IoU (validation)")
-    ax.set_ylim(0, 1)
-    ax.set_title("validation metrics")
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    save_figure(fig, run_dir / "metrics.png")
-
-
 def write_config(run_dir: Path, cfg: TrainConfig) -> None:
     import yaml
 
@@ -567,40 +457,6 @@ def write_config(run_dir: Path, cfg: TrainConfig) -> None:
     d = cfg.to_dict()
     d["model"] = cfg.model_config().to_dict()
     atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(d, sort_keys=False))
-
-
-def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
-    """Load a checkpoint's weights into `model`. Same decoder, or one with the same tensors arranged
-    differently (SAME_TENSOR_DECODERS: the model starts close to the checkpoint): every tensor,
-    strictly. A decoder grown from the checkpoint's (GROWABLE_DECODERS, or a struct decoder given
-    the 1/4 detail branch or the gap output, `ModelConfig.struct_fine` / `struct_gap`): every
-    tensor the checkpoint has, strictly; the new branches keep their initialisation (made so that
-    the model starts by computing what the checkpoint computed: a zero last layer, the gap output's
-    bias at -6)."""
-    own = model.state_dict()
-    extra = sorted(set(sd) - set(own))
-    if extra:
-        raise ValueError(f"{path}: tensors {extra[:3]} have no place in a {model.cfg.decoder} model"
-                         + (" (a struct model with the 1/4 detail branch or the gap output? train with "
-                            "--struct-fine / --struct-gap)"
-                            if any(f".{sub}." in k for k in extra for sub in StructDecoder.GROWN) else ""))
-    grown = grown_tensor_names(model) if (decoder, model.cfg.decoder) not in SAME_TENSOR_DECODERS else set()
-    lacking = sorted(set(own) - set(sd) - grown)   # only the new branches may be new
-    if lacking:
-        raise ValueError(f"{path}: lacks tensors {lacking[:3]} that a {model.cfg.decoder} model has")
-    model.load_state_dict({**own, **sd}, strict=True)
-
-
-def _check_init(ck, cfg: TrainConfig) -> None:
-    c = ck.cfg
-    problems = _mismatches(c, cfg, ("R", "layout_size", "encoder"), cfg.views)
-    pair = (c.decoder, cfg.decoder)
-    if c.decoder != cfg.decoder and pair not in GROWABLE_DECODERS and pair not in SAME_TENSOR_DECODERS:
-        problems.append(f"decoder {c.decoder} (run: {cfg.decoder})")
-    if pair in GROWABLE_DECODERS and c.input_hw != cfg.model_config().input_hw:
-        problems.append(f"image_size {c.image_size} (run: {cfg.image_size}; a grown decoder keeps the input size)")
-    if problems:
-        raise ValueError(f"{ck.path}: cannot fine-tune from this checkpoint: it has " + "; ".join(problems))
 
 
 # ----------------------------------------------------------------------------- train
@@ -762,7 +618,7 @@ def build_run(cfg: TrainConfig, dist: _Dist, run_dir: Path, t_start: float, init
     disc = Discriminators(mcfg) if cfg.disc else None
     if init and cfg.init:
         ck = load_checkpoint(cfg.init)
-        _check_init(ck, cfg)
+        check_init(ck, cfg)
         load_grown(model, ck.section("model"), ck.cfg.decoder, ck.path)
     elif init and cfg.imagenet_weights:
         load_imagenet_weights(model.encoder, cfg.imagenet_weights)
@@ -1013,7 +869,7 @@ def record_epoch(run: Run, st: RunState, tr: dict, val_loader, total_steps: int,
 
     cfg, epoch = run.cfg, st.epoch
     val = validate(run.model, val_loader, cfg, run.weight, run.dist.device, progress=cfg.progress, bf16=run.bf16)
-    row = _history_row(epoch, st.step, lr_at(max(0, st.global_step - 1), total_steps, cfg),
+    row = history_row(epoch, st.step, lr_at(max(0, st.global_step - 1), total_steps, cfg),
                        tr, val, time.time() - t_epoch, st.elapsed_s)
     st.history.append(row)
     improved = val["score"] > st.best_score
@@ -1061,4 +917,4 @@ def _maybe_crash(global_step: int) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-__all__ = ["distill_loss", "TrainConfig", "train", "validate", "val_score", "epoch_batches", "lr_at", "layout_loss", "split_ids"]
+__all__ = ["TrainConfig", "train", "validate", "val_score", "epoch_batches", "lr_at", "split_ids"]

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from racklay.checkpoint import load_checkpoint, load_model, save_checkpoint
+from racklay.losses import lsgan_discriminator_loss, lsgan_generator_loss, one_hot_layouts
 from racklay.model import (
     Discriminators,
     ModelConfig,
@@ -15,9 +16,6 @@ from racklay.model import (
     ResNet18Encoder,
     build_model,
     load_imagenet_weights,
-    lsgan_discriminator_loss,
-    lsgan_generator_loss,
-    one_hot_layouts,
 )
 
 IMG, LAY, R = 64, 32, 3
@@ -51,7 +49,7 @@ def test_columns_decoder_grows_from_light_and_learns_per_column():
     map starts at zero); once the map is non-zero, what one image column holds changes the
     layout's matching columns far more than the opposite ones; an input of another height is
     refused with a message naming the built height."""
-    from racklay.train import load_grown
+    from racklay.checkpoint import load_grown
 
     light = ModelConfig(R=2, image_size=(64, 128), layout_size=32, views=("top",), encoder="resnet18")
     cols = ModelConfig.from_dict({**light.to_dict(), "decoder": "columns"})
@@ -78,8 +76,8 @@ def test_columns_decoder_grows_from_light_and_learns_per_column():
 
 def _struct_grown_with(field: str):
     """A small struct model, the same grown with `field` (a ModelConfig flag) from its weights
-    (racklay.train.load_grown), both in eval mode, and an input batch."""
-    from racklay.train import load_grown
+    (racklay.checkpoint.load_grown), both in eval mode, and an input batch."""
+    from racklay.checkpoint import load_grown
 
     base = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="struct")
     torch.manual_seed(0)
@@ -94,7 +92,7 @@ def test_struct_detail_branch_grows_from_a_struct_checkpoint():
     same layouts (its last conv is zero; only the 1/8 sequence's upsampling differs) and the branch
     gets gradients from the per-position box scores. A fine checkpoint does not load into a model
     without the branch (the error says which flag), and the branch needs the struct decoder."""
-    from racklay.train import load_grown
+    from racklay.checkpoint import load_grown
 
     a, b, x = _struct_grown_with("struct_fine")
     with torch.no_grad():
@@ -117,8 +115,8 @@ def test_struct_gap_output_grows_from_a_struct_checkpoint_and_cuts_box_runs():
     gap estimate; the drawn box logit is min(box, -gap), so a position with a positive gap logit
     has no box and a run of boxes is cut there; the output learns from its own scores; and it
     needs the struct decoder."""
+    from racklay.checkpoint import load_grown
     from racklay.model import cut_at_gaps
-    from racklay.train import load_grown
 
     a, b, x = _struct_grown_with("struct_gap")
     with torch.no_grad():
@@ -144,9 +142,9 @@ def test_fast_decoder_is_light_with_its_last_conv_before_the_resize():
     computes the logits at the last stage's resolution and only then resizes them to S, so it
     matches light's layouts closely (same weights, different order of conv and resize) at a
     fraction of the full-resolution work; the train CLI offers every decoder the model has."""
+    from racklay.checkpoint import load_grown
     from racklay.commands.train import FLAGS
     from racklay.model import DECODERS, SAME_TENSOR_DECODERS
-    from racklay.train import load_grown
 
     light = ModelConfig(R=2, image_size=(64, 128), layout_size=96, views=("top",), encoder="resnet18")
     fast = ModelConfig.from_dict({**light.to_dict(), "decoder": "fast"})

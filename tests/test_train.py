@@ -183,7 +183,7 @@ def test_fine_tune_from_checkpoint_with_frozen_encoder_and_fractions(tmp_path, t
 def test_soft_iou_loss_measures_overlap_and_is_logged(tmp_path, toy):
     """layout_iou_loss is 1 - IoU for confident predictions (an over-sized shelf footprint costs
     exactly its extra area), ~1 when nothing is predicted, and a run with --iou-weight logs it."""
-    from racklay.train import layout_iou_loss
+    from racklay.losses import layout_iou_loss
 
     t = torch.zeros(1, 1, 20, 20, dtype=torch.long)
     t[0, 0, 5:15, 5:15] = 1                                   # 100 shelf pixels, no box
@@ -238,8 +238,8 @@ def test_distillation_moves_the_model_to_its_teacher(tmp_path, toy):
     to its teacher has loss 0; BN statistics stay the start's), the epoch
     log has the loss (train_kd); a teacher that gives other layouts, or no teacher and no label
     loss, is a one-line error."""
+    from racklay.losses import distill_loss
     from racklay.torchdata import RackLayDataset
-    from racklay.train import distill_loss
 
     cfg0 = ModelConfig(R=4, image_size=64, layout_size=32)
     torch.manual_seed(3)

@@ -238,8 +238,8 @@ def _real_loss(weights, root) -> float:
     import torch
 
     from racklay.checkpoint import load_model
+    from racklay.losses import layout_loss
     from racklay.torchdata import RackLayDataset
-    from racklay.train import layout_loss
 
     model, cfg, _ = load_model(weights)
     ds = RackLayDataset(root, split="train", image_size=cfg.image_size, layout_size=cfg.layout_size)

@@ -1,0 +1,84 @@
+"""A run's history as people read it: `metrics.csv` (one row per epoch) and the curve figures
+(`loss.png`, `metrics.png`), regenerated from the history the checkpoint keeps, so a resumed
+run's files are complete."""
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+
+def history_row(epoch, step, lr, tr: dict, val: dict | None, seconds, elapsed) -> dict:
+    """One epoch's row of metrics.csv: step, learning rate, training losses, time, and the
+    validation loss, score and per-view IoU when the epoch was validated."""
+    row = {"epoch": epoch, "step": step, "lr": lr, **{f"train_{k}": v for k, v in tr.items()},
+           "seconds": round(seconds, 1), "elapsed_min": round(elapsed / 60, 2)}
+    if val is not None:
+        row["val_loss"] = val["loss"]
+        row["val_score"] = val["score"]
+        for v, r in val["result"].items():
+            for c in ("shelf", "box"):
+                row[f"{v}_{c}_iou"] = r["dataset"][c]["IoU"]
+            for k in ("rack", "box"):
+                row[f"{v}_{k}_paper_miou"] = r["paper"][k]["mIoU"]
+    return row
+
+
+def write_history(run_dir: Path, history: list[dict]) -> None:
+    """metrics.csv and the curve figures, regenerated from the history kept in the checkpoint."""
+    from .atomic import atomic_write_text
+
+    if not history:
+        return
+    keys: list[str] = []
+    for row in history:
+        keys += [k for k in row if k not in keys]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=keys)
+    w.writeheader()
+    for row in history:
+        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+    atomic_write_text(run_dir / "metrics.csv", buf.getvalue())
+    try:
+        plot_curves(run_dir, history)
+    except Exception as e:  # noqa: BLE001 - a figure must never stop training
+        print(f"warning: could not draw curves: {e}")
+
+
+def plot_curves(run_dir: Path, history: list[dict]) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .viz import save_figure
+
+    ep = [r["epoch"] + 1 for r in history]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k in ("train_loss", "train_ce", "val_loss"):
+        ys = [r.get(k, float("nan")) for r in history]
+        if any(y == y for y in ys):
+            ax.plot(ep, ys, marker="o", label=k)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("loss")
+    ax.set_title("losses")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, run_dir / "loss.png")
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    keys = [k for k in history[-1] if k.endswith("_iou") and not k.endswith("paper_miou")]
+    for k in keys + ["val_score"]:
+        ax.plot(ep, [r.get(k, float("nan")) for r in history], marker="o", label=k,
+                lw=2.5 if k == "val_score" else 1.2)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("dataset-level IoU (validation)")
+    ax.set_ylim(0, 1)
+    ax.set_title("validation metrics")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, run_dir / "metrics.png")
+
+
+__all__ = ["history_row", "write_history", "plot_curves"]
