@@ -5,15 +5,16 @@ One run lives in `OUT/NAME/`: `config.yaml` (the resolved TrainConfig + ModelCon
 (model + discriminators + optimiser state + progress, for `resume`) and `best.safetensors` (the
 epoch with the best validation score, weights only).
 
-Loss: per-shelf pixel cross-entropy with class weights (default [1, 5, 5] for background, shelf,
+Loss (`racklay.losses`): per-shelf pixel cross-entropy with class weights (default [1, 5, 5] for background, shelf,
 box) summed over views; in "-disc" runs, from epoch `disc_start` on, + λ·L_adv with one
 least-squares patch discriminator per view that sees the decoder's softmax probabilities (so its
 gradient reaches the decoder) and the one-hot ground truth. Adam, linear warm-up + cosine decay
 per step, early stopping on the validation score = mean over views of the dataset-level IoU of
 shelf and box (`racklay.metrics.LayoutMetrics`).
 
-Determinism and resume: the order of samples in epoch e is a pure function of (seed, e) (a
-DistributedSampler seeded with `seed`, `set_epoch(e)`); a transform gets, per sample, global RNGs
+Determinism and resume (the process group, seeds and batches: `racklay.distributed`): the order
+of samples in epoch e is a pure function of (seed, e) (a DistributedSampler seeded with `seed`,
+`set_epoch(e)`); a transform gets, per sample, global RNGs
 (and its own `reseed(int)` / `set_random_seed(int)` if it has one) seeded from (seed, e, index).
 `last.safetensors` is written every `checkpoint_every` steps and at each epoch end with the step
 within the epoch; `resume` reloads it and skips the batches already done. Killed at any point
@@ -29,7 +30,6 @@ from __future__ import annotations
 
 import math
 import os
-import random
 import shutil
 import time
 from dataclasses import asdict, dataclass, field, fields
@@ -40,6 +40,7 @@ import torch
 
 from .augment import PRESETS as AUGMENT_PRESETS
 from .checkpoint import check_init, config_mismatches, load_grown
+from .distributed import Batches, Dist, Seeded, epoch_batches, seed_everything
 from .history import history_row, write_history
 from .layout import CLASS_NAMES
 from .losses import (
@@ -241,112 +242,6 @@ class TrainConfig:
 # ----------------------------------------------------------------------------- helpers
 
 
-class _Dist:
-    """Process-group facts from torchrun's environment (a single process without it)."""
-
-    def __init__(self, device_pref: str):
-        self.world = int(os.environ.get("WORLD_SIZE", "1"))
-        self.rank = int(os.environ.get("RANK", "0"))
-        self.local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-        cuda = torch.cuda.is_available() and device_pref in ("auto", "cuda")
-        if device_pref == "cuda" and not torch.cuda.is_available():
-            raise ValueError("device 'cuda' requested but torch sees no GPU")
-        self.device = torch.device(f"cuda:{self.local_rank}" if cuda else "cpu")
-        self.enabled = self.world > 1
-        if self.enabled and not torch.distributed.is_initialized():
-            if cuda:
-                torch.cuda.set_device(self.device)
-            torch.distributed.init_process_group("nccl" if cuda else "gloo")
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-    def barrier(self):
-        if self.enabled:
-            torch.distributed.barrier()
-
-    def broadcast_flag(self, flag: bool) -> bool:
-        """Rank 0's decision, shared with every process."""
-        if not self.enabled:
-            return flag
-        t = torch.tensor([1 if flag else 0], dtype=torch.int64, device=self.device if self.device.type == "cuda" else "cpu")
-        torch.distributed.broadcast(t, 0)
-        return bool(t.item())
-
-    def mean(self, values: list[float]) -> list[float]:
-        if not self.enabled:
-            return values
-        t = torch.tensor(values, dtype=torch.float64, device=self.device if self.device.type == "cuda" else "cpu")
-        torch.distributed.all_reduce(t)
-        return (t / self.world).tolist()
-
-    def close(self):
-        if self.enabled and torch.distributed.is_initialized():
-            torch.distributed.destroy_process_group()
-
-
-def sample_seed(seed: int, epoch: int, index: int) -> int:
-    return int(np.random.SeedSequence([seed, epoch, index]).generate_state(1)[0])
-
-
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)
-
-
-class _Seeded(torch.utils.data.Dataset):
-    """Items addressed as (index, epoch); the transform's randomness is seeded per item."""
-
-    def __init__(self, base, seed: int):
-        self.base, self.seed = base, seed
-
-    def __len__(self):
-        return len(self.base)
-
-    def __getitem__(self, key):
-        i, epoch = key
-        s = sample_seed(self.seed, epoch, i)
-        t = self.base.transform
-        if t is not None:
-            seed_everything(s)
-            for meth in ("reseed", "set_random_seed"):
-                if callable(getattr(t, meth, None)):
-                    getattr(t, meth)(s)
-                    break
-        item = getattr(self.base, "item", None)   # ReplayMix: which replay samples depends on the epoch
-        return item(i, epoch) if item is not None else self.base[i]
-
-
-class _Batches:
-    """A batch sampler whose batches are replaced before each epoch (lets persistent workers
-    live across epochs)."""
-
-    def __init__(self):
-        self.batches: list = []
-
-    def __iter__(self):
-        return iter(list(self.batches))
-
-    def __len__(self):
-        return len(self.batches)
-
-
-def epoch_batches(n: int, batch_size: int, epoch: int, seed: int, world: int, rank: int) -> list[list[int]]:
-    """This process's batches of epoch `epoch`: a DistributedSampler permutation seeded by
-    (seed, epoch), cut into batches (a last batch of one sample is dropped: BatchNorm)."""
-    from torch.utils.data.distributed import DistributedSampler
-
-    sampler = DistributedSampler(range(n), num_replicas=world, rank=rank, shuffle=True, seed=seed)
-    sampler.set_epoch(epoch)
-    idx = list(sampler)
-    batches = [idx[i:i + batch_size] for i in range(0, len(idx), batch_size)]
-    if len(batches) > 1 and len(batches[-1]) < 2:
-        batches.pop()
-    return batches
-
-
 def lr_at(step: int, total: int, cfg: TrainConfig) -> float:
     """Linear warm-up over `warmup_steps`, then cosine decay to 1% of the peak at `total`."""
     if step < cfg.warmup_steps:
@@ -482,7 +377,7 @@ class RunState:
 class Run:
     """What the training helpers share: settings, process group, models, optimisers, files, clock."""
     cfg: TrainConfig
-    dist: _Dist
+    dist: Dist
     dir: Path
     model: RackLayNet
     disc: Discriminators | None
@@ -513,7 +408,7 @@ def train(cfg: TrainConfig, transform=None) -> Path:
     from tqdm import tqdm
 
     t_start = time.time()
-    dist = _Dist(cfg.device)
+    dist = Dist(cfg.device)
     run_dir = cfg.run_dir()
     made_dir = False   # this call created the run folder (removed again if it fails before a checkpoint)
     try:
@@ -607,7 +502,7 @@ def open_resume(cfg: TrainConfig, run_dir: Path, main: bool):
     return ck
 
 
-def build_run(cfg: TrainConfig, dist: _Dist, run_dir: Path, t_start: float, init: bool) -> Run:
+def build_run(cfg: TrainConfig, dist: Dist, run_dir: Path, t_start: float, init: bool) -> Run:
     """Seeded models (initialised from `cfg.init` or ImageNet weights when `init`) on the device,
     their optimisers and the precision."""
     from .checkpoint import load_checkpoint
@@ -698,7 +593,7 @@ def check_run_data(cfg: TrainConfig, run_dir: Path, train_ids, val_ids) -> dict:
     return passed
 
 
-def make_loaders(cfg: TrainConfig, transform, dist: _Dist, run_dir: Path):
+def make_loaders(cfg: TrainConfig, transform, dist: Dist, run_dir: Path):
     """(training dataset, its loader, the loader's batch sampler, validation loader (rank 0 only), the
     record of checked files), after `check_run_data`."""
     from torch.utils.data import DataLoader
@@ -717,8 +612,8 @@ def make_loaders(cfg: TrainConfig, transform, dist: _Dist, run_dir: Path):
         pool = RackLayDataset(cfg.replay, ids=replay_ids(cfg), **{**kw, "cache": False})
         train_ds = ReplayMix(train_ds, pool, cfg.replay_ratio, seed=cfg.seed)
     val_ds = RackLayDataset(cfg.data, ids=val_ids, **kw) if dist.main else None
-    batches = _Batches()
-    loader = DataLoader(_Seeded(train_ds, cfg.seed), batch_sampler=batches, num_workers=cfg.workers,
+    batches = Batches()
+    loader = DataLoader(Seeded(train_ds, cfg.seed), batch_sampler=batches, num_workers=cfg.workers,
                         persistent_workers=cfg.workers > 0)
     val_loader = (DataLoader(val_ds, batch_size=cfg.batch_size, shuffle=False, num_workers=cfg.workers)
                   if dist.main else None)
@@ -917,4 +812,4 @@ def _maybe_crash(global_step: int) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-__all__ = ["TrainConfig", "train", "validate", "val_score", "epoch_batches", "lr_at", "split_ids"]
+__all__ = ["TrainConfig", "train", "validate", "val_score", "lr_at", "split_ids"]

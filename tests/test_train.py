@@ -19,8 +19,9 @@ import torch
 from conftest import ENV, make_toy, metrics_rows, run_module
 from racklay.checkpoint import load_checkpoint, load_model, save_checkpoint
 from racklay.data import RackLayRoot
+from racklay.distributed import epoch_batches
 from racklay.model import ModelConfig, RackLayNet
-from racklay.train import TrainConfig, epoch_batches, train
+from racklay.train import TrainConfig, train
 
 VENV_BIN = Path(sys.executable).parent
 TINY = dict(image_size=64, layout_size=32, R=4, batch_size=4, progress=False, threads=1, warmup_steps=2)
