@@ -1,6 +1,6 @@
 """What the annotation tool shows, drawn from a Frame: the outlines over the photo (as shapes the
 page draws), the live layouts preview, the summary, header and selection texts, and the photo
-as the browser gets it. No logic and no file access here: annotate.app.Tool gathers a Frame
+as the browser gets it. No logic and no file access here: annotate.editor.Tool gathers a Frame
 once per event (the annotation's scene and layouts built once, shared by everything below).
 """
 from __future__ import annotations

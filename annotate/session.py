@@ -1,5 +1,5 @@
 """One labeller's session in the annotation tool: the photo open, its annotation, undo and redo,
-the mode, the selection and what the page was last sent. annotate.app.Tool's methods take a
+the mode, the selection and what the page was last sent. annotate.editor.Tool's methods take a
 Session and return it (gradio keeps one per browser tab); it is plain data, no logic."""
 from __future__ import annotations
 

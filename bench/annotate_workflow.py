@@ -48,8 +48,10 @@ def main() -> int:
     from playwright.sync_api import sync_playwright
 
     from annotate import draw as D
-    from annotate.app import Tool, build_app, launch_kwargs
+    from annotate.app import build_app
     from annotate.browser import SETTLED_JS, click_image, launch, missing_browser, wait_ready
+    from annotate.editor import Tool
+    from annotate.server import launch_kwargs
     from annotate.store import Project
 
     why = missing_browser()

@@ -119,7 +119,7 @@ def test_saves_record_the_logged_in_user(tmp_path):
     """With several users, each session's saves carry its own login (kept across image changes)."""
     import numpy as np
 
-    from annotate.app import Tool
+    from annotate.editor import Tool
     from annotate.store import Project
     from racklay.atomic import encode_png
 

@@ -45,7 +45,8 @@ def _free_port():
 
 
 def serve(proj_dir, port=None):
-    from annotate.app import build_app, launch_kwargs
+    from annotate.app import build_app
+    from annotate.server import launch_kwargs
     from annotate.store import Project
 
     project = Project(proj_dir)

@@ -91,7 +91,7 @@ def test_import_round_trip(tmp_path, capsys):
     # the tool shows the imported layouts read-only beside the photo, and over it once the
     # rack and shelves are marked
     from annotate import draw as D
-    from annotate.app import Tool
+    from annotate.editor import Tool
     tool = Tool(p2)
     st = tool.open("ds_000000.png")
     pv = D.preview(tool.frame(st))

@@ -1,4 +1,4 @@
-"""The annotation tool's server logic (annotate.app.Tool) without a browser: the click workflow,
+"""The annotation tool's server logic (annotate.editor.Tool) without a browser: the click workflow,
 editing, undo/redo, conflicts between two labellers, invalid files, and model-assisted
 proposals with a stand-in predictor that follows racklay.predict.Predictor's contract."""
 import os
@@ -8,7 +8,8 @@ import pytest
 
 from annotate import draw as D
 from annotate import geometry as G
-from annotate.app import Tool, build_app
+from annotate.app import build_app
+from annotate.editor import Tool
 from annotate.store import Project
 from racklay import layout as L
 from racklay.atomic import encode_png
@@ -361,7 +362,7 @@ def test_serve_busy_port_one_line(proj, monkeypatch, capsys, checked):
     after the check) is turned into the same one line."""
     import socket
 
-    import annotate.app as A
+    import annotate.server as A
     from annotate.cli import main as annotate_main
 
     if not checked:

@@ -63,8 +63,8 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from annotate.app import serve
     from annotate.auth import Authenticator
+    from annotate.server import serve
     from racklay.cli import CLIError
 
     if args.auth is not None:
