@@ -15,7 +15,7 @@ It prints, per recipe and quantity, the recipe's 5-95 % and min-max range, how m
 fall inside [min, max] (the recipe's support) and which photos fall outside, and draws one panel
 per quantity (recipe histograms, photo values as ticks; red = outside every recipe given).
 
-    .venv/bin/python bench/synth_coverage.py --recipe complex --recipe pallet [--n 2000]
+    .venv/bin/python bench/synth_coverage.py --recipe complex --recipe pallet [--n 2000] [--set KEY=VALUE]
         [--project datasets/real-photos] [--out docs/img/synth_coverage.png]
 
 Numbers only; nothing is asserted. The camera of a near-frontal photo is not determined by its
@@ -203,7 +203,10 @@ def main(argv=None) -> int:
         from racklay.viz import save_figure
 
         keys = list(QUANTITIES)
-        fig, axes = plt.subplots(2, 5, figsize=(18, 6.5))
+        ncol = (len(keys) + 1) // 2
+        fig, axes = plt.subplots(2, ncol, figsize=(3.6 * ncol, 6.5))
+        for ax in axes.ravel()[len(keys):]:
+            ax.set_visible(False)
         for ax, key in zip(axes.ravel(), keys):
             label, unit = QUANTITIES[key]
             allv = np.concatenate([np.asarray(rq[n][key], float) for n in recipes] +

@@ -68,7 +68,6 @@ class Recipe:
     pallet_load: dict = _f({"cartons": 0.5, "wrapped": 0.35, "crates": 0.15}, "weights:cartons|wrapped|crates", doc="pallet racking: what stands on a pallet")
     pallet_gap: list = _f([0.06, 0.15], "frange", 0.0, 1.0, "pallet racking: clearance between neighbouring pallets, metres (one draw per level)")
     pallet_packing: float = _f(0.0, "float", 0.0, 1.0, "pallet racking: probability that a level's pallets stand packed at pallet_gap from each other (as in a bay sized for them) rather than spread evenly along the beams")
-    pallet_overhang: list = _f([0.0, 0.0], "frange", 0.0, 0.4, "pallet racking: a load may be wider than its pallet by up to this much on each side along the beams, metres (one draw per load; neighbours never overlap)")
     # --- warehouse ------------------------------------------------------------------------
     background: dict = _f({"wall": 0.4, "busy": 0.6}, "weights:wall|busy", doc="probability of each background")
     wall_gap: list = _f([0.05, 0.6], "frange", 0.0, 5.0, "gap between the rack's back and the wall (wall background)")
@@ -80,7 +79,6 @@ class Recipe:
     # --- boxes ----------------------------------------------------------------------------
     box_density: list = _f([0.0, 1.0], "frange", 0.0, 1.0, "per-shelf occupancy density ~ U(lo, hi)")
     min_gap: float = _f(0.03, "float", 0.0, 0.5, "minimum gap between boxes, metres")
-    flush_fraction: float = _f(0.0, "float", 0.0, 1.0, "shelving: probability that an item stands flush against its neighbour along the shelf (no gap: walls of cartons, one run in the layouts) instead of min_gap or more from it")
     yaw_max_deg: float = _f(10.0, "float", 0.0, 45.0, "box yaw about the vertical ~ U(-r, r) degrees")
     max_stack: list = _f([1, 3], "irange", 1, 8, "boxes stack up to a random height in this range")
     crate_fraction: float = _f(0.25, "float", 0.0, 1.0, "probability that an item is a crate, not a carton")
