@@ -4,7 +4,8 @@
       --data /work/data/complex [--split test] [--limit N] [--photos datasets/real-photos]
 
 For every arm (a `racklay train` run folder: its best.safetensors, config.yaml and metrics.csv; or
-a checkpoint file such as a release, which has no training cost to report) it prints, on the held-out split of `--data` (WareSynth `complex` for the reproduction row):
+a checkpoint file such as a release, which has no training cost to report) it prints, on the
+held-out split of `--data` (WareSynth `complex` for the reproduction row):
 - dataset-level shelf / box IoU (top / front) and the paper-protocol mIoU, metric and with
   `--scale-from-truth` (each predicted shelf scaled to its true length: shape alone);
 - boxes as boxes: the front-view shelf channels whose truth has two or more separate runs of box

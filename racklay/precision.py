@@ -46,6 +46,4 @@ def resolve_precision(precision: str, device="cpu", backend: str = "torch") -> s
 
     if torch.device(device).type == "cuda":
         return "bf16" if torch.cuda.is_bf16_supported() else "fp32"
-    from . import precision as _self  # looked up at call time: tests patch native_bf16 here
-
-    return "bf16" if _self.native_bf16() else "fp32"
+    return "bf16" if native_bf16() else "fp32"

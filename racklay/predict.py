@@ -28,6 +28,7 @@ BACKENDS = ("torch", "onnx")
 #: photos with a shorter side than this are predicted with a warning (upscaled, they hold no rack)
 MIN_PHOTO_SIDE = 32
 
+
 def add_precision_args(p) -> None:
     """--precision auto|fp32|bf16 (with --bf16 / --fp32 shorthands) for commands that run a model."""
     p.add_argument("--precision", choices=PRECISIONS, default="auto",
