@@ -3,9 +3,7 @@ that proposes boxes, a per-run temporary folder for gradio's files, and `serve`.
 import os
 import threading
 
-os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")
-
-from .app import build_app
+from .app import build_app  # sets GRADIO_ANALYTICS_ENABLED=False before gradio is imported
 from .page import CSS, head
 from .store import Project
 

@@ -124,8 +124,7 @@ def recipe_quantities(name: str, n: int, seed: int, sets=()) -> dict:
                 q["box_width"].append(b.sx)
                 q["box_height"].append(b.z0 + b.sz)     # a stack's height above its board
                 q["box_depth"].append(b.sy)
-                half = 0.5 * (abs(b.sx * np.cos(b.yaw)) + abs(b.sy * np.sin(b.yaw)))   # its footprint along x
-                spans.append((b.cx - half, b.cx + half))
+                spans.append(b.x_range())                # its footprint along x (yaw included)
             q["run_width"] += run_widths(spans)
         c = s.camera.center
         q["cam_distance"].append(float(-s.rack_depth / 2 - c[1]))

@@ -42,14 +42,14 @@ class Dist:
         """Rank 0's decision, shared with every process."""
         if not self.enabled:
             return flag
-        t = torch.tensor([1 if flag else 0], dtype=torch.int64, device=self.device if self.device.type == "cuda" else "cpu")
+        t = torch.tensor([1 if flag else 0], dtype=torch.int64, device=self.device)
         torch.distributed.broadcast(t, 0)
         return bool(t.item())
 
     def mean(self, values: list[float]) -> list[float]:
         if not self.enabled:
             return values
-        t = torch.tensor(values, dtype=torch.float64, device=self.device if self.device.type == "cuda" else "cpu")
+        t = torch.tensor(values, dtype=torch.float64, device=self.device)
         torch.distributed.all_reduce(t)
         return (t / self.world).tolist()
 

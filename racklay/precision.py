@@ -12,6 +12,8 @@ from __future__ import annotations
 PRECISIONS = ("auto", "fp32", "bf16")
 #: older spellings still read (training configs written before one vocabulary said `amp: none`)
 ALIASES = {"none": "fp32"}
+#: what a training flag (`--amp`) accepts: the vocabulary and the older spellings
+ACCEPTED = (*PRECISIONS, *ALIASES)
 
 
 def native_bf16() -> bool:

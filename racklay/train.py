@@ -5,12 +5,12 @@ One run lives in `OUT/NAME/`: `config.yaml` (the resolved TrainConfig + ModelCon
 (model + discriminators + optimiser state + progress, for `resume`) and `best.safetensors` (the
 epoch with the best validation score, weights only).
 
-Loss (`racklay.losses`): per-shelf pixel cross-entropy with class weights (default [1, 5, 5] for background, shelf,
-box) summed over views; in "-disc" runs, from epoch `disc_start` on, + λ·L_adv with one
-least-squares patch discriminator per view that sees the decoder's softmax probabilities (so its
-gradient reaches the decoder) and the one-hot ground truth. Adam, linear warm-up + cosine decay
-per step, early stopping on the validation score = mean over views of the dataset-level IoU of
-shelf and box (`racklay.metrics.LayoutMetrics`).
+Loss (`racklay.losses`): per-shelf pixel cross-entropy with class weights (default [1, 5, 5] for
+background, shelf, box) summed over views; in "-disc" runs, from epoch `disc_start` on, + λ·L_adv
+with one least-squares patch discriminator per view that sees the decoder's softmax probabilities
+(so its gradient reaches the decoder) and the one-hot ground truth. Adam, linear warm-up + cosine
+decay per step, early stopping on the validation score = mean over views of the dataset-level IoU
+of shelf and box (`racklay.metrics.LayoutMetrics`).
 
 Determinism and resume (the process group, seeds and batches: `racklay.distributed`): the order
 of samples in epoch e is a pure function of (seed, e) (a DistributedSampler seeded with `seed`,

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 
 from racklay.cli import at_least, positive_float
-from racklay.precision import ALIASES, PRECISIONS
+from racklay.precision import ACCEPTED as PRECISION_CHOICES
 
 _S = argparse.SUPPRESS
 
@@ -134,7 +134,7 @@ FLAGS = [
      "(.pth or .safetensors); nothing is downloaded"),
     ("max_minutes", ["--max-minutes"], dict(type=positive_float),
      "time budget for the whole run (resumes included); stops after the current step, validates, saves"),
-    ("amp", ["--amp"], dict(choices=(*PRECISIONS, *ALIASES)),
+    ("amp", ["--amp"], dict(choices=PRECISION_CHOICES),
      "precision: auto = bf16 autocast on CPUs with native bf16 (AVX512-BF16/AMX) and on CUDA GPUs with bf16, "
      "fp32 elsewhere (emulated bf16 is many times slower); fp32 (none: its older spelling); bf16 "
      "(default {default})"),

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from racklay.cli import at_least
-from racklay.precision import ALIASES, PRECISIONS
+from racklay.precision import ACCEPTED as PRECISION_CHOICES
 
 
 def add_demo_args(p) -> None:
@@ -17,7 +17,7 @@ def add_demo_args(p) -> None:
     p.add_argument("--n-real", type=at_least(10), default=d.n_real, help=f"proxy-real images, >= 10 (default {d.n_real})")
     p.add_argument("--max-minutes", type=float, default=d.max_minutes,
                    help=f"time budget per training run (default {d.max_minutes:g})")
-    p.add_argument("--amp", choices=(*PRECISIONS, *ALIASES), default=d.amp,
+    p.add_argument("--amp", choices=PRECISION_CHOICES, default=d.amp,
                    help=f"training precision: auto, fp32 (none: its older spelling), bf16 (default {d.amp}: bf16 "
                         "only where the CPU computes it natively, fp32 elsewhere; emulated bf16 is many times slower)")
     p.add_argument("--photos", default=d.photos, metavar="DIR",
