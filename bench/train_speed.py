@@ -5,11 +5,11 @@ authors' `paper` decoder, in the same run.
         nice -n 5 .venv/bin/python bench/train_speed.py [--size 256] [--batch 8] [--disc] [--bf16]
 
 (the script re-executes itself with those MALLOC_* variables if they are missing: glibc reads
-them at process start). One step = forward, per-shelf weighted cross-entropy ([1, 5, 5]) over
-both views (`racklay.losses.layout_loss`), backward and an Adam update, in the same sequence as
-the loop in `racklay.train.train` (which has no separate step function to call). With
---disc the least-squares adversarial terms (generator + discriminator update, patch
-discriminators fed softmax probabilities) are included. Data come from random tensors, so the
+them at process start). One step is the training loop's own, `racklay.train.train_step` (forward,
+the default losses of TrainConfig over both views, backward, Adam), on a run set up by
+`racklay.train.build_run` as `racklay train` sets it up (channels_last on CPU). With --disc the
+least-squares adversarial terms (generator + discriminator update) are included. Data come from
+random tensors, so the
 number is the model's cost alone (data loading is excluded). Steps of the two models are
 interleaved in rounds; the step time divided by the batch size is reported (wall median and
 minimum, and the process CPU time, which is least disturbed by other jobs with --threads 1). Prints
@@ -25,61 +25,29 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import add_common_args, conditions, ensure_malloc_env, interleaved, markdown_table, start, summarise  # noqa: E402
 
-CLASS_WEIGHTS = (1.0, 5.0, 5.0)
 
+def make_step(decoder: str, size: int, batch: int, disc: bool, bf16: bool):
+    """A closure running one step of `racklay.train.train_step` on a run built as `racklay train`
+    builds it (`build_run`: models, optimisers, precision, memory format), ResNet-18 encoder,
+    random weights, default losses and class weights, on one fixed random batch."""
+    import tempfile
+    import time
+    from pathlib import Path
 
-def make_step(decoder: str, size: int, batch: int, disc: bool, bf16: bool, lr: float = 1e-4):
     import torch
 
-    from racklay.losses import layout_loss, lsgan_discriminator_loss, lsgan_generator_loss, one_hot_layouts
-    from racklay.model import Discriminators, ModelConfig, RackLayNet
+    from racklay.config import TrainConfig
+    from racklay.distributed import Dist
+    from racklay.train import build_run, models_for_epoch, train_step
 
-    torch.manual_seed(0)
-    cfg = ModelConfig(image_size=size, layout_size=size, views=("top", "front"), decoder=decoder, disc=disc,
-                      encoder="resnet18")
-    model = RackLayNet(cfg).train()
-    discs = Discriminators(cfg).train() if disc else None
-    if bf16:
-        model = model.to(memory_format=torch.channels_last)
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    opt_d = torch.optim.Adam(discs.parameters(), lr=lr, betas=(0.5, 0.999)) if disc else None
-    x = torch.randn(batch, 3, size, size)
-    if bf16:
-        x = x.contiguous(memory_format=torch.channels_last)
+    cfg = TrainConfig(image_size=size, layout_size=size, decoder=decoder, disc=disc, encoder="resnet18",
+                      pretrained=False, amp="bf16" if bf16 else "fp32", device="cpu", progress=False)
+    run = build_run(cfg, Dist(cfg.device), Path(tempfile.gettempdir()), time.time(), init=False)
+    gen, discs = models_for_epoch(run, cfg.disc_start if disc else 0)   # discriminators on, if any
     g = torch.Generator().manual_seed(1)
-    y = {v: torch.randint(0, 3, (batch, cfg.R, size, size), generator=g) for v in cfg.views}
-    w = torch.tensor(CLASS_WEIGHTS)
-    lam = 0.01
-
-    def step():  # the same sequence as the loop in racklay.train.train()
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            out = model(x)
-        loss = sum(layout_loss(out[v], y[v], w) for v in cfg.views)
-        probs = {}
-        if disc:
-            discs.requires_grad_(False)
-            adv = 0.0
-            for v in cfg.views:
-                probs[v] = out[v].float().softmax(2)
-                with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                    adv = adv + lsgan_generator_loss(discs(v, probs[v]).float())
-            discs.requires_grad_(True)
-            loss = loss + lam * adv
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        if disc:
-            ld = 0.0
-            for v in cfg.views:
-                both = torch.cat([one_hot_layouts(y[v]), probs[v].detach()])
-                with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                    scores = discs(v, both).float()
-                ld = ld + lsgan_discriminator_loss(scores[:batch], scores[batch:])
-            opt_d.zero_grad(set_to_none=True)
-            ld.backward()
-            opt_d.step()
-
-    return step
+    data = {"image": torch.randn(batch, 3, size, size, generator=g),
+            **{v: torch.randint(0, 3, (batch, cfg.R, size, size), generator=g) for v in cfg.views}}
+    return lambda: train_step(run, gen, discs, data)
 
 
 def main(argv=None) -> int:
@@ -87,12 +55,12 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, nargs="+", default=[256], help="square input = layout size(s) (default 256)")
     ap.add_argument("--batch", type=int, default=8, help="images per step (default 8)")
     ap.add_argument("--disc", action="store_true", help="include the patch discriminators (-disc variant)")
-    ap.add_argument("--bf16", action="store_true", help="bf16 autocast + channels_last instead of fp32")
+    ap.add_argument("--bf16", action="store_true", help="bf16 autocast instead of fp32")
     add_common_args(ap, rounds=3, calls=2, warmup=1)
     args = ap.parse_args(argv)
     start(args)
-    print("step: the sequence of racklay.train's loop (its layout_loss, weighted CE [1,5,5]) + backward + Adam")
-    mode = ("bf16+CL" if args.bf16 else "fp32") + (", with discriminators" if args.disc else "")
+    print("step: racklay.train.train_step (the training loop's own step) on a run built by racklay.train.build_run")
+    mode = ("bf16" if args.bf16 else "fp32") + " + channels_last" + (", with discriminators" if args.disc else "")
     rows, results = [], {}
     for size in args.size:
         steps = {d: make_step(d, size, args.batch, args.disc, args.bf16) for d in ("light", "paper")}

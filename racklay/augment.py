@@ -34,11 +34,12 @@ called, the pipeline therefore re-seeds itself on its first call in a worker pro
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
-PRESETS = ("none", "paper", "strong")
+from .config import AUGMENT_PRESETS as PRESETS
+from .config import to_dict
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,7 @@ class AugmentConfig:
     letterbox_min: float = 0.45   # narrowest squeeze (fraction of the width kept)
 
     def to_dict(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+        return to_dict(self)
 
 
 def preset_config(name: str, letterbox: bool = False) -> AugmentConfig | None:

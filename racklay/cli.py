@@ -7,6 +7,8 @@ import importlib
 import os
 import sys
 
+from racklay.commands import CLIError
+
 #: sub-command modules, in the order `racklay --help` lists them
 COMMANDS = [                       # in workflow order: data, model, use, check
     "racklay.commands.synth",
@@ -20,10 +22,6 @@ COMMANDS = [                       # in workflow order: data, model, use, check
     "racklay.commands.analyze",
     "racklay.commands.score",
 ]
-
-
-class CLIError(Exception):
-    """An error for the user: printed as one line, exit code 2."""
 
 
 def build_parser(prog: str = "racklay", description: str | None = None, commands=None) -> argparse.ArgumentParser:
@@ -57,31 +55,6 @@ def _demo_moved(args) -> int:
 def _version() -> str:
     from racklay import __version__
     return __version__
-
-
-def at_least(lo: int):
-    """argparse type: an integer >= lo (argparse prints the one-line usage error otherwise)."""
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if v < lo:
-            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {v}")
-        return v
-    parse.__name__ = f"integer >= {lo}"
-    return parse
-
-
-def positive_float(text: str) -> float:
-    """argparse type: a finite number > 0."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (v > 0 and v != float("inf")):
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text}")
-    return v
 
 
 def os_error_line(e: OSError) -> str:

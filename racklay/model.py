@@ -47,144 +47,28 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .layout import DEFAULT_EXTENT_M, DEFAULT_R, NUM_CLASSES, VIEWS
+from .config import DECODERS, ENCODERS, ModelConfig
+from .layout import NUM_CLASSES
 from .structure import DEFAULT_T, DEFAULT_TAU_PX, HARD_TAU_PX, rasterize, rescale_structure
 
-DECODERS = ("light", "paper", "columns", "fast", "struct")
 #: a checkpoint with decoder K can initialise a model with decoder V when (K, V) is listed: V is K
 #: plus branches whose last layer starts at zero, so the grown model computes what K computed
 GROWABLE_DECODERS = {("light", "columns")}
 #: a checkpoint with decoder K can initialise a model with decoder V when (K, V) is listed: both have
 #: the same tensors arranged differently, so V starts close to K, not equal to it (fine-tune)
 SAME_TENSOR_DECODERS = {("light", "fast"), ("fast", "light")}
-ENCODERS = ("resnet18", "efficientnet-lite0")
-#: the encoder of configs written before the encoder was a choice (checkpoints, ONNX files)
-LEGACY_ENCODER = "resnet18"
 #: initial logits (background, shelf, box) of every shelf channel: log of the class frequencies
 #: of WareSynth complex layouts (~97 / 2 / 0.4 % of pixels) times the default CE weights [1, 5, 5].
 #: Without it the light decoder's 1x1 head needs ~100 Adam steps to learn "mostly background";
 #: measured on 96 complex images (128 px in, 64 out, batch 8): validation score after 120 steps
 #: 0.264 with this prior vs 0.186 without.
 HEAD_PRIOR_LOGITS = (0.0, -2.3, -3.7)
-
-
-@dataclass
-class ModelConfig:
-    R: int = DEFAULT_R                  # shelves (output channels per class)
-    image_size: int | tuple = 256       # network input: S (square) or (H, W); photos are resized to it
-    layout_size: int = 256              # S: output layout grid S x S
-    views: tuple = ("top", "front")     # one view -> RackLay-S, both -> RackLay-D
-    decoder: str = "light"              # "light" | "fast" | "columns" | "struct" | "paper" (module docstring)
-    disc: bool = False                  # trained with patch discriminators ("-disc")
-    extent: float = DEFAULT_EXTENT_M    # metres covered by the layout grid (for consumers)
-    encoder: str = "efficientnet-lite0"  # "efficientnet-lite0" (ImageNet weights ship) | "resnet18" (the paper's)
-    letterbox: bool = False             # photos of another aspect are padded, not stretched, to the input
-    #: per-view additive biases on the (background, shelf, box) logits before the argmax that turns
-    #: scores into classes, fitted on a validation split by `racklay calibrate` (racklay/calibrate.py);
-    #: None: plain argmax. Probabilities (and so average precision) are not changed by it.
-    decision_bias: dict | None = None
-    #: struct decoder only: also read the 1/4-resolution encoder features along image columns (a
-    #: detail branch, StructDecoder), so gaps between boxes narrower than a 1/8 feature column can
-    #: show; grows from a struct checkpoint without it (`racklay train --init`)
-    struct_fine: bool = False
-    #: struct decoder only: a gap output of its own, per position along each shelf (the logit that
-    #: the position is a gap between two boxes), trained by its own loss; a confident gap cuts the
-    #: box run there (StructDecoder). Grows from a struct checkpoint without it.
-    struct_gap: bool = False
-
-    def __post_init__(self):
-        self.views = tuple(self.views)
-        if isinstance(self.image_size, (list, tuple)):
-            if len(self.image_size) != 2:
-                raise ValueError(f"image_size must be S or (H, W), got {self.image_size}")
-            self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
-            if self.image_size[0] == self.image_size[1]:
-                self.image_size = self.image_size[0]
-        if self.encoder not in ENCODERS:
-            raise ValueError(f"encoder must be one of {ENCODERS}, got {self.encoder!r}")
-        bad = [v for v in self.views if v not in VIEWS]
-        if not self.views or bad or len(set(self.views)) != len(self.views):
-            raise ValueError(f"views must be a non-empty subset of {VIEWS}, got {self.views}")
-        if self.decoder not in DECODERS:
-            raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
-        for k in ("struct_fine", "struct_gap"):
-            if getattr(self, k) and self.decoder != "struct":
-                raise ValueError(f"{k} needs the struct decoder, got {self.decoder!r}")
-        if self.R < 1:
-            raise ValueError(f"R must be >= 1, got {self.R}")
-        if any(v % 32 or v < 32 for v in self.input_hw):
-            raise ValueError(f"image_size must be a positive multiple of 32 (S or (H, W)), got {self.image_size}")
-        if self.layout_size < 8:
-            raise ValueError(f"layout_size must be >= 8, got {self.layout_size}")
-        if self.decision_bias is not None:
-            self.decision_bias = check_decision_bias(self.decision_bias, self.views)
-
-    @property
-    def input_hw(self) -> tuple[int, int]:
-        """(H, W) of the network input."""
-        s = self.image_size
-        return (int(s[0]), int(s[1])) if isinstance(s, (tuple, list)) else (int(s), int(s))
-
-    def variant(self) -> str:
-        """Paper name of the variant, e.g. RackLay-D-disc."""
-        return "RackLay-" + ("D" if len(self.views) == 2 else "S") + ("-disc" if self.disc else "")
-
-    def to_dict(self) -> dict:
-        """The config as a JSON-able dict: every dataclass field, tuples as lists. The one
-        serialiser of a model config (checkpoint headers, ONNX metadata, eval reports)."""
-        return _jsonable(asdict(self))
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "ModelConfig":
-        """Inverse of `to_dict` (lists back to tuples). Strict: a key this version does not know
-        (a file written by a newer toolkit) is a ValueError naming it. Keys added since a file was
-        written take their defaults, except `encoder`: files from before it existed are ResNet-18."""
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown model config keys: {sorted(unknown)} (written by a newer racklay?)")
-        d = {k: _tuples(v) for k, v in d.items()}
-        d.setdefault("encoder", LEGACY_ENCODER)
-        return cls(**d)
-
-
-def _jsonable(v):
-    if isinstance(v, dict):
-        return {k: _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    return v
-
-
-def _tuples(v):
-    if isinstance(v, dict):
-        return {k: _tuples(x) for k, x in v.items()}
-    if isinstance(v, list):
-        return tuple(_tuples(x) for x in v)
-    return v
-
-
-def check_decision_bias(bias, views) -> dict:
-    """{view: (b_background, b_shelf, b_box)} with finite floats and only the model's views."""
-    if not isinstance(bias, dict) or not bias:
-        raise ValueError(f"decision_bias must be a non-empty {{view: [3 numbers]}} mapping, got {bias!r}")
-    out = {}
-    for v, b in bias.items():
-        if v not in views:
-            raise ValueError(f"decision_bias names view {v!r}, which the model does not predict ({'/'.join(views)})")
-        vals = tuple(float(x) for x in b) if isinstance(b, (list, tuple)) else ()
-        if len(vals) != NUM_CLASSES or not all(math.isfinite(x) for x in vals):
-            raise ValueError(f"decision_bias[{v!r}] must be {NUM_CLASSES} finite numbers "
-                             f"(background, shelf, box), got {b!r}")
-        out[v] = vals
-    return out
 
 
 # ----------------------------------------------------------------------------- encoder

@@ -43,7 +43,7 @@ def add_precision_args(p) -> None:
 
 def add_shelf_length_arg(p) -> None:
     """--shelf-length M for commands that run a model on photos."""
-    from .cli import positive_float
+    from .config import positive_float
 
     p.add_argument("--shelf-length", type=positive_float, default=None, metavar="M",
                    help="the shelves' known length in metres (beam length, bay width): fixes the metric "

@@ -19,6 +19,7 @@ import torch
 from torch.utils.data import Dataset
 
 from . import layout as L
+from .config import TrainConfig
 from .data import RackLayRoot
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
@@ -86,7 +87,8 @@ def image_to_tensor(image: np.ndarray) -> torch.Tensor:
 
 
 class RackLayDataset(Dataset):
-    def __init__(self, root, split: str | None = "train", image_size=256, layout_size: int = 256,
+    def __init__(self, root, split: str | None = "train", image_size=TrainConfig.image_size,
+                 layout_size: int = TrainConfig.layout_size,
                  views: Sequence[str] = ("top", "front"), R: int | None = None,
                  transform: Callable | None = None, cache: bool = False, ids: Sequence[str] | None = None,
                  letterbox: bool = False):

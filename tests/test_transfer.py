@@ -159,8 +159,8 @@ def killed_then_resumed_compare(tiny_data, monkeypatch_module):
 
     cfg = CompareConfig(real=str(tiny_data / "real"), out=str(tiny_data / "cmp"), synthetic=str(tiny_data / "syn"),
                         seeds=[0], fractions=[1.0], epochs=1, pretrain_epochs=1, lr=3e-3, val_fraction=0.25,
-                        image_size=64, layout_size=32, batch_size=4, disc=False, workers=0,
-                        train_overrides={"warmup_steps": 0, "progress": False})
+                        train={"image_size": 64, "layout_size": 32, "batch_size": 4, "disc": False, "workers": 0,
+                               "warmup_steps": 0, "progress": False})
     real_train = rt.train
     calls = []
 
@@ -394,3 +394,20 @@ def test_finetune_cli_mixes_synthetic_replay(tiny_data, tmp_path, monkeypatch):
     assert main(base) == 0
     assert (seen[0].replay, seen[0].replay_ratio) == (str(tiny_data / "syn"), 0.5)
     assert seen[1].replay is None
+
+
+def test_compare_settings_keep_run_defining_training_options_only():
+    """compare.json records the compare's own keep=True settings and, of its TrainConfig overrides,
+    only those a resumed training run must keep: more workers may resume a compare, another batch
+    size may not; an override TrainConfig does not have is refused before any run starts."""
+    from racklay.config import RUN_DEFINING
+    from transfer.compare import RESULT_KEYS, CompareConfig, validate
+
+    base = CompareConfig(real="r", out="o", synthetic="s", train={"batch_size": 4, "workers": 0})
+    assert set(base.settings()) == set(RESULT_KEYS) and "seeds" not in RESULT_KEYS and "out" not in RESULT_KEYS
+    assert base.settings()["train"] == {"batch_size": 4} and "workers" not in RUN_DEFINING
+    more_workers = CompareConfig(real="r", out="o", synthetic="s", train={"batch_size": 4, "workers": 2})
+    other_batch = CompareConfig(real="r", out="o", synthetic="s", train={"batch_size": 8, "workers": 0})
+    assert more_workers.settings() == base.settings() != other_batch.settings()
+    with pytest.raises(ValueError, match=r"unknown training option\(s\) batchsize \(did you mean 'batch_size'\?\)"):
+        validate(CompareConfig(real="r", out="o", synthetic="s", train={"batchsize": 4}))

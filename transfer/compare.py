@@ -15,56 +15,55 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, dataclass
 from pathlib import Path
 
 from racklay.atomic import atomic_write_json
+from racklay.config import ARCH_FIELDS, RUN_DEFINING, TrainConfig, from_dict, option, run_defining
 
 from . import report, workflow
-
-#: settings that change results: resuming an OUT with different values is refused
-RESULT_KEYS = ("synthetic", "real", "pretrained", "real_train_split", "real_test_split", "image_size",
-               "layout_size", "R", "decoder", "encoder", "letterbox", "disc", "pretrain_epochs", "epochs", "batch_size", "lr",
-               "finetune_lr", "freeze_encoder_epochs", "imagenet_weights", "val_fraction", "patience",
-               "augment", "max_minutes", "pretrain_max_minutes", "train_overrides")
 
 
 @dataclass
 class CompareConfig:
-    real: str
-    out: str
-    synthetic: str | None = None
-    pretrained: str | None = None          # one checkpoint for every seed instead of pretraining per seed
-    seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
-    fractions: list[float] = field(default_factory=lambda: [0.1, 0.25, 0.5, 1.0])
-    real_train_split: str = "train"
-    real_test_split: str = "test"
-    image_size: int | None = None
-    layout_size: int | None = None
-    R: int | None = None
-    decoder: str | None = None
-    encoder: str | None = None
-    letterbox: bool | None = None
-    disc: bool | None = None
-    pretrain_epochs: int | None = None
-    epochs: int | None = None              # real-only and fine-tune epochs
-    batch_size: int | None = None
-    lr: float | None = None                # pretrain and real-only
-    finetune_lr: float | None = None       # default: lr x workflow.FINETUNE_LR_RATIO
-    freeze_encoder_epochs: int = 0
-    imagenet_weights: str | None = None    # real-only init (and pretrain init)
-    val_fraction: float = workflow.REAL_VAL_FRACTION
-    patience: int | None = None
-    augment: bool = True
-    max_minutes: float | None = None       # per real-only / fine-tune run
-    pretrain_max_minutes: float | None = None
-    workers: int | None = None
-    eval_batch_size: int = 8
-    train_overrides: dict = field(default_factory=dict)  # any other TrainConfig fields
+    """`transfer compare`'s own settings: which data, which seeds and fractions, and what differs
+    between the regimes. A training option shared by every run (image size, R, decoder,
+    discriminators, batch size, workers, any other) is not mirrored here: `train` holds it as an
+    override of racklay.config.TrainConfig, where it is declared. keep=True: resuming an OUT with a
+    different value is refused (as are changes to `train`'s run-defining options)."""
+    real: str = option(MISSING, "real RackLay root with the train and test splits", keep=True)
+    out: str = option(MISSING, "output folder (resumable)")
+    synthetic: str | None = option(None, "synthetic root, pretrained on once per seed", keep=True)
+    pretrained: str | None = option(None, "one pretrain checkpoint for every seed instead", keep=True)
+    seeds: list = option([0, 1, 2], "seeds; adding some to an OUT runs only theirs")
+    fractions: list = option([0.1, 0.25, 0.5, 1.0], "fractions of the real training split (learning curve)")
+    real_train_split: str = option("train", "real training split", keep=True)
+    real_test_split: str = option("test", "real test split", keep=True)
+    pretrain_epochs: int | None = option(None, "pretrain runs' epochs (None: TrainConfig's)", keep=True)
+    epochs: int | None = option(None, "real-only and fine-tune runs' epochs (None: TrainConfig's)", keep=True)
+    lr: float | None = option(None, "pretrain and real-only learning rate (None: TrainConfig's)", keep=True)
+    finetune_lr: float | None = option(None, "fine-tune learning rate (None: lr x workflow.FINETUNE_LR_RATIO)",
+                                       keep=True)
+    freeze_encoder_epochs: int = option(0, "fine-tune runs' frozen-encoder epochs", keep=True)
+    imagenet_weights: str | None = option(None, "real-only (and pretrain) encoder init file", keep=True)
+    val_fraction: float = option(workflow.REAL_VAL_FRACTION, "share of the real training split held out",
+                                 keep=True)
+    augment: bool = option(True, "the paper's augmentation on real data", keep=True)
+    max_minutes: float | None = option(None, "time budget per real-only / fine-tune run", keep=True)
+    pretrain_max_minutes: float | None = option(None, "time budget per pretrain run", keep=True)
+    eval_batch_size: int = option(8, "images per forward pass when scoring")
+    train: dict = option({}, "TrainConfig overrides for every run", keep=True)
 
     def settings(self) -> dict:
-        d = asdict(self)
-        return {k: d[k] for k in RESULT_KEYS}
+        """What compare.json records and a resume must match: the keep=True fields, with `train`
+        reduced to TrainConfig's run-defining options (workers or patience may change)."""
+        d = {k: getattr(self, k) for k in RESULT_KEYS}
+        d["train"] = {k: v for k, v in self.train.items() if k in RUN_DEFINING}
+        return json.loads(json.dumps(d))
+
+
+#: settings that change results: resuming an OUT with different values is refused
+RESULT_KEYS = run_defining(CompareConfig)
 
 
 def _frac_name(f: float) -> str:
@@ -79,6 +78,8 @@ def validate(cfg: CompareConfig) -> None:
         raise ValueError(f"--fractions must be in (0, 1], got {cfg.fractions}")
     if (cfg.synthetic is None) == (cfg.pretrained is None):
         raise ValueError("give exactly one of --synthetic ROOT (pretrain here) or --pretrained CHECKPOINT")
+    # a typo or a bad value in the overrides fails now, not after the first runs
+    from_dict(TrainConfig, {"data": cfg.real, **cfg.train}, "compare: train", "training option")
     workflow.require_split(cfg.real, cfg.real_train_split, "real")
     workflow.require_split(cfg.real, cfg.real_test_split, "real")
     if cfg.synthetic is not None:
@@ -90,7 +91,7 @@ def validate(cfg: CompareConfig) -> None:
                              "the regimes must share one architecture")
     else:
         workflow.check_init_compatible(cfg.pretrained, cfg.real, cfg.real_train_split,
-                                       layout_size=cfg.layout_size, R=cfg.R)
+                                       layout_size=cfg.train.get("layout_size"), R=cfg.train.get("R"))
 
 
 def _check_resume(out: Path, cfg: CompareConfig) -> None:
@@ -100,7 +101,7 @@ def _check_resume(out: Path, cfg: CompareConfig) -> None:
             old = json.loads(p.read_text()).get("settings", {})
         except json.JSONDecodeError:
             old = {}
-        new = json.loads(json.dumps(cfg.settings()))
+        new = cfg.settings()
         diff = [k for k in RESULT_KEYS if k in old and old[k] != new[k]]
         if diff:
             k = diff[0]
@@ -116,14 +117,6 @@ def _load_done(path: Path) -> dict | None:
         return json.loads(path.read_text())
     except json.JSONDecodeError:
         return None  # cannot happen with atomic writes, but never trust a broken marker
-
-
-def _common(cfg: CompareConfig) -> dict:
-    kw = dict(image_size=cfg.image_size, layout_size=cfg.layout_size, R=cfg.R, decoder=cfg.decoder, disc=cfg.disc,
-              encoder=cfg.encoder, letterbox=cfg.letterbox,
-              batch_size=cfg.batch_size, patience=cfg.patience, workers=cfg.workers)
-    kw.update(cfg.train_overrides)
-    return kw
 
 
 class Compare:
@@ -160,7 +153,7 @@ class Compare:
             return Path(done["weights"])
         self.log(f"  pretraining on {cfg.synthetic} (seed {seed}) -> {d}")
         t0 = time.time()
-        kw = _common(cfg)
+        kw = dict(cfg.train)
         run = workflow.pretrain(cfg.synthetic, d.parent, name=d.name, seed=seed, epochs=cfg.pretrain_epochs,
                                 lr=cfg.lr, imagenet_weights=cfg.imagenet_weights,
                                 max_minutes=cfg.pretrain_max_minutes,
@@ -181,7 +174,7 @@ class Compare:
         pre = self.pretrain_weights(seed) if regime in ("synthetic", "finetune") else None
         t_pre = time.time() - t0
         t0 = time.time()
-        kw = _common(cfg)
+        kw = dict(cfg.train)
         if regime == "synthetic":
             weights, run, n_train = pre, pre.parent, None
         else:
@@ -192,8 +185,8 @@ class Compare:
                 run = workflow.train_on_real(cfg.real, d.parent, name=d.name, init=None, lr=cfg.lr,
                                              imagenet_weights=cfg.imagenet_weights, **common, **kw)
             else:
-                ft_kw = {k: v for k, v in kw.items()
-                         if k not in ("image_size", "layout_size", "R", "decoder", "encoder", "letterbox")}
+                # the architecture comes from the checkpoint (discriminators are the run's choice)
+                ft_kw = {k: v for k, v in kw.items() if k not in ARCH_FIELDS or k == "disc"}
                 lr = cfg.finetune_lr if cfg.finetune_lr is not None else (
                     None if cfg.lr is None else cfg.lr * workflow.FINETUNE_LR_RATIO)
                 run = workflow.finetune(pre, cfg.real, d.parent, name=d.name, lr=lr,
@@ -226,9 +219,8 @@ class Compare:
         if self.cfg.pretrained:
             # one architecture for all three regimes: the checkpoint's
             m = workflow.checkpoint_config(self.cfg.pretrained)
-            for k in ("image_size", "layout_size", "R", "decoder", "encoder", "letterbox", "disc"):
-                if getattr(self.cfg, k) is None:
-                    setattr(self.cfg, k, getattr(m, k))
+            for k in ARCH_FIELDS:
+                self.cfg.train.setdefault(k, getattr(m, k))
         self.out.mkdir(parents=True, exist_ok=True)
         _check_resume(self.out, self.cfg)
         jobs = self.jobs()

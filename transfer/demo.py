@@ -25,12 +25,19 @@ data and runs. Precision follows the machine (bf16 only where the CPU computes i
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+from racklay.config import TrainConfig
+
 #: the real photos (package data: copies of datasets/real-photos/*.jpg with their SOURCES.tsv)
 PHOTOS = Path(str(resources.files("transfer") / "photos"))
+
+
+#: the demo's training options, as overrides of racklay.config.TrainConfig (every other option,
+#: e.g. the batch size or the precision, is TrainConfig's; `transfer demo --amp` sets one)
+TRAIN_OVERRIDES = {"disc": False, "warmup_steps": 20, "progress": False, "workers": 0}
 
 
 @dataclass
@@ -39,16 +46,15 @@ class DemoConfig:
     seed: int = 0
     weights: str | None = None      # model to start from (default: the shipped one)
     n_real: int = 200               # proxy-real images (train 82 % / test 18 %, as the paper's real set)
-    layout_d: int = 256             # D stored on disk (RackLay's own is 512; smaller = faster I/O)
-    epochs: int = 30
+    layout_d: int = TrainConfig.layout_size  # D stored on disk: the layout size models predict
+    epochs: int | None = None       # real-only and fine-tune epochs (None: TrainConfig's)
     fractions: tuple = (1.0,)
     seeds: int = 1
-    max_minutes: float = 3.2        # per training run (real only, fine-tune)
-    batch_size: int = 8
-    amp: str = "auto"               # bf16 only where the machine computes it natively
+    max_minutes: float = 3.2        # per training run (real only, fine-tune): the demo's time budget
     photos: str = str(PHOTOS)
     real_photos: str | None = None  # labelled annotate project for Table 2 (None: proxy-real renders)
     workers: int = 1                # WareSynth workers
+    train: dict = field(default_factory=lambda: dict(TRAIN_OVERRIDES))
 
     @property
     def real_seed(self) -> int:
@@ -164,9 +170,8 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     log(f"[3/4] transfer compare on {real.name}: synthetic only (the shipped model) / real only (ImageNet "
         f"encoder) / synthetic -> real fine-tune, {cfg.seeds} seed(s), at most {cfg.max_minutes:g} min per run")
     ccfg = CompareConfig(real=str(real), out=str(out / "compare"), pretrained=str(weights), seeds=list(range(cfg.seeds)),
-                         fractions=list(cfg.fractions), disc=False, epochs=cfg.epochs, batch_size=cfg.batch_size,
-                         max_minutes=cfg.max_minutes, workers=0,
-                         train_overrides={"amp": cfg.amp, "warmup_steps": 20, "progress": False})
+                         fractions=list(cfg.fractions), epochs=cfg.epochs, max_minutes=cfg.max_minutes,
+                         train=dict(cfg.train))
     res = compare(ccfg, log=lambda m: log("      " + m))
     log(f"[4/4] Table 2 on {what}:")
     log("")

@@ -1,6 +1,6 @@
 """Pretrain / fine-tune / real-only training as thin layers over `racklay.train.train`.
 
-Nothing here has a training loop: each function builds a `racklay.train.TrainConfig` with the
+Nothing here has a training loop: each function builds a `racklay.config.TrainConfig` with the
 defaults that suit its step of the transfer workflow (paper §5.5) and calls `train(cfg,
 transform=...)`. Real-data training (fine-tune and real-only) gets the paper's augmentation
 (`transfer.augment.PaperAugment`, seeded from the run's seed) and carves its validation set from
@@ -8,10 +8,10 @@ the training split (`val_fraction`), as the real set only has train/test splits.
 """
 from __future__ import annotations
 
-import dataclasses
 import os
 from pathlib import Path
 
+from racklay.config import ARCH_FIELDS, TrainConfig, field_default, from_dict
 from racklay.data import DataError, RackLayRoot
 
 #: default learning-rate ratio of fine-tuning to training from scratch ("lower LR")
@@ -21,21 +21,13 @@ REAL_VAL_FRACTION = 0.15
 
 
 def train_config(**kw):
-    """A `TrainConfig` from keyword arguments; unknown names are a clear error (not ignored)."""
-    from racklay.train import TrainConfig
-
-    names = {f.name for f in dataclasses.fields(TrainConfig)}
-    unknown = sorted(set(kw) - names)
-    if unknown:
-        raise ValueError(f"racklay.train.TrainConfig has no field(s) {', '.join(unknown)}")
-    # None means "TrainConfig's default"
-    return TrainConfig(**{k: v for k, v in kw.items() if v is not None})
+    """A `TrainConfig` from keyword arguments (None: TrainConfig's default); unknown names are a
+    clear error (not ignored)."""
+    return from_dict(TrainConfig, {k: v for k, v in kw.items() if v is not None}, "transfer", "training option")
 
 
 def default_lr() -> float:
-    from racklay.train import TrainConfig
-
-    return float(TrainConfig().lr)
+    return float(field_default(TrainConfig, "lr"))
 
 
 def require_split(root: str | os.PathLike, split: str, what: str) -> RackLayRoot:
@@ -142,7 +134,7 @@ def train_on_real(real, out, name: str, seed: int = 0, init=None, augment: bool 
     """Fine-tune (`init` = a pretrain checkpoint) or train from scratch (`init=None`, the
     "real only" regime) on a real RackLay root, with the paper's augmentation and early
     stopping on a validation set carved from the training split."""
-    from racklay.train import ARCH_FIELDS, train
+    from racklay.train import train
 
     from .augment import PaperAugment
 
@@ -179,7 +171,7 @@ def best_weights(run_dir: str | os.PathLike) -> Path:
 
 def train_images(run_dir: str | os.PathLike) -> int | None:
     """How many training images a run used (its config.yaml through racklay.train.split_ids)."""
-    from racklay.train import TrainConfig, split_ids
+    from racklay.train import split_ids
 
     p = Path(run_dir) / "config.yaml"
     if not p.is_file():

@@ -20,7 +20,7 @@ def register(sub) -> None:
 
 
 def read_password(user: str) -> str:
-    from racklay.cli import CLIError
+    from racklay.commands import CLIError
 
     if not sys.stdin.isatty():
         line = sys.stdin.readline()

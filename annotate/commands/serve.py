@@ -65,7 +65,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from annotate.auth import Authenticator
     from annotate.server import serve
-    from racklay.cli import CLIError
+    from racklay.commands import CLIError
 
     if args.auth is not None:
         raise CLIError("--auth USER:PASSWORD is no longer accepted: it puts the password on the command line "

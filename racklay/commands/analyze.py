@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from racklay.cli import at_least, positive_float
+from racklay.config import at_least, positive_float
 
 FORMATS = ("glb", "ply", "both", "none")
 
@@ -146,7 +146,7 @@ def _samples_from_photos(args):
 
 def run(args) -> int:
     from racklay.atomic import atomic_write_json
-    from racklay.cli import CLIError
+    from racklay.commands import CLIError
 
     if args.layouts and (args.inputs or args.weights):
         raise CLIError("give either --layouts ROOT or IMAGE_OR_FOLDER with --weights, not both")

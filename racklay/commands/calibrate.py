@@ -1,7 +1,7 @@
 """racklay calibrate --weights W --data ROOT --split val --out calibrated.safetensors"""
 from __future__ import annotations
 
-from racklay.cli import at_least
+from racklay.config import at_least
 
 
 def register(sub) -> None:
@@ -37,7 +37,7 @@ def run(args) -> int:
 
     from racklay.atomic import atomic_write_json
     from racklay.calibrate import fit_decision_bias, format_fits, write_calibrated
-    from racklay.cli import CLIError
+    from racklay.commands import CLIError
     from racklay.predict import Predictor
     from racklay.release import weights_for_cli
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from racklay.cli import at_least
+from racklay.config import at_least
 
 
 def register(sub) -> None:

@@ -1,7 +1,7 @@
 """racklay eval --weights W --data ROOT --split test [--json out.json]"""
 from __future__ import annotations
 
-from racklay.cli import at_least, positive_float
+from racklay.config import at_least, positive_float
 
 
 def register(sub) -> None:

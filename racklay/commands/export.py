@@ -1,7 +1,7 @@
 """racklay export --weights W --onnx out.onnx"""
 from __future__ import annotations
 
-from racklay.cli import positive_float
+from racklay.config import positive_float
 
 
 def register(sub) -> None:
@@ -30,7 +30,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from racklay.checkpoint import load_model
-    from racklay.cli import CLIError
+    from racklay.commands import CLIError
     from racklay.export import export_onnx, parity
 
     if not Path(args.weights).is_file():

@@ -1,7 +1,7 @@
 """racklay predict IMAGES_OR_FOLDER... --weights W --out DIR"""
 from __future__ import annotations
 
-from racklay.cli import at_least
+from racklay.config import at_least
 
 
 def register(sub) -> None:
@@ -38,7 +38,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from pathlib import Path
 
-    from racklay.cli import CLIError
+    from racklay.commands import CLIError
     from racklay.data import check_prediction_out
     from racklay.predict import Predictor, list_inputs, predict_folder
     from racklay.release import weights_for_cli

@@ -21,7 +21,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from pathlib import Path
 
-    from racklay.cli import CLIError
+    from racklay.commands import CLIError
     from racklay.data import RackLayRoot
     from racklay.viz import layout_figure
 

@@ -1,7 +1,7 @@
 """racklay synth --recipe complex --n 2000 --out datasets/generated/complex --seed 0"""
 from __future__ import annotations
 
-from racklay.cli import at_least
+from racklay.config import at_least
 
 
 def register(sub) -> None:
@@ -45,7 +45,7 @@ def _keys_help() -> str:
 
 
 def run(args) -> int:
-    from racklay.cli import CLIError
+    from racklay.commands import CLIError
     from racklay.synth.generate import generate_dataset, parse_shard
     from racklay.synth.recipe import RecipeError, load_recipe
 

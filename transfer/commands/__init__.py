@@ -3,54 +3,52 @@ from __future__ import annotations
 
 import argparse
 
-from racklay.commands.train import add_train_flags
+from racklay.config import TrainConfig, add_flags
 
 
 def add_model_args(p: argparse.ArgumentParser, from_checkpoint: bool = False) -> None:
-    """Model flags (racklay train's, racklay.commands.train.FLAGS); absent flags are None (the
+    """Model flags (racklay train's, racklay/config.py); absent flags are None (the
     checkpoint's value with `from_checkpoint`, else TrainConfig's default)."""
     g = p.add_argument_group("model" + (" (default: the checkpoint's)" if from_checkpoint else ""))
     if from_checkpoint:
-        add_train_flags(g, ["image_size", "layout_size", "R"], default=None, helps={
+        add_flags(g, TrainConfig, ["image_size", "layout_size", "R"], default=None, helps={
             "image_size": "network input: S (square) or HxW, multiples of 32",
             "layout_size": "layout grid size D the model predicts",
             "R": "shelves per image (layout channels); must match the data"})
     else:
-        add_train_flags(g, ["image_size", "layout_size", "R", "decoder", "disc"], default=None)
+        add_flags(g, TrainConfig, ["image_size", "layout_size", "R", "decoder", "disc"], default=None)
 
 
-def add_train_args(p: argparse.ArgumentParser, title: str = "training (defaults: racklay.train.TrainConfig's)",
+def add_train_args(p: argparse.ArgumentParser, title: str = "training (defaults: racklay/config.py)",
                    helps: dict | None = None, single_run: bool = True) -> None:
     """The TrainConfig flags every transfer command shares, as `racklay train` defines them
-    (racklay.commands.train.FLAGS); absent flags are None (the workflow's or TrainConfig's default).
+    (racklay/config.py); absent flags are None (the workflow's or TrainConfig's default).
     `helps` replaces a flag's help text (compare's apply to several runs); `single_run` adds --seed
     and --resume (compare has its own --seeds and resumes by itself)."""
     g = p.add_argument_group(title)
-    add_train_flags(g, ["epochs", "batch_size", "lr", "patience", "workers", "max_minutes"], default=None,
-                    helps={"lr": "learning rate (default {default})",
-                           "max_minutes": "time budget for the run; stops cleanly and keeps the best",
-                           **(helps or {})})
+    add_flags(g, TrainConfig, ["epochs", "batch_size", "lr", "patience", "workers", "max_minutes"], default=None,
+              helps={"lr": "learning rate (default {default})",
+                     "max_minutes": "time budget for the run; stops cleanly and keeps the best", **(helps or {})})
     if single_run:
-        add_train_flags(g, ["seed", "resume"], helps={"resume": "continue an interrupted run in --out (same settings)"})
+        add_flags(g, TrainConfig, ["seed", "resume"], helps={"resume": "continue an interrupted run in --out (same settings)"})
         g.set_defaults(seed=0, resume=False)
     add_set_arg(g)
 
 
 def add_set_arg(g) -> None:
     g.add_argument("--set", dest="train_set", action="append", default=[], metavar="KEY=VALUE",
-                   help="any other racklay.train.TrainConfig field, YAML value (repeatable): "
+                   help="any other racklay.config.TrainConfig field, YAML value (repeatable): "
                         "--set amp=bf16 --set warmup_steps=20")
 
 
 def parse_sets(items) -> dict:
     """['amp=bf16', 'warmup_steps=20'] -> {'amp': 'bf16', 'warmup_steps': 20} (checked against TrainConfig)."""
     import dataclasses
+    import difflib
 
     import yaml
 
-    from racklay.train import TrainConfig
-
-    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    names = [f.name for f in dataclasses.fields(TrainConfig)]
     out = {}
     for item in items or []:
         key, eq, val = item.partition("=")
@@ -58,8 +56,7 @@ def parse_sets(items) -> dict:
         if not eq or not key:
             raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
         if key not in names:
-            import difflib
-            close = difflib.get_close_matches(key, sorted(names), n=1)
+            close = difflib.get_close_matches(key, names, n=1)
             raise ValueError(f"--set: TrainConfig has no field {key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
         try:
             out[key] = yaml.safe_load(val)

@@ -1,8 +1,7 @@
 """transfer compare: Table 2 of the paper (synthetic only / real only / fine-tuned) + learning curve."""
 from __future__ import annotations
 
-from racklay.cli import at_least, positive_float
-from racklay.commands.train import TrainHelpFormatter
+from racklay.config import at_least, positive_float
 
 from . import add_model_args, add_train_args, parse_sets
 
@@ -18,7 +17,7 @@ def register(sub) -> None:
     from ..workflow import FINETUNE_LR_RATIO, REAL_VAL_FRACTION
 
     p = sub.add_parser(
-        "compare", formatter_class=TrainHelpFormatter,
+        "compare",
         help="synthetic-only vs real-only vs synthetic->real fine-tune (paper Table 2)",
         description="Run the three training regimes of the paper's Table 2 on the same real test split, "
                     "over several seeds: (1) pretrain on --synthetic and evaluate on the real test split; "
@@ -54,7 +53,7 @@ def register(sub) -> None:
     p.add_argument("--no-augment", action="store_true", help="train on real data without the paper's augmentation")
     p.add_argument("--eval-batch-size", type=at_least(1), default=8, help="images per forward pass when scoring (default 8)")
     add_model_args(p)
-    add_train_args(p, "training of every run (defaults: racklay.train.TrainConfig's)", single_run=False, helps={
+    add_train_args(p, "training of every run (defaults: racklay/config.py)", single_run=False, helps={
         "epochs": "epochs of real-only and fine-tune runs",
         "lr": "learning rate of pretrain and real-only runs",
         "max_minutes": "time budget per real-only / fine-tune run"})
@@ -66,16 +65,17 @@ def run(args) -> int:
 
     if args.seeds < 1:
         raise ValueError("--seeds must be >= 1")
+    train = {k: getattr(args, k) for k in ("image_size", "layout_size", "R", "decoder", "disc", "batch_size",
+                                           "patience", "workers") if getattr(args, k) is not None}
     cfg = CompareConfig(
         real=args.real, out=args.out, synthetic=args.synthetic, pretrained=args.pretrained,
         seeds=list(range(args.first_seed, args.first_seed + args.seeds)), fractions=args.fractions,
-        real_train_split=args.train_split, real_test_split=args.test_split, image_size=args.image_size,
-        layout_size=args.layout_size, R=args.R, decoder=args.decoder, disc=args.disc,
-        pretrain_epochs=args.pretrain_epochs, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+        real_train_split=args.train_split, real_test_split=args.test_split,
+        pretrain_epochs=args.pretrain_epochs, epochs=args.epochs, lr=args.lr,
         finetune_lr=args.finetune_lr, freeze_encoder_epochs=args.freeze_encoder_epochs,
-        imagenet_weights=args.imagenet_weights, val_fraction=args.val_fraction, patience=args.patience,
+        imagenet_weights=args.imagenet_weights, val_fraction=args.val_fraction,
         augment=not args.no_augment, max_minutes=args.max_minutes, pretrain_max_minutes=args.pretrain_max_minutes,
-        workers=args.workers, eval_batch_size=args.eval_batch_size, train_overrides=parse_sets(args.train_set))
+        eval_batch_size=args.eval_batch_size, train={**train, **parse_sets(args.train_set)})
     res = compare(cfg)
     print()
     print((res["paths"]["table_md"]).read_text())

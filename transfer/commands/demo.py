@@ -2,8 +2,7 @@
 `--toy`: the seconds-long schematic demo of the data and metrics layer (`racklay.toy.toy_demo`)."""
 from __future__ import annotations
 
-from racklay.cli import at_least
-from racklay.precision import ACCEPTED as PRECISION_CHOICES
+from racklay.config import TrainConfig, add_flags, at_least
 
 
 def add_demo_args(p) -> None:
@@ -17,9 +16,7 @@ def add_demo_args(p) -> None:
     p.add_argument("--n-real", type=at_least(10), default=d.n_real, help=f"proxy-real images, >= 10 (default {d.n_real})")
     p.add_argument("--max-minutes", type=float, default=d.max_minutes,
                    help=f"time budget per training run (default {d.max_minutes:g})")
-    p.add_argument("--amp", choices=PRECISION_CHOICES, default=d.amp,
-                   help=f"training precision: auto, fp32 (none: its older spelling), bf16 (default {d.amp}: bf16 "
-                        "only where the CPU computes it natively, fp32 elsewhere; emulated bf16 is many times slower)")
+    add_flags(p, TrainConfig, ["amp"], default=None)
     p.add_argument("--photos", default=d.photos, metavar="DIR",
                    help="real photos to predict in step 1 (default: the 24 shipped with the package, "
                         "copies of photos of datasets/real-photos/)")
@@ -62,8 +59,10 @@ def run(args) -> int:
         from racklay.toy import toy_demo
 
         return toy_demo("outputs/demo" if args.out == DemoConfig.out else args.out, n=args.n, seed=args.seed)
-    kw = dict(out=args.out, seed=args.seed, weights=args.weights, n_real=args.n_real, amp=args.amp,
+    kw = dict(out=args.out, seed=args.seed, weights=args.weights, n_real=args.n_real,
               max_minutes=args.max_minutes, photos=args.photos, real_photos=args.real_photos)
+    if args.amp is not None:
+        kw["train"] = {**DemoConfig().train, "amp": args.amp}
     if args.quick:
         kw.update(QUICK)
     run_demo(DemoConfig(**kw))

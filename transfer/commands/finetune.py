@@ -1,8 +1,7 @@
 """transfer finetune: fine-tune a pretrain checkpoint on a small real set."""
 from __future__ import annotations
 
-from racklay.cli import at_least
-from racklay.commands.train import TrainHelpFormatter, add_train_flags
+from racklay.config import TrainConfig, add_flags, at_least
 
 from . import add_model_args, add_train_args, print_run, split_out, train_kwargs
 
@@ -11,7 +10,7 @@ def register(sub) -> None:
     from ..workflow import CHECKPOINT_LOSS, FINETUNE_LR_RATIO, REAL_VAL_FRACTION
 
     p = sub.add_parser(
-        "finetune", formatter_class=TrainHelpFormatter,
+        "finetune",
         help="fine-tune the shipped model (or a pretrain checkpoint) on real data (step 2)",
         description="Fine-tune a checkpoint (from `transfer pretrain`) on a real RackLay-format dataset "
                     "(the authors' real-world set, or `annotate export` output) with the paper's "
@@ -37,14 +36,14 @@ def register(sub) -> None:
     p.add_argument("--no-augment", action="store_true", help="disable the paper's augmentation")
     add_model_args(p, from_checkpoint=True)
     add_train_args(p, helps={"lr": f"learning rate (default {FINETUNE_LR_RATIO:g} x TrainConfig's {{default}})"})
-    add_train_flags(p.add_argument_group("loss"), list(CHECKPOINT_LOSS), default=None, helps={
+    add_flags(p.add_argument_group("loss"), TrainConfig, list(CHECKPOINT_LOSS), default=None, helps={
         "class_weights": "cross-entropy weights background,shelf,box (default: the ones the checkpoint was "
                          "trained with, from its metadata; else TrainConfig's {default})",
         "iou_weight": "weight of the soft-IoU loss (default: the checkpoint's, from its metadata; else "
                       "TrainConfig's {default})",
         "gap_weight": "struct models: weight of the box loss at gaps between boxes (default: the checkpoint's, "
                       "from its metadata; else TrainConfig's {default})"})
-    add_train_flags(p.add_argument_group("synthetic replay"), ["replay", "replay_ratio"], default=None, helps={
+    add_flags(p.add_argument_group("synthetic replay"), TrainConfig, ["replay", "replay_ratio"], default=None, helps={
         "replay": "synthetic RackLay root (e.g. the release set, or `racklay synth` output) whose train split "
                   "is mixed into every epoch, so a fine-tune on a few dozen photos does not forget the "
                   "renders (docs/transfer.md)"})

@@ -1,14 +1,12 @@
 """transfer pretrain: train on a synthetic RackLay root (a thin layer over racklay.train)."""
 from __future__ import annotations
 
-from racklay.commands.train import TrainHelpFormatter
-
 from . import add_model_args, add_train_args, model_kwargs, print_run, split_out, train_kwargs
 
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "pretrain", formatter_class=TrainHelpFormatter,
+        "pretrain",
         help="train on synthetic data (step 1 of sim-to-real transfer)",
         description="Train RackLay on a synthetic RackLay-format dataset (e.g. from `racklay synth "
                     "--recipe complex`). Uses the dataset's val split when it has one, otherwise carves "
