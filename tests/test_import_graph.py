@@ -1,85 +1,11 @@
 """The packages' import graph reads as layers: no cycles among modules, the core (`racklay`)
 never imports the apps built on it (`transfer`, `annotate`), and no module imports another
 module's private (`_underscore`) names. Read from the source with `ast`, so imports inside
-functions count too: a lazy import hides a cycle from Python, not from this test."""
+functions count too: a lazy import hides a cycle from Python, not from this test. The graph
+reader is the one that draws docs/img/modules.png (bench/figures/module_graph.py)."""
 from __future__ import annotations
 
-import ast
-from pathlib import Path
-
-from conftest import REPO as ROOT
-
-PACKAGES = ("racklay", "transfer", "annotate")
-
-
-def module_name(path: Path) -> str:
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
-    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-
-
-def modules() -> dict[str, Path]:
-    return {module_name(p): p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))}
-
-
-def imports(name: str, path: Path, known: set[str]) -> list[tuple[str, str, int]]:
-    """(imported module, imported name or "", line) for every import of a project module in
-    `path`. `from pkg import mod` counts as importing `pkg.mod` when that is a module."""
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    out = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            out += [(a.name, "", node.lineno) for a in node.names if a.name.split(".")[0] in PACKAGES]
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")
-                base = base[:len(base) - (node.level - 1)]
-                mod = ".".join(base + ([node.module] if node.module else []))
-            else:
-                mod = node.module or ""
-            if mod.split(".")[0] not in PACKAGES:
-                continue
-            for a in node.names:
-                sub = f"{mod}.{a.name}"
-                out.append((sub, "", node.lineno) if sub in known else (mod, a.name, node.lineno))
-    return out
-
-
-def graph() -> tuple[dict[str, set[str]], list[tuple[str, str, str, int]]]:
-    mods = modules()
-    edges: dict[str, set[str]] = {m: set() for m in mods}
-    named = []
-    for m, p in mods.items():
-        for target, name, line in imports(m, p, set(mods)):
-            while target and target not in mods:      # `import racklay.synth.recipe` names a module
-                target = target.rpartition(".")[0]
-            if target and target != m:
-                edges[m].add(target)
-            named.append((m, target, name, line))
-    return edges, named
-
-
-def find_cycle(edges: dict[str, set[str]]) -> list[str] | None:
-    """One cycle (as a closed path) if the graph has any, by depth-first search. A package's
-    `__init__` importing its own submodules is part of the graph like any other import."""
-    state: dict[str, int] = {}
-    stack: list[str] = []
-
-    def visit(m: str):
-        state[m] = 1
-        stack.append(m)
-        for n in sorted(edges.get(m, ())):
-            if state.get(n) == 1:
-                return stack[stack.index(n):] + [n]
-            if n not in state and (c := visit(n)):
-                return c
-        stack.pop()
-        state[m] = 2
-        return None
-
-    for m in sorted(edges):
-        if m not in state and (c := visit(m)):
-            return c
-    return None
+from bench.figures.module_graph import find_cycle, graph
 
 
 def test_the_graph_walker_sees_imports():
@@ -108,3 +34,11 @@ def test_no_private_names_from_other_modules():
     bad = sorted(f"{m}:{line} imports {t}.{n}" for m, t, n, line in named
                  if n.startswith("_") and not n.startswith("__") and t != m)
     assert not bad, "private names imported across modules: " + "; ".join(bad)
+
+
+def test_commands_do_not_import_the_command_line_back():
+    """racklay/cli.py loads the command modules by name; they take option types from
+    racklay.config and CLIError from racklay.commands, never from the module that loads them."""
+    edges, _ = graph()
+    bad = sorted(m for m, ns in edges.items() if ".commands" in m and "racklay.cli" in ns)
+    assert not bad, "command modules importing racklay.cli: " + ", ".join(bad)

@@ -1,6 +1,6 @@
 """Does fine-tuning on labelled real photos help on photos from *other* sources? Grouped cross-validation.
 
-  .venv/bin/python bench/real_photo_cv.py --weights MODEL --replay /data/release [--soup 0.3,0.5]
+  .venv/bin/python -m bench.accuracy.real_photo_cv --weights MODEL --replay /data/release [--soup 0.3,0.5]
 
 The labelled photos of an `annotate` project (default `datasets/real-photos/`) are grouped by
 where they come from (`--group-by`, a column of the project's SOURCES.tsv: `site` by default, one
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+from bench.common import REPO
 
 
 def photo_groups(project: Path, source_of: dict[str, str], column: str = "site") -> dict[str, list[str]]:

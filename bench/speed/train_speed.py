@@ -2,7 +2,7 @@
 authors' `paper` decoder, in the same run.
 
     MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=4294967296 \
-        nice -n 5 .venv/bin/python bench/train_speed.py [--size 256] [--batch 8] [--disc] [--bf16]
+        nice -n 5 .venv/bin/python -m bench.speed.train_speed [--size 256] [--batch 8] [--disc] [--bf16]
 
 (the script re-executes itself with those MALLOC_* variables if they are missing: glibc reads
 them at process start). One step is the training loop's own, `racklay.train.train_step` (forward,
@@ -19,11 +19,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import add_common_args, conditions, ensure_malloc_env, interleaved, markdown_table, start, summarise  # noqa: E402
+from bench.common import add_common_args, conditions, ensure_malloc_env, interleaved, markdown_table, start, summarise
 
 
 def make_step(decoder: str, size: int, batch: int, disc: bool, bf16: bool):

@@ -1,6 +1,6 @@
 """Decoder A/B at equal CPU time: the structured model issue's numbers for each arm.
 
-  .venv/bin/python bench/structure_ab.py --arm light=/work/runs/ab-light --arm struct=/work/runs/ab-struct \\
+  .venv/bin/python -m bench.accuracy.structure_ab --arm light=/work/runs/ab-light --arm struct=/work/runs/ab-struct \\
       --data /work/data/complex [--split test] [--limit N] [--photos datasets/real-photos]
 
 For every arm (a `racklay train` run folder: its best.safetensors, config.yaml and metrics.csv; or
@@ -26,7 +26,6 @@ import sys
 import tempfile
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
 PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
 BOX_TARGET = {"top": 70.0, "front": 75.0}            # reproduction row, dataset-level box IoU
 

@@ -3,7 +3,7 @@ with everything written (RGB, layouts, depth, normals, semantic, instance, KITTI
 splits), then print images/min, the per-stage breakdown and the ratio to WareSynth's 80/min
 (Blender on an RTX 2080Ti, paper Sec. 3).
 
-    .venv/bin/python bench/synth_throughput.py --n 300 --workers 2
+    .venv/bin/python -m bench.speed.synth_throughput --n 300 --workers 2
 
 Stage times are wall seconds measured inside each worker (summed over workers, per image);
 with K workers on K cores they add up to about K x the wall time per image. The machine's
@@ -19,8 +19,6 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 WARESYNTH_PER_MIN = 80.0
 

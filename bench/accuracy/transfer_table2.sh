@@ -4,7 +4,7 @@
 # (fine-tuned >= real-only + 10 top-view box mIoU; fine-tuned beats synthetic-only on every cell);
 # writes chart.png and learning_curve.png. The architecture of all three regimes is the
 # checkpoint's; real-only starts from the ImageNet encoder.
-#   bench/transfer_table2.sh [PRETRAINED_CKPT] [OUT_DIR]
+#   bench/accuracy/transfer_table2.sh [PRETRAINED_CKPT] [OUT_DIR]
 # Env: SEEDS (default 1), FRACTIONS (default 1.0), MINUTES per run (default 6), EPOCHS (default 12).
 # About 15 min on 2 cores with the defaults.
 set -euo pipefail

@@ -2,7 +2,7 @@
 # Accuracy benchmark (docs/accuracy.md): WareSynth complex set -> RackLay-D-disc with the light
 # (default) and the paper decoder under the same time budget, trained side by side (one thread
 # each, so both see the same contention) -> Table-1 layout on the held-out test split.
-#   bench/accuracy.sh [DATA_DIR] [MINUTES] [SIZE]
+#   bench/accuracy/accuracy.sh [DATA_DIR] [MINUTES] [SIZE]
 # Epochs per decoder (LIGHT_EPOCHS, PAPER_EPOCHS) are set so that each run's cosine schedule
 # ends inside the time budget (the paper decoder's steps are slower); MINUTES stops a run anyway.
 set -euo pipefail

@@ -1,6 +1,6 @@
 """How far apart are two labellings of the same photos? The noise floor of every real-photo score.
 
-    .venv/bin/python bench/label_agreement.py [--a datasets/real-photos] [--b datasets/real-photos/agreement]
+    .venv/bin/python -m bench.accuracy.label_agreement [--a datasets/real-photos] [--b datasets/real-photos/agreement]
 
 `--a` is an `annotate` project (photos + annotations/); `--b` a folder whose `annotations/`
 holds a second, independent labelling of some of the same photos (same file names). Both
@@ -20,7 +20,7 @@ import json
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from bench.common import REPO
 
 
 def main() -> int:

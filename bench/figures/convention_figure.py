@@ -1,13 +1,12 @@
 """Draw docs/img/convention.png: one shelf with two boxes in its top and front layouts, with the
-axes of the layout convention annotated. Run: .venv/bin/python docs/make_convention_figure.py"""
-from pathlib import Path
-
+axes of the layout convention annotated. Run: .venv/bin/python -m bench.figures.convention_figure"""
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.patches import Patch
 
+from bench.common import REPO
 from racklay import layout as L
 from racklay.viz import CLASS_NAMES, PALETTE, colorize, save_figure
 
@@ -36,5 +35,5 @@ fig.legend(handles=[Patch(color=PALETTE[c] / 255, label=f"{c}: {CLASS_NAMES[c]} 
                     for c in range(3)], loc="lower center", ncol=3, frameon=False)
 fig.suptitle("Shelf-centric layouts: origin = centre of the board's top surface (shelf 2.4 x 1.0 m, clear 0.8 m; 4 m grid shown)")
 fig.tight_layout(rect=(0, 0.06, 1, 0.95))
-save_figure(fig, Path(__file__).parent / "img" / "convention.png")
+save_figure(fig, REPO / "docs" / "img" / "convention.png")
 print("wrote docs/img/convention.png")

@@ -1,6 +1,6 @@
 """The shipped model against the model issue's accuracy targets (docs/model-card.md).
 
-  .venv/bin/python bench/release_targets.py [--weights FILE] [--complex DIR] [--proxy-real DIR]
+  .venv/bin/python -m bench.accuracy.release_targets [--weights FILE] [--complex DIR] [--proxy-real DIR]
 
 1. WareSynth `complex` test split (2,000 images never trained on: another seed than the release
    set, and another recipe), scored at the data's own 512 x 512 resolution (`--native`):
@@ -29,7 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from bench.common import REPO
+
 PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
 NO_EXTRAS = ["--set", "write_depth=false", "--set", "write_normals=false", "--set", "write_semantic=false",
              "--set", "write_instance=false", "--set", "write_kitti=false", "--set", "write_coco=false"]
@@ -53,7 +54,7 @@ SHIPPED_TARGETS = [("complex", "box", {"top": 60.0, "front": 70.0}),
 
 def print_model_issue_targets(rows: list[dict], saw_photos: bool) -> None:
     """MET / NOT MET against SHIPPED_TARGETS. Real-photo targets count only for a model that never
-    saw the photos (otherwise bench/real_photo_cv.py gives the honest number)."""
+    saw the photos (otherwise bench/accuracy/real_photo_cv.py gives the honest number)."""
     def value(set_, cls, view):
         for r in rows:
             if r["set"] != set_ or r["view"] != view:
@@ -72,7 +73,7 @@ def print_model_issue_targets(rows: list[dict], saw_photos: bool) -> None:
         if any(g is None for g in got.values()):
             continue
         if set_.startswith("real photos") and saw_photos:
-            verdict = "in-sample: see bench/real_photo_cv.py"
+            verdict = "in-sample: see bench/accuracy/real_photo_cv.py"
         else:
             miss = [f"{v} {got[v] - tgt[v]:+.1f}" for v in tgt if got[v] < tgt[v]]
             verdict = "MET" if not miss else "NOT MET (" + ", ".join(miss) + ")"
@@ -118,7 +119,7 @@ def main() -> int:
     ap.add_argument("--complex", default="/work/data/complex-test", type=Path,
                     help="WareSynth complex test set (rendered with seed 2027 if missing)")
     ap.add_argument("--proxy-real", default="/work/data/proxy_real", type=Path,
-                    help="proxy-real set of bench/transfer_table2.sh (rendered with seed 1 if missing)")
+                    help="proxy-real set of bench/accuracy/transfer_table2.sh (rendered with seed 1 if missing)")
     ap.add_argument("--real-photos", default=REPO / "datasets" / "real-photos", type=Path,
                     help="annotate project with the labelled real photos ('' to skip)")
     ap.add_argument("--limit", type=int, default=None, help="score only the first N test images of each set")
@@ -193,7 +194,7 @@ def main() -> int:
         seen = sorted(set(pred.meta.get("fine_tuned_on_photos", [])) & test_photos)
         if seen:
             print(f"IN-SAMPLE: this model was fine-tuned on {len(seen)} labelled photos ({', '.join(seen[:3])}, ...); "
-                  "bench/real_photo_cv.py gives the estimate for photos from a source it has not seen")
+                  "bench/accuracy/real_photo_cv.py gives the estimate for photos from a source it has not seen")
         print("| view | shelf IoU | box IoU | box precision / recall | box AP | paper-protocol rack / box mIoU |")
         print("|---|---|---|---|---|---|")
         for view in ("top", "front"):

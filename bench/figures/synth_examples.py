@@ -2,8 +2,8 @@
 per-shelf top/front layouts, drawn with `racklay show`; with --sheet RECIPE, a contact sheet of
 16 renders of one recipe instead (docs/img/waresynth_<recipe>.jpg), to look at a style as a whole.
 
-    .venv/bin/python bench/synth_examples.py [--per-recipe 2] [--out docs/img/waresynth_examples.png]
-    .venv/bin/python bench/synth_examples.py --sheet pallet
+    .venv/bin/python -m bench.figures.synth_examples [--per-recipe 2] [--out docs/img/waresynth_examples.png]
+    .venv/bin/python -m bench.figures.synth_examples --sheet pallet
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench.common import REPO
 
 
 def main(argv=None) -> int:
@@ -23,7 +23,7 @@ def main(argv=None) -> int:
                     "with --sheet docs/img/waresynth_<recipe>.jpg)")
     ap.add_argument("--sheet", default=None, metavar="RECIPE", help="a 4 x 4 contact sheet of this recipe instead")
     args = ap.parse_args(argv)
-    img_dir = Path(__file__).resolve().parents[1] / "docs" / "img"
+    img_dir = REPO / "docs" / "img"
     if args.sheet:
         return contact_sheet(args.sheet, args.seed, args.out or str(img_dir / f"waresynth_{args.sheet}.jpg"))
     args.out = args.out or str(img_dir / "waresynth_examples.png")

@@ -1,4 +1,5 @@
-"""Shared helpers for the speed benchmarks in bench/ (not part of the installed package).
+"""Shared helpers of the benchmarks in bench/ (not part of the installed package). Every
+benchmark runs from the repository root as a module: `python -m bench.speed.train_speed`.
 
 glibc's allocator dominates torch on this kind of VM (measured here: a reference training
 step at 256 px fell from 7.2 s to 3.7 s with these settings). The variables are read by glibc
@@ -12,8 +13,12 @@ import platform
 import statistics
 import sys
 import time
+from pathlib import Path
 
 from racklay.runtime import MALLOC_ENV  # the one home of the allocator settings
+
+#: the repository root (datasets/, docs/img/ are found from here)
+REPO = Path(__file__).resolve().parents[1]
 
 
 def ensure_malloc_env() -> None:
@@ -24,7 +29,9 @@ def ensure_malloc_env() -> None:
     missing = {k: v for k, v in MALLOC_ENV.items() if k not in os.environ}
     if missing:
         os.environ.update(missing)
-        os.execv(sys.executable, [sys.executable] + sys.argv)
+        spec = getattr(sys.modules["__main__"], "__spec__", None)   # run as `python -m bench...`
+        argv = ["-m", spec.name, *sys.argv[1:]] if spec else sys.argv
+        os.execv(sys.executable, [sys.executable, *argv])
 
 
 def conditions() -> str:

@@ -1,6 +1,6 @@
 """Fine-tuning the shipped model on proxy-real: its own loss weighting vs the default 1 / 5 / 5.
 
-  .venv/bin/python bench/finetune_class_weights.py [--weights FILE] [--real DIR] [--epochs 8]
+  .venv/bin/python -m bench.accuracy.finetune_class_weights [--weights FILE] [--real DIR] [--epochs 8]
 
 `transfer finetune` keeps the class weights the checkpoint was trained with (the release model's
 are 1 / 5 / 10: background / shelf / box). This bench measures why: it fine-tunes the same model

@@ -14,7 +14,7 @@ Prints median / p90 / max of the round trip and where the time goes: the server'
 transport, the page's drawing; then the server-side parts one by one. A person's own time
 (aiming: ~1-2 s a click) comes on top; see docs/annotate.md.
 
-    nice -n 10 .venv/bin/python bench/annotate_workflow.py [--screenshot docs/img/annotate.png]
+    nice -n 10 .venv/bin/python -m bench.speed.annotate_workflow [--screenshot docs/img/annotate.png]
 """
 import os
 import shutil
@@ -25,7 +25,8 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from bench.common import REPO
+
 PHOTO = REPO / "datasets" / "real-photos" / "19_mock_white_shelf_3lvl.jpg"
 W, H = 1280, 960
 AIM_S = 0.5

@@ -2,7 +2,7 @@
 authors' `paper` decoder, in the same run, at 256->256 and 512->512 (input -> layout size).
 
     MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=4294967296 \
-        nice -n 5 .venv/bin/python bench/inference_speed.py [--sizes 256 512] [--bf16] [--onnx]
+        nice -n 5 .venv/bin/python -m bench.speed.inference_speed [--sizes 256 512] [--bf16] [--onnx]
 
 (the script re-executes itself with those MALLOC_* variables if they are missing: glibc reads
 them at process start). Models are randomly initialised (weights do not change the cost).
@@ -19,11 +19,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import add_common_args, conditions, ensure_malloc_env, interleaved, markdown_table, start, summarise  # noqa: E402
+from bench.common import add_common_args, conditions, ensure_malloc_env, interleaved, markdown_table, start, summarise
 
 
 def build_runners(decoder: str, size: int, bf16: bool, onnx: bool, threads: int | None = None) -> dict:

@@ -13,10 +13,10 @@ shelf) and free volume (relative error per rack: |free_read - free_true| / free_
 Truth per shelf: capacity = length x depth x clear height (what the layouts encode), occupied =
 the sum of the boxes' own volumes, a stack = boxes whose footprints overlap.
 
-    .venv/bin/python bench/reasoning_validation.py --data datasets/waresynth-val --split test \
+    .venv/bin/python -m bench.accuracy.reasoning_validation --data datasets/waresynth-val --split test \
         --weights runs/accuracy-default/best.safetensors --json bench/results/reasoning.json
-    .venv/bin/python bench/reasoning_validation.py --toy 40     # no dataset: a D=512 toy set
-    .venv/bin/python bench/reasoning_validation.py --synth 200  # WareSynth scenes, no rendering
+    .venv/bin/python -m bench.accuracy.reasoning_validation --toy 40     # no dataset: a D=512 toy set
+    .venv/bin/python -m bench.accuracy.reasoning_validation --synth 200  # WareSynth scenes, no rendering
 
 --synth samples WareSynth scenes (racklay.synth.scene.sample_scene: the generator's own racks,
 stacks and back rows) and rasterises their visible shelves with racklay.layout.rasterize_shelf
@@ -35,13 +35,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from _common import markdown_table  # noqa: E402
-
-from racklay import layout as L  # noqa: E402
-from racklay.data import DataError, RackLayRoot  # noqa: E402
-from racklay.reasoning import ShelfTruth, analyze_layouts  # noqa: E402
+from bench.common import markdown_table
+from racklay import layout as L
+from racklay.data import DataError, RackLayRoot
+from racklay.reasoning import ShelfTruth, analyze_layouts
 
 BOX_FIELDS = ("cx", "cy", "sx", "sy", "sz", "z0", "yaw")
 

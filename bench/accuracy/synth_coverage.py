@@ -15,7 +15,7 @@ It prints, per recipe and quantity, the recipe's 5-95 % and min-max range, how m
 fall inside [min, max] (the recipe's support) and which photos fall outside, and draws one panel
 per quantity (recipe histograms, photo values as ticks; red = outside every recipe given).
 
-    .venv/bin/python bench/synth_coverage.py --recipe complex --recipe pallet [--n 2000] [--set KEY=VALUE]
+    .venv/bin/python -m bench.accuracy.synth_coverage --recipe complex --recipe pallet [--n 2000] [--set KEY=VALUE]
         [--project datasets/real-photos] [--out docs/img/synth_coverage.png]
 
 Numbers only; nothing is asserted. The camera of a near-frontal photo is not determined by its
@@ -30,8 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from bench.common import REPO
 
 QUANTITIES = {   # key: (label, unit)
     "rack_length": ("rack length", "m"),

@@ -2,7 +2,7 @@
 the authors' `paper` decoder) at the shipped input and layout size and the same precision
 (the model issue's target: the reference >= 3x slower than the shipped struct model).
 
-    nice -n 5 .venv/bin/python bench/release_speed.py [--weights FILE] [--precision auto|fp32|bf16] [--onnx]
+    nice -n 5 .venv/bin/python -m bench.speed.release_speed [--weights FILE] [--precision auto|fp32|bf16] [--onnx]
 
 Both models run both views, in the memory format given (default channels_last, as `racklay
 predict` runs a model; `--memory-format contiguous` gives the default PyTorch layout); the
@@ -15,14 +15,11 @@ table gives median (min) wall ms and median process CPU ms. Prints numbers only.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from dataclasses import replace
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import add_common_args, ensure_malloc_env, interleaved, markdown_table, start, summarise  # noqa: E402
-
-from racklay.precision import PRECISIONS  # noqa: E402
+from bench.common import add_common_args, ensure_malloc_env, interleaved, markdown_table, start, summarise
+from racklay.precision import PRECISIONS
 
 
 def main(argv=None) -> int:

@@ -1,6 +1,6 @@
 """Where a model's layout error is: metric size of the shelf footprint, box placement, shelf channels.
 
-  .venv/bin/python bench/error_analysis.py --weights W --data ROOT [--split val] [--n 240]
+  .venv/bin/python -m bench.accuracy.error_analysis --weights W --data ROOT [--split val] [--n 240]
 
 Per view, on N images spread over the split: dataset-level shelf / box / footprint (shelf + box)
 IoU; box IoU inside the true footprint and the box-vs-shelf accuracy there; visible-shelf

@@ -1,0 +1,1 @@
+"""Accuracy: scores against named baselines and targets, on renders and real photos."""

@@ -1,0 +1,1 @@
+"""Figures: the docs/img pictures that are drawn by code."""

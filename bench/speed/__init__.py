@@ -1,0 +1,1 @@
+"""Speed: training and inference time, WareSynth throughput, labelling time."""
