@@ -156,8 +156,8 @@ def check_fields(obj) -> None:
 
 
 def to_dict(obj) -> dict:
-    """The dataclass as plain YAML/JSON values (tuples as lists)."""
-    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(obj).items()}
+    """The dataclass as plain YAML/JSON values (tuples as lists, at any depth)."""
+    return _jsonable(asdict(obj))
 
 
 def from_dict(cls, d: dict, source: str, what: str = "option"):
@@ -173,6 +173,13 @@ def from_dict(cls, d: dict, source: str, what: str = "option"):
         return cls(**d)
     except ValueError as e:
         raise ValueError(f"{source}: {e}") from None
+
+
+def shared(name: str, cls=None):
+    """A field declared as `cls`'s (default TrainConfig) field `name` is: the same default, help,
+    bounds and choices, for a second dataclass that holds the same setting (ModelConfig)."""
+    f = (cls or TrainConfig).__dataclass_fields__[name]
+    return field(default=f.default, metadata=f.metadata)
 
 
 def run_defining(cls) -> tuple[str, ...]:
@@ -414,54 +421,40 @@ LEGACY_ENCODER = "resnet18"
 
 @dataclass
 class ModelConfig:
-    """A network's shape. The fields a training run chooses take their defaults (and meaning: see
-    the help there) from `racklay.config.TrainConfig`, their one declaration."""
-    R: int = TrainConfig.R                      # shelves (output channels per class)
-    image_size: int | tuple = TrainConfig.image_size   # network input: S (square) or (H, W)
-    layout_size: int = TrainConfig.layout_size  # S: output layout grid S x S
-    views: tuple = TrainConfig.views            # one view -> RackLay-S, both -> RackLay-D
-    decoder: str = TrainConfig.decoder          # racklay.config.DECODERS (module docstring)
-    disc: bool = False                  # trained with patch discriminators ("-disc"); a bare model: no
-    extent: float = DEFAULT_EXTENT_M    # metres covered by the layout grid (for consumers)
-    encoder: str = TrainConfig.encoder          # racklay.config.ENCODERS
-    letterbox: bool = TrainConfig.letterbox     # photos of another aspect are padded, not stretched
-    #: per-view additive biases on the (background, shelf, box) logits before the argmax that turns
-    #: scores into classes, fitted on a validation split by `racklay calibrate` (racklay/calibrate.py);
-    #: None: plain argmax. Probabilities (and so average precision) are not changed by it.
-    decision_bias: dict | None = None
-    #: struct decoder only: also read the 1/4-resolution encoder features along image columns (a
-    #: detail branch, StructDecoder), so gaps between boxes narrower than a 1/8 feature column can
-    #: show; grows from a struct checkpoint without it (`racklay train --init`)
-    struct_fine: bool = TrainConfig.struct_fine
-    #: struct decoder only: a gap output of its own, per position along each shelf (the logit that
-    #: the position is a gap between two boxes), trained by its own loss; a confident gap cuts the
-    #: box run there (StructDecoder). Grows from a struct checkpoint without it.
-    struct_gap: bool = TrainConfig.struct_gap
+    """A network's shape, stored in every checkpoint. The fields a training run chooses are
+    TrainConfig's declarations (`shared`: the same default, help, bounds and choices)."""
+    R: int = shared("R")
+    image_size: int | tuple = shared("image_size")
+    layout_size: int = shared("layout_size")
+    views: tuple = shared("views")
+    decoder: str = shared("decoder")
+    disc: bool = option(False, "trained with patch discriminators (the '-disc' variants); a bare model: no")
+    extent: float = option(DEFAULT_EXTENT_M, "metres covered by the layout grid (for consumers)", gt=0)
+    encoder: str = shared("encoder")
+    letterbox: bool = shared("letterbox")
+    decision_bias: dict | None = option(
+        None, "per-view additive biases on the (background, shelf, box) logits before the argmax that turns "
+              "scores into classes, fitted on a validation split by `racklay calibrate` (racklay/calibrate.py); "
+              "None: plain argmax. Probabilities (and so average precision) are not changed by it.")
+    struct_fine: bool = shared("struct_fine")
+    struct_gap: bool = shared("struct_gap")
 
     def __post_init__(self):
-        self.views = tuple(self.views)
-        if isinstance(self.image_size, (list, tuple)):
+        check_fields(self)
+        if isinstance(self.image_size, tuple):
             if len(self.image_size) != 2:
                 raise ValueError(f"image_size must be S or (H, W), got {self.image_size}")
             self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
             if self.image_size[0] == self.image_size[1]:
                 self.image_size = self.image_size[0]
-        if self.encoder not in ENCODERS:
-            raise ValueError(f"encoder must be one of {ENCODERS}, got {self.encoder!r}")
         bad = [v for v in self.views if v not in VIEWS]
         if not self.views or bad or len(set(self.views)) != len(self.views):
             raise ValueError(f"views must be a non-empty subset of {VIEWS}, got {self.views}")
-        if self.decoder not in DECODERS:
-            raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
         for k in ("struct_fine", "struct_gap"):
             if getattr(self, k) and self.decoder != "struct":
                 raise ValueError(f"{k} needs the struct decoder, got {self.decoder!r}")
-        if self.R < 1:
-            raise ValueError(f"R must be >= 1, got {self.R}")
         if any(v % 32 or v < 32 for v in self.input_hw):
             raise ValueError(f"image_size must be a positive multiple of 32 (S or (H, W)), got {self.image_size}")
-        if self.layout_size < 8:
-            raise ValueError(f"layout_size must be >= 8, got {self.layout_size}")
         if self.decision_bias is not None:
             self.decision_bias = check_decision_bias(self.decision_bias, self.views)
 
@@ -478,7 +471,7 @@ class ModelConfig:
     def to_dict(self) -> dict:
         """The config as a JSON-able dict: every dataclass field, tuples as lists. The one
         serialiser of a model config (checkpoint headers, ONNX metadata, eval reports)."""
-        return _jsonable(asdict(self))
+        return to_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "ModelConfig":

@@ -556,3 +556,31 @@ def test_resume_from_another_folder_trains_on_the_same_data(tmp_path, monkeypatc
     other = TrainConfig(**{**cfg.to_dict(), "resume": True, "data": str(b / "ds")})
     with pytest.raises(ValueError, match="differs in data"):
         open_resume(other, cfg.run_dir(), main=True)
+
+
+def test_every_option_is_declared_once_and_checked_everywhere_from_there(capsys):
+    """racklay/config.py is the one declaration of each option: its help is there, ModelConfig's
+    architecture fields are TrainConfig's declarations, and one declared bound is enforced by the
+    config, the model config and the command-line flag alike. Reading it needs no torch (--help is
+    instant)."""
+    import dataclasses
+    import subprocess
+    import sys
+
+    from racklay.cli import main as racklay_main
+    from racklay.config import ARCH_FIELDS, ModelConfig
+
+    assert all(f.metadata.get("help") for f in dataclasses.fields(TrainConfig))
+    mf = {f.name: f for f in dataclasses.fields(ModelConfig)}
+    for k in ARCH_FIELDS:
+        if k != "disc":     # a bare model has none; a training run has them by default
+            assert mf[k].metadata == TrainConfig.__dataclass_fields__[k].metadata
+            assert mf[k].default == TrainConfig.__dataclass_fields__[k].default
+    for make in (lambda: TrainConfig(data="x", layout_size=4), lambda: ModelConfig(layout_size=4)):
+        with pytest.raises(ValueError, match="layout_size must be >= 8, got 4"):
+            make()
+    with pytest.raises(SystemExit):
+        racklay_main(["train", "--data", "x", "--layout-size", "4"])
+    assert "argument --layout-size: must be >= 8, got 4" in capsys.readouterr().err
+    code = "import sys, racklay.config; print('torch' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout.strip() == "False"
