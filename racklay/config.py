@@ -96,8 +96,9 @@ def floats_arg(s: str) -> tuple:
 
 def option(default, help: str, *, lo=None, gt=None, hi=None, lt=None, choices=None, flags=None,
            parse=None, action=None, metavar=None, path: bool = False, keep: bool = False):
-    """One setting: `default` (MISSING: required; a list or dict is copied per instance); `help` (\"{default}\" in it is replaced by the default when flags are
-    made); numbers bounded by lo <= v <= hi and gt < v < lt; `choices` a tuple of allowed values;
+    """One setting: `default` (MISSING: required; a list or dict is copied per instance); `help`
+    ("{default}" in it is replaced by the default when flags are made); numbers bounded by
+    lo <= v <= hi and gt < v < lt; `choices` a tuple of allowed values;
     `flags` the command-line spellings (default --field-name); `parse` the argparse type (default:
     from the field's type and bounds); `action` an argparse action instead; `path`: a file or folder,
     stored absolute; `keep`: a resumed run must keep this setting (`run_defining`)."""

@@ -19,7 +19,7 @@ from dataclasses import MISSING, dataclass
 from pathlib import Path
 
 from racklay.atomic import atomic_write_json
-from racklay.config import ARCH_FIELDS, RUN_DEFINING, TrainConfig, from_dict, option, run_defining
+from racklay.config import ARCH_FIELDS, RUN_DEFINING, TrainConfig, check_fields, from_dict, option, run_defining
 
 from . import report, workflow
 
@@ -53,6 +53,9 @@ class CompareConfig:
     pretrain_max_minutes: float | None = option(None, "time budget per pretrain run", keep=True)
     eval_batch_size: int = option(8, "images per forward pass when scoring")
     train: dict = option({}, "TrainConfig overrides for every run", keep=True)
+
+    def __post_init__(self):
+        check_fields(self)     # types and bounds; what needs the data is checked by validate()
 
     def settings(self) -> dict:
         """What compare.json records and a resume must match: the keep=True fields, with `train`
