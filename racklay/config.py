@@ -145,7 +145,7 @@ def check_fields(obj) -> None:
         m = _meta(f)
         if m.get("path") and v:
             v = os.path.abspath(os.fspath(v))
-        setattr(obj, f.name, v)
+        object.__setattr__(obj, f.name, v)      # frozen dataclasses too
         if m.get("choices") is not None and v not in m["choices"]:
             raise ValueError(f"{f.name} must be one of {m['choices']}, got {v!r}")
         if base in ("int", "float"):

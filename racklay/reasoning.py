@@ -45,29 +45,27 @@ from typing import Sequence
 import numpy as np
 
 from . import layout as L
+from .config import check_fields, option
 
 
 @dataclass(frozen=True)
 class ReasoningConfig:
-    """Knobs of the analysis. Metric, so they mean the same thing at every grid size."""
+    """Knobs of the analysis. Metric, so they mean the same thing at every grid size. Declared with
+    racklay.config.option: `racklay analyze`'s flags and their help come from here."""
 
-    #: side of the square opening kernel that cleans box masks (metres; <= 1 pixel: no-op)
-    open_m: float = 0.04
-    #: box components (either view) smaller than this are noise (m^2)
-    min_box_area_m2: float = 0.01
-    #: a view whose largest shelf+box region is smaller than this has no shelf (m^2)
-    min_shelf_area_m2: float = 0.04
-    #: pad above the clear height in front views (WareSynth convention)
-    front_pad_m: float = L.FRONT_CLEARANCE_PAD_M
-    #: pixel connectivity of components (4 keeps diagonally touching boxes apart)
-    connectivity: int = 4
+    open_m: float = option(0.04, "opening kernel for box masks, metres; <= 1 pixel: none (default {default})",
+                           lo=0, flags=["--open-m"])
+    min_box_area_m2: float = option(0.01, "box regions (either view) smaller than this are noise, m² "
+                                          "(default {default})", lo=0, flags=["--min-box-area"])
+    min_shelf_area_m2: float = option(0.04, "a view whose largest shelf+box region is smaller than this has no "
+                                            "shelf, m² (default {default})", lo=0)
+    front_pad_m: float = option(L.FRONT_CLEARANCE_PAD_M, "pad above the clear height in front views (WareSynth's "
+                                                          "convention), metres", lo=0)
+    connectivity: int = option(4, "pixel connectivity of components (4 keeps diagonally touching boxes apart)",
+                               choices=(4, 8))
 
     def __post_init__(self):
-        if self.connectivity not in (4, 8):
-            raise ValueError(f"connectivity must be 4 or 8, got {self.connectivity}")
-        for name in ("open_m", "min_box_area_m2", "min_shelf_area_m2", "front_pad_m"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        check_fields(self)
 
 
 @dataclass

@@ -5,13 +5,14 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from racklay.config import at_least, positive_float
+from racklay.config import add_flags, at_least, positive_float
 
 FORMATS = ("glb", "ply", "both", "none")
 
 
 def register(sub) -> None:
     from racklay.predict import add_shelf_length_arg
+    from racklay.reasoning import ReasoningConfig
     from racklay.release import add_weights_arg
 
     p = sub.add_parser(
@@ -44,21 +45,14 @@ def register(sub) -> None:
     p.add_argument("--no-render", action="store_true", help="skip the PNG render (about 1 s per image)")
     p.add_argument("--limit", type=at_least(1), default=None, help="analyse at most this many images")
     g = p.add_argument_group("analysis knobs (metric; see docs/reasoning.md)")
-    g.add_argument("--open-m", type=float, default=None, help="opening kernel for box masks, metres (0.04)")
-    g.add_argument("--min-box-area", type=float, default=None,
-                   help="box regions smaller than this are noise, m² (0.01)")
+    add_flags(g, ReasoningConfig, ["open_m", "min_box_area_m2"], default=None)
     p.set_defaults(func=run)
 
 
 def _config(args):
     from racklay.reasoning import ReasoningConfig
 
-    kw = {}
-    if args.open_m is not None:
-        kw["open_m"] = args.open_m
-    if args.min_box_area is not None:
-        kw["min_box_area_m2"] = args.min_box_area
-    return ReasoningConfig(**kw)
+    return ReasoningConfig(**{k: getattr(args, k) for k in ("open_m", "min_box_area_m2") if getattr(args, k) is not None})
 
 
 def write_outputs(result, out: Path, sid: str, image=None, fmt: str = "glb", render: bool = True) -> list[Path]:
