@@ -272,7 +272,7 @@ class TrainConfig:
                        gt=0, keep=True)
     weight_decay: float = option(0.0, "Adam weight decay (default {default})", lo=0, keep=True)
     warmup_steps: int = option(100, "linear warm-up steps (default {default})", lo=0, keep=True)
-    # --- the network (ARCH_FIELDS; racklay.model.ModelConfig takes these defaults) ------------
+    # --- the network (ARCH_FIELDS; ModelConfig below shares these declarations) -------------
     image_size: int | tuple = option(
         256, "network input: S (square) or HxW, e.g. 160x256 for 470x280 photos; multiples of 32 "
              "(CPU default; the paper's: 512; default {default})", parse=image_size_arg, keep=True)

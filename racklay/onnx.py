@@ -74,7 +74,7 @@ def onnx_session(model, threads: int | None = None, source: str | None = None):
     model in error messages (default: the path)."""
     import onnxruntime as ort
 
-    from .model import ModelConfig
+    from .config import ModelConfig  # no torch: an ONNX session needs none
 
     src = source or str(model)
     opts = ort.SessionOptions()
