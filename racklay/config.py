@@ -161,15 +161,21 @@ def to_dict(obj) -> dict:
     return _jsonable(asdict(obj))
 
 
-def from_dict(cls, d: dict, source: str, what: str = "option"):
-    """`cls(**d)`, strict: an unknown key is an error naming it (with the closest known name), and
-    every error names `source` (the file or 'flags')."""
+def check_names(cls, keys, source: str, what: str = "option") -> None:
+    """Every key a field of `cls`; else one error naming `source`, the unknown keys and the
+    closest known name."""
     names = [f.name for f in fields(cls)]
-    unknown = sorted(set(d) - set(names))
+    unknown = sorted(set(keys) - set(names))
     if unknown:
         close = difflib.get_close_matches(unknown[0], names, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise ValueError(f"{source}: unknown {what}(s) {', '.join(unknown)}{hint}")
+
+
+def from_dict(cls, d: dict, source: str, what: str = "option"):
+    """`cls(**d)`, strict: an unknown key is an error naming it (`check_names`), and every error
+    names `source` (the file or 'flags')."""
+    check_names(cls, d, source, what)
     try:
         return cls(**d)
     except ValueError as e:

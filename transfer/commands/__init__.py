@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from racklay.config import TrainConfig, add_flags
+from racklay.config import TrainConfig, add_flags, check_names
 
 
 def add_model_args(p: argparse.ArgumentParser, from_checkpoint: bool = False) -> None:
@@ -42,22 +42,16 @@ def add_set_arg(g) -> None:
 
 
 def parse_sets(items) -> dict:
-    """['amp=bf16', 'warmup_steps=20'] -> {'amp': 'bf16', 'warmup_steps': 20} (checked against TrainConfig)."""
-    import dataclasses
-    import difflib
-
+    """['amp=bf16', 'warmup_steps=20'] -> {'amp': 'bf16', 'warmup_steps': 20} (names checked against TrainConfig)."""
     import yaml
 
-    names = [f.name for f in dataclasses.fields(TrainConfig)]
     out = {}
     for item in items or []:
         key, eq, val = item.partition("=")
         key = key.strip()
         if not eq or not key:
             raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
-        if key not in names:
-            close = difflib.get_close_matches(key, names, n=1)
-            raise ValueError(f"--set: TrainConfig has no field {key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+        check_names(TrainConfig, [key], "--set", "training option")
         try:
             out[key] = yaml.safe_load(val)
         except yaml.YAMLError:

@@ -53,7 +53,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ..demo import QUICK, DemoConfig, run_demo
+    from ..demo import QUICK, TRAIN_OVERRIDES, DemoConfig, run_demo
 
     if args.toy:
         from racklay.toy import toy_demo
@@ -62,7 +62,7 @@ def run(args) -> int:
     kw = dict(out=args.out, seed=args.seed, weights=args.weights, n_real=args.n_real,
               max_minutes=args.max_minutes, photos=args.photos, real_photos=args.real_photos)
     if args.amp is not None:
-        kw["train"] = {**DemoConfig().train, "amp": args.amp}
+        kw["train"] = {**TRAIN_OVERRIDES, "amp": args.amp}
     if args.quick:
         kw.update(QUICK)
     run_demo(DemoConfig(**kw))
