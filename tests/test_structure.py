@@ -239,10 +239,28 @@ def test_a_separation_counts_only_on_the_shelf_the_truth_separates():
     bridged[np.ix_((bridged == L.BOX).any(1), np.arange(cols[0], cols[-1] + 1))] = L.BOX
     assert L.box_runs(bridged) == 1
     elsewhere = np.stack([bridged, front[0], front[2]])     # separated, but on channel 1
-    t, p, hit = L.separated_shelves(front, front)
+    t, p, hit, _ = L.separated_shelves(front, front)
     assert t.tolist() == [True, False, False] and hit.tolist() == [True, False, False]
-    t, p, hit = L.separated_shelves(front, elsewhere)
-    assert p.tolist() == [False, True, False] and not hit.any()
+    t, p, hit, placed = L.separated_shelves(front, elsewhere)
+    assert p.tolist() == [False, True, False] and not hit.any() and not placed.any()
+
+
+def test_a_separation_is_placed_only_when_a_predicted_gap_is_at_a_true_one():
+    _, front = _two_box_shelf()                    # channel 0: two boxes apart
+    assert L.separated_shelves(front, front).placed.tolist() == [True, False, False]
+    (lo, hi), = L.box_gaps(front[0])
+    assert 0 < lo < hi < 1
+    # the boxes bridged, then cut near the right end, far from the true gap: a hit, not placed
+    moved = front[0].copy()
+    cols = np.nonzero((moved == L.BOX).any(0))[0]
+    moved[np.ix_((moved == L.BOX).any(1), np.arange(cols[0], cols[-1] + 1))] = L.BOX
+    cut = moved[:, cols[-1] - 3:cols[-1] - 1]
+    cut[cut == L.BOX] = L.SHELF
+    (plo, phi), = L.box_gaps(moved)
+    assert plo > hi + L.GAP_TOLERANCE
+    far = np.stack([moved, front[1], front[2]])
+    sep = L.separated_shelves(front, far)
+    assert sep.hit.tolist() == [True, False, False] and not sep.placed.any()
 
 
 def test_shelf_length_ignores_stray_pixels_beside_the_shelf():

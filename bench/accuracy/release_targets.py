@@ -84,23 +84,26 @@ def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
     """The model issue's "separate boxes where the photo shows separate boxes", counted: a photo
     shows them when some shelf of its front-view labels holds two or more box runs along x
     (`racklay.layout.box_runs`); the model shows them there when it separates that same shelf
-    (a separation on another shelf is counted apart: it is what a phantom shelf looks like)."""
+    (a separation on another shelf is counted apart: it is what a phantom shelf looks like), and
+    shows them in place when one of its gaps lies at one of the labels' (`separated_shelves`)."""
     from racklay import layout as L
     from racklay.data import RackLayRoot
 
     truth, pred = RackLayRoot(truth_root), RackLayRoot(pred_root)
-    want, got, elsewhere, extra = [], [], [], []
+    want, got, placed, elsewhere, extra = [], [], [], [], []
     # the test split, or its first --limit photos (the prediction root holds layouts, no images)
     for sid in [s for s in truth.resolve("test") if pred.layout_path("front", s).is_file()]:
         name = (truth.read_meta(sid) or {}).get("source_image", sid).split(".")[0]
-        t, p, hit = L.separated_shelves(truth.read_layouts("front", sid), pred.read_layouts("front", sid))
-        if t.any():
+        sep = L.separated_shelves(truth.read_layouts("front", sid), pred.read_layouts("front", sid))
+        if sep.truth.any():
             want.append(name)
-            if hit.any():
+            if sep.hit.any():
                 got.append(name)
-            elif p.any():
+                if sep.placed.any():
+                    placed.append(name)
+            elif sep.pred.any():
                 elsewhere.append(name)
-        elif p.any():
+        elif sep.pred.any():
             extra.append(name)
 
     def names(xs):
@@ -109,8 +112,9 @@ def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
     also = f"; on another shelf than the labels' on {len(elsewhere)} ({names(elsewhere)})" if elsewhere else ""
     also += f"; on {len(extra)} where the labels show none ({names(extra)})" if extra else ""
     print(f"separate boxes (>= 2 box runs on a shelf, front view): the labels show them on {len(want)} photos; "
-          f"the model on the same shelf on {len(got)} of these ({names(got)}){also}")
-    return {"labelled": want, "predicted": got, "other_shelf": elsewhere, "extra": extra}
+          f"the model on the same shelf on {len(got)} of these ({names(got)}), with a gap where the labels "
+          f"have one on {len(placed)} ({names(placed)}){also}")
+    return {"labelled": want, "predicted": got, "placed": placed, "other_shelf": elsewhere, "extra": extra}
 
 
 def main() -> int:

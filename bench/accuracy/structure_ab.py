@@ -9,7 +9,8 @@ held-out split of `--data` (WareSynth `complex` for the reproduction row):
 - dataset-level shelf / box IoU (top / front) and the paper-protocol mIoU, metric and with
   `--scale-from-truth` (each predicted shelf scaled to its true length: shape alone);
 - boxes as boxes: the front-view shelf channels whose truth has two or more separate runs of box
-  columns along x, and how many of them the arm also separates (and how many it separates at all);
+  columns along x, how many of them the arm also separates, how many with a gap where the truth
+  has one ("placed": within 5 % of the shelf's length), and how many it separates at all;
 - time to accuracy: the run's CPU-minutes (wall minutes x threads x processes) and CPU-minutes per
   point of validation score (mean of shelf and box IoU, x100);
 - with `--photos` (an annotate project, e.g. the labelled real photos): metric and scale-from-truth
@@ -32,9 +33,10 @@ BOX_TARGET = {"top": 70.0, "front": 75.0}            # reproduction row, dataset
 
 def separation(pred, root, split, limit, per_image: bool = False):
     """Front-view channels with >= 2 box runs: (in the truth, in the truth and the prediction,
-    in the prediction); `per_image`: the same counts over images (an image counts when any of its
-    channels does, and "both" needs one shelf that is separated in both: for photos, "does the prediction
-    show separate boxes on the shelf where the photo does")."""
+    in the prediction, in both with a predicted gap at a true one: `racklay.layout.separated_shelves`);
+    `per_image`: the same counts over images (an image counts when any of its channels does, and
+    "both" needs one shelf that is separated in both: for photos, "does the prediction show separate
+    boxes on the shelf where the photo does")."""
     import torch
     from torch.utils.data import DataLoader
 
@@ -44,15 +46,32 @@ def separation(pred, root, split, limit, per_image: bool = False):
     _, views, ds = split_dataset(pred, root, split, limit)
     if "front" not in views:
         return None
-    t = both = p = 0
+    counts = [0, 0, 0, 0]
     with torch.inference_mode():
         for batch in DataLoader(ds, batch_size=8):
             c = pred.predict_batch(batch["image"])[0]["front"]
-            gt_sep, pr_sep, hit = L.separated_shelves(batch["front"].numpy(), c)
+            sep = L.separated_shelves(batch["front"].numpy(), c)
+            parts = (sep.truth, sep.hit, sep.pred, sep.placed)
             if per_image:
-                gt_sep, pr_sep, hit = gt_sep.any(-1), pr_sep.any(-1), hit.any(-1)
-            t, both, p = t + int(gt_sep.sum()), both + int(hit.sum()), p + int(pr_sep.sum())
-    return t, both, p
+                parts = [x.any(-1) for x in parts]
+            counts = [n + int(x.sum()) for n, x in zip(counts, parts)]
+    return tuple(counts)
+
+
+def centre_cut(root, split, limit, D: int, per_image: bool = False) -> int:
+    """The chance line for "placed": front-view channels (`per_image`: images) whose truth, at
+    D x D, has >= 2 box runs that one cut at the middle of every shelf would place
+    (`racklay.layout.gaps_match` with a single gap at 0.5; two loads per bay are common)."""
+    from racklay import layout as L
+    from racklay.data import RackLayRoot
+
+    data = RackLayRoot(root)
+    n = 0
+    for sid in data.resolve(split)[:limit]:
+        hits = [L.box_runs(ch) >= 2 and L.gaps_match(L.box_gaps(ch), [(0.5, 0.5)])
+                for ch in L.resize_layouts(data.read_layouts("front", sid), D)]
+        n += any(hits) if per_image else sum(hits)
+    return n
 
 
 def run_cost(run: Path) -> tuple[float, float]:
@@ -96,6 +115,7 @@ def main() -> int:
     ap.add_argument("--json", default=None, help="also write the numbers here")
     args = ap.parse_args()
 
+    from racklay import layout as L
     from racklay.evaluate import evaluate
     from racklay.predict import Predictor
 
@@ -126,20 +146,21 @@ def main() -> int:
                                                   scale_from_truth=True))
             row["photos_separation"] = separation(pred, photos, "test", None, per_image=True)
         out[name] = row
-    tmp.cleanup()
 
     n = f"first {args.limit} of " if args.limit else ""
     print(f"\n{n}{args.data} [{args.split}]: dataset-level shelf, box IoU (top / front); paper-protocol mIoU")
     print("| arm | metric IoU | shape IoU (scale from truth) | paper mIoU rack/box top, front | "
-          "channels separated (truth >= 2 box runs: both / truth; predicted >= 2) | CPU-min | best val | CPU-min per val point |")
+          "channels separated (truth >= 2 box runs: both / truth; placed; predicted >= 2) | CPU-min | best val | CPU-min per val point |")
     print("|---|---|---|---|---|---|---|---|")
     for name, r in out.items():
         m, sep = r["metric"], r["separation"]
         paper = " / ".join(f"{m[v]['rack_mIoU']:.1f}, {m[v]['box_mIoU']:.1f}" for v in ("top", "front") if v in m)
-        sep_s = f"{sep[1]} / {sep[0]}; {sep[2]}" if sep else "-"
+        sep_s = f"{sep[1]} / {sep[0]}; {sep[3]}; {sep[2]}" if sep else "-"
         cost = ("- | - | -" if r["cpu_minutes"] is None else f"{r['cpu_minutes']:.0f} | {r['best_val']:.1f} | "
                 f"{r['cpu_minutes'] / max(r['best_val'], 1e-9):.2f}")
         print(f"| {name} | {fmt(m)} | {fmt(r['shape'])} | {paper} | {sep_s} | {cost} |")
+    print(f"(placed: the arm's gaps where the truth's are, within {L.GAP_TOLERANCE:.0%} of the shelf's length; "
+          f"one cut in the middle of every shelf would place {centre_cut(args.data, args.split, args.limit, pred.layout_size)})")
     print("\ntargets (reproduction row, a model trained on complex): paper-protocol mIoU >= the paper's "
           "RackLay-D-disc, dataset-level box IoU >= 70 / 75")
     for name, r in out.items():
@@ -158,12 +179,14 @@ def main() -> int:
     if photos is not None:
         print(f"\nlabelled photos ({args.photos}; arms trained on renders only): shelf, box IoU (top / front)")
         print("| arm | metric | scale from truth (targets: shelf >= 70, box >= 50) | "
-              "photos with separate boxes (label and prediction / label; prediction) |")
+              "photos with separate boxes (label and prediction / label; placed; prediction) |")
         print("|---|---|---|---|")
         for name, r in out.items():
             sep = r["photos_separation"]
-            sep_s = f"{sep[1]} / {sep[0]}; {sep[2]}" if sep else "-"
+            sep_s = f"{sep[1]} / {sep[0]}; {sep[3]}; {sep[2]}" if sep else "-"
             print(f"| {name} | {fmt(r['photos_metric'])} | {fmt(r['photos_shape'])} | {sep_s} |")
+        print(f"(one cut in the middle of every shelf would place {centre_cut(photos, 'test', None, pred.layout_size, True)})")
+    tmp.cleanup()
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
     return 0
