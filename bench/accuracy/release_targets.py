@@ -85,7 +85,7 @@ def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
     shows them when some shelf of its front-view labels holds two or more box runs along x
     (`racklay.layout.box_runs`); the model shows them there when it separates that same shelf
     (a separation on another shelf is counted apart: it is what a phantom shelf looks like), and
-    shows them in place when one of its gaps lies at one of the labels' (`separated_shelves`)."""
+    shows them in place when its gaps are the labels' (`racklay.layout.separated_shelves`)."""
     from racklay import layout as L
     from racklay.data import RackLayRoot
 
@@ -112,8 +112,8 @@ def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
     also = f"; on another shelf than the labels' on {len(elsewhere)} ({names(elsewhere)})" if elsewhere else ""
     also += f"; on {len(extra)} where the labels show none ({names(extra)})" if extra else ""
     print(f"separate boxes (>= 2 box runs on a shelf, front view): the labels show them on {len(want)} photos; "
-          f"the model on the same shelf on {len(got)} of these ({names(got)}), with a gap where the labels "
-          f"have one on {len(placed)} ({names(placed)}){also}")
+          f"the model on the same shelf on {len(got)} of these ({names(got)}), with its gaps where the labels "
+          f"have theirs on {len(placed)} ({names(placed)}){also}")
     return {"labelled": want, "predicted": got, "placed": placed, "other_shelf": elsewhere, "extra": extra}
 
 

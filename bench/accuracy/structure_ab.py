@@ -33,7 +33,7 @@ BOX_TARGET = {"top": 70.0, "front": 75.0}            # reproduction row, dataset
 
 def separation(pred, root, split, limit, per_image: bool = False):
     """Front-view channels with >= 2 box runs: (in the truth, in the truth and the prediction,
-    in the prediction, in both with a predicted gap at a true one: `racklay.layout.separated_shelves`);
+    in the prediction, in both with the prediction's gaps at the truth's: `racklay.layout.separated_shelves`);
     `per_image`: the same counts over images (an image counts when any of its channels does, and
     "both" needs one shelf that is separated in both: for photos, "does the prediction show separate
     boxes on the shelf where the photo does")."""

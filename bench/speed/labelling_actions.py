@@ -37,7 +37,7 @@ DEFAULT_PHOTOS = ("01_blueshelf_lux", "03_blueshelf_cartons2", "04_blueshelf_sur
                   "15_loco_red_racks_jacks")
 
 
-class Counter:
+class Replay:
     """Sends actions to a Tool session and counts them as a labeller's clicks, keys and numbers."""
 
     def __init__(self, tool, name: str):
@@ -72,7 +72,7 @@ class Counter:
         return CLICK_S * self.clicks + KEY_S * self.keys + NUMBER_S * self.numbers
 
 
-def rack_and_shelves(c: Counter, ann: dict) -> None:
+def rack_and_shelves(c: Replay, ann: dict) -> None:
     rack = ann["rack"]
     c.mode("corners")
     for pt in rack["corners"]:
@@ -86,7 +86,7 @@ def rack_and_shelves(c: Counter, ann: dict) -> None:
     c.mode("boxes")
 
 
-def box_extras(c: Counter, b: dict) -> None:
+def box_extras(c: Replay, b: dict) -> None:
     """What a labeller sets on the box just drawn (it is selected): depth, front offset, `f`."""
     if b.get("depth") is not None:
         c.number("box_depth", b["depth"])
@@ -122,8 +122,10 @@ def rows(boxes: list[dict], plane) -> list[list[dict]]:
     return [[b for _, b in g] for g in groups]
 
 
-def flow(tool, name: str, ann: dict, by_rows: bool) -> Counter:
-    c = Counter(tool, name)
+def flow(tool, name: str, ann: dict, by_rows: bool) -> tuple[Replay, int]:
+    """One photo labelled again from its labels, box by box or by rows: (the replay, how many
+    boxes or rows were drawn)."""
+    c = Replay(tool, name)
     rack_and_shelves(c, ann)
     groups = rows(ann["boxes"], tool.scene(c.st.ann).plane) if by_rows else [[b] for b in ann["boxes"]]
     for g in groups:
@@ -138,13 +140,7 @@ def flow(tool, name: str, ann: dict, by_rows: bool) -> Counter:
         c.number("split_n", len(g))
         c.key("split_row")
     c.key("done")
-    return c
-
-
-def box_iou(a, b) -> float:
-    a, b = np.asarray(a) == 2, np.asarray(b) == 2
-    union = (a | b).sum()
-    return 100.0 * (a & b).sum() / union if union else 100.0
+    return c, len(groups)
 
 
 def main() -> int:
@@ -157,6 +153,10 @@ def main() -> int:
 
     from annotate.editor import Tool
     from annotate.store import Project
+    from racklay.metrics import confusion, confusion_scores
+
+    def box_iou(a, b) -> float:
+        return 100 * confusion_scores(confusion(np.asarray(a), np.asarray(b)))["box"]["IoU"]
 
     src = Project(args.project)
     names = [n for p in args.photos.split(",") for n in src.images() if n.startswith(p)]
@@ -177,10 +177,10 @@ def main() -> int:
                 shutil.copy(args.project / "project.json", proj / "project.json")
                 shutil.copy(args.project / name, proj / name)
                 tool = Tool(Project(proj))
-                c = flow(tool, name, ann, by_rows)
+                c, drawn = flow(tool, name, ann, by_rows)
                 tool.flush_history()
                 _, top, front = tool.layouts(c.st.ann)
-                made[by_rows] = (c, top, front, len(rows(ann["boxes"], tool.scene(c.st.ann).plane)))
+                made[by_rows] = (c, top, front, drawn)
             (a, ta, fa, _), (b, tb, fb, nrows) = made[False], made[True]
             tot[0] += a.seconds()
             tot[1] += b.seconds()
