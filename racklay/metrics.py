@@ -12,6 +12,10 @@ gives IoU, precision and recall per class (an all-background prediction scores 0
 the paper protocol gives it ~42/53). When class probabilities are available, average precision
 per class comes from score histograms (streaming, 1000 bins), i.e. area under the
 precision-recall curve of the pixel classifier "is class k".
+
+Separate boxes (front view): shelf channels whose truth holds two or more box runs along x, how
+many of them the prediction separates too, and how many with its gaps where the truth's are
+(`racklay.layout.separated_shelves`), counted over channels and over images.
 """
 from __future__ import annotations
 
@@ -19,9 +23,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .layout import BOX, CLASS_NAMES, NUM_CLASSES, SHELF, VIEWS
+from .layout import BOX, CLASS_NAMES, GAP_TOLERANCE, NUM_CLASSES, SHELF, VIEWS, separated_shelves
 
 EVAL_CLASSES = {"rack": SHELF, "box": BOX}
+#: the counts of `separated_shelves` kept per view (front only), in this order
+SEPARATION_KEYS = ("truth", "separated", "placed", "predicted")
 
 
 def paper_scores(pred: np.ndarray, gt: np.ndarray, cls: int) -> tuple[np.ndarray, np.ndarray]:
@@ -51,6 +57,8 @@ class _ViewAcc:
     # score histograms for AP: [class][positive?][bin]
     hist: np.ndarray | None = None
     images: int = 0
+    # separate boxes (front view): [shelf channels, images] x SEPARATION_KEYS
+    sep: np.ndarray = field(default_factory=lambda: np.zeros((2, len(SEPARATION_KEYS)), np.int64))
 
 
 class LayoutMetrics:
@@ -81,6 +89,11 @@ class LayoutMetrics:
             acc.iou[name].append(iou.ravel())
             acc.prec[name].append(prec.ravel())
         acc.cm += confusion(pred, gt)
+        if view == "front":
+            sep = separated_shelves(gt, pred)
+            parts = (sep.truth, sep.hit, sep.placed, sep.pred)
+            acc.sep[0] += [int(x.sum()) for x in parts]
+            acc.sep[1] += [int(x.any(-1).sum()) for x in parts]
         if probs is not None:
             probs = np.asarray(probs, dtype=np.float32)
             if acc.hist is None:
@@ -106,6 +119,9 @@ class LayoutMetrics:
                     d["AP"] = average_precision_from_hist(acc.hist[cls, 1], acc.hist[cls, 0])
                 r["dataset"][cname] = d
             r["confusion"] = acc.cm.tolist()
+            if view == "front":
+                r["separation"] = {unit: dict(zip(SEPARATION_KEYS, map(int, row)))
+                                   for unit, row in zip(("shelves", "images"), acc.sep)}
             out[view] = r
         return out
 
@@ -168,6 +184,13 @@ def format_tables(result: dict, title: str = "") -> str:
             ap = d.get("AP")
             lines.append(f"| {v} | {cname} | {_pct(d['IoU'])} | {_pct(d['precision'])} | "
                          f"{_pct(d['recall'])} | {_pct(ap) if ap is not None else 'n/a'} |")
+    sep = result.get("front", {}).get("separation")
+    if sep:
+        c, i = sep["shelves"], sep["images"]
+        lines += ["", f"Separate boxes (front view): the truth holds two or more box runs on {c['truth']} shelves "
+                      f"({i['truth']} images); the prediction separates {c['separated']} of them, "
+                      f"{c['placed']} with its gaps where the truth's are (within {GAP_TOLERANCE:.0%} of the shelf's length), "
+                      f"and separates {c['predicted']} shelves in all."]
     return "\n".join(lines)
 
 

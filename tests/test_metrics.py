@@ -77,3 +77,24 @@ def test_tables_label_precision_honestly():
     m.update("top", gt, gt)
     txt = format_tables(m.result())
     assert "pixel precision" in txt and "mAP" in txt and "| top rack |" in txt
+
+
+def test_eval_counts_separate_boxes_in_place_in_the_front_view():
+    """What `racklay eval` reports for boxes as boxes: shelves whose truth holds two loads apart,
+    how many the prediction separates, and how many with its gap where the truth's is."""
+    G = L.Grid(size=128, extent=4.0)
+    two = [L.Box(-0.6, 0.0, 0.4, 0.5, 0.3), L.Box(0.5, 0.0, 0.4, 0.5, 0.3)]   # a gap from x = -0.4 to 0.3 m
+    truth = L.stack_shelves([L.rasterize_shelf(L.Shelf(2.0, 0.8, 0.6), two, G)], R=2, grid=G)[1]
+    wrong = [L.Box(-0.85, 0.0, 0.1, 0.5, 0.3), L.Box(0.1, 0.0, 1.6, 0.5, 0.3)]  # a gap from -0.8 to -0.7 m
+    pred = L.stack_shelves([L.rasterize_shelf(L.Shelf(2.0, 0.8, 0.6), wrong, G)], R=2, grid=G)[1]
+    merged = truth.copy()
+    cols = np.nonzero((merged[0] == L.BOX).any(0))[0]
+    merged[0][np.ix_((merged[0] == L.BOX).any(1), np.arange(cols[0], cols[-1] + 1))] = L.BOX
+    m = LayoutMetrics()
+    m.update("front", np.stack([truth, pred, merged]), np.stack([truth, truth, truth]))
+    sep = m.result()["front"]["separation"]
+    assert sep["shelves"] == {"truth": 3, "separated": 2, "placed": 1, "predicted": 2}
+    assert sep["images"] == sep["shelves"]
+    assert "separates 2 of them, 1 with its gaps where the truth's are" in format_tables(m.result())
+    m.update("top", truth, truth)
+    assert "separation" not in m.result()["top"]

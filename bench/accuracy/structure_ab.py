@@ -31,36 +31,21 @@ PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front bo
 BOX_TARGET = {"top": 70.0, "front": 75.0}            # reproduction row, dataset-level box IoU
 
 
-def separation(pred, root, split, limit, per_image: bool = False):
-    """Front-view channels with >= 2 box runs: (in the truth, in the truth and the prediction,
-    in the prediction, in both with the prediction's gaps at the truth's: `racklay.layout.separated_shelves`);
-    `per_image`: the same counts over images (an image counts when any of its channels does, and
-    "both" needs one shelf that is separated in both: for photos, "does the prediction show separate
-    boxes on the shelf where the photo does")."""
-    import torch
-    from torch.utils.data import DataLoader
-
-    from racklay import layout as L
-    from racklay.evaluate import split_dataset
-
-    _, views, ds = split_dataset(pred, root, split, limit)
-    if "front" not in views:
+def separation(res: dict, unit: str = "shelves"):
+    """(truth, separated, predicted, placed) counts of an `evaluate` result's front view
+    (`racklay.metrics`: shelf channels whose truth holds >= 2 box runs; `unit` "images": an image
+    counts when any of its shelves does, so for photos "does the prediction show separate boxes
+    on the shelf where the photo does"), or None without a front view."""
+    sep = res.get("front", {}).get("separation")
+    if sep is None:
         return None
-    counts = [0, 0, 0, 0]
-    with torch.inference_mode():
-        for batch in DataLoader(ds, batch_size=8):
-            c = pred.predict_batch(batch["image"])[0]["front"]
-            sep = L.separated_shelves(batch["front"].numpy(), c)
-            parts = (sep.truth, sep.hit, sep.pred, sep.placed)
-            if per_image:
-                parts = [x.any(-1) for x in parts]
-            counts = [n + int(x.sum()) for n, x in zip(counts, parts)]
-    return tuple(counts)
+    c = sep[unit]
+    return c["truth"], c["separated"], c["predicted"], c["placed"]
 
 
-def centre_cut(root, split, limit, D: int, per_image: bool = False) -> int:
+def centre_cut(root, split, limit, D: int | None, per_image: bool = False) -> int:
     """The chance line for "placed": front-view channels (`per_image`: images) whose truth, at
-    D x D, has >= 2 box runs that one cut at the middle of every shelf would place
+    D x D (None: as stored), has >= 2 box runs that one cut at the middle of every shelf would place
     (`racklay.layout.gaps_match` with a single gap at 0.5; two loads per bay are common)."""
     from racklay import layout as L
     from racklay.data import RackLayRoot
@@ -68,8 +53,10 @@ def centre_cut(root, split, limit, D: int, per_image: bool = False) -> int:
     data = RackLayRoot(root)
     n = 0
     for sid in data.resolve(split)[:limit]:
-        hits = [L.box_runs(ch) >= 2 and L.gaps_match(L.box_gaps(ch), [(0.5, 0.5)])
-                for ch in L.resize_layouts(data.read_layouts("front", sid), D)]
+        front = data.read_layouts("front", sid)
+        if D is not None:
+            front = L.resize_layouts(front, D)
+        hits = [L.box_runs(ch) >= 2 and L.gaps_match(L.box_gaps(ch), [(0.5, 0.5)]) for ch in front]
         n += any(hits) if per_image else sum(hits)
     return n
 
@@ -135,16 +122,16 @@ def main() -> int:
         pred = Predictor(str(ckpt), precision="auto")
         print(f"{name}: {ckpt} ({pred.cfg.decoder} decoder, {pred.precision})", file=sys.stderr, flush=True)
         row = {"decoder": pred.cfg.decoder}
-        row["metric"] = scores(evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False))
+        res = evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False)
+        row["metric"], row["separation"] = scores(res), separation(res)
         row["shape"] = scores(evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False,
                                        scale_from_truth=True))
-        row["separation"] = separation(pred, args.data, args.split, args.limit)
         row["cpu_minutes"], row["best_val"] = run_cost(run) if run.is_dir() else (None, None)
         if photos is not None:
-            row["photos_metric"] = scores(evaluate(pred, photos, split="test", native=True, progress=False))
+            res = evaluate(pred, photos, split="test", native=True, progress=False)
+            row["photos_metric"], row["photos_separation"] = scores(res), separation(res, "images")
             row["photos_shape"] = scores(evaluate(pred, photos, split="test", native=True, progress=False,
                                                   scale_from_truth=True))
-            row["photos_separation"] = separation(pred, photos, "test", None, per_image=True)
         out[name] = row
 
     n = f"first {args.limit} of " if args.limit else ""
@@ -185,7 +172,7 @@ def main() -> int:
             sep = r["photos_separation"]
             sep_s = f"{sep[1]} / {sep[0]}; {sep[3]}; {sep[2]}" if sep else "-"
             print(f"| {name} | {fmt(r['photos_metric'])} | {fmt(r['photos_shape'])} | {sep_s} |")
-        print(f"(one cut in the middle of every shelf would place {centre_cut(photos, 'test', None, pred.layout_size, True)})")
+        print(f"(one cut in the middle of every shelf would place {centre_cut(photos, 'test', None, None, True)})")
     tmp.cleanup()
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=1))
