@@ -97,6 +97,15 @@ def test_pallet_racking_dataset_passes_check_data(tmp_path):
     assert {"pallet_cartons", "pallet_wrapped", "pallet_crates"} <= {c["name"] for c in coco["categories"]}
 
 
+def test_cube_units_dataset_passes_check_data(tmp_path):
+    out = tmp_path / "cube"
+    rc = racklay_main(["synth", "--recipe", "cube", "--n", "3", "--out", str(out), "--seed", "2",
+                       "--no-progress"] + sum((["--set", s] for s in TINY), []))
+    assert rc == 0 and racklay_main(["check-data", str(out)]) == 0
+    meta = RackLayRoot(out).read_meta("000000")
+    assert meta["rack"]["style"] == "cube" and meta["recipe"] == "cube"
+
+
 def test_same_seed_same_bytes_across_runs_and_workers(tmp_path, reference):
     a = tmp_path / "again"
     generate_dataset(tiny(), 6, a, seed=3, progress=False)

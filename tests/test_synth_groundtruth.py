@@ -302,11 +302,49 @@ def test_pallet_racking_units_stand_on_their_level_with_their_parts_inside():
 def test_recipes_without_pallet_racking_keep_their_scenes():
     """Adding the style knob changed nothing for the recipes that do not use it."""
     r = load_recipe("complex")
-    r0 = load_recipe("complex", {"rack_style": {"shelving": 1.0, "pallet": 0.0}})
-    for index in range(5):
-        a, b = sample_scene(r, 4, index), sample_scene(r0, 4, index)
-        assert [(o.center, o.size, o.material) for o in a.objects] == [(o.center, o.size, o.material) for o in b.objects]
-        assert a.rack_style == "shelving" and not any(o.part_of >= 0 for o in a.objects)
+    for zero in ({"shelving": 1.0, "pallet": 0.0}, {"shelving": 1.0, "pallet": 0.0, "cube": 0.0}):
+        r0 = load_recipe("complex", {"rack_style": zero})
+        for index in range(5):
+            a, b = sample_scene(r, 4, index), sample_scene(r0, 4, index)
+            assert [(o.center, o.size, o.material) for o in a.objects] == [(o.center, o.size, o.material) for o in b.objects]
+            assert a.rack_style == "shelving" and not any(o.part_of >= 0 for o in a.objects)
+
+
+def test_cube_units_keep_each_load_inside_its_cell():
+    """Cube units (recipe `cube`): a row of square cells between panels is a shelf; every item
+    stands on its row's panel inside one cell (between two upright panels, on the deck, below
+    the panel above), so loads of neighbouring cells are at least a panel apart."""
+    from racklay.synth.scene import SEM
+
+    r = load_recipe("cube", {"box_density": [1.0, 1.0], "cube_bin": 0.5})
+    items = neighbours = 0
+    for index in range(20):
+        scene = sample_scene(r, 6, index)
+        assert scene.rack_style == "cube"
+        # the considered unit's upright panels: thin, full-height rack parts centred on y = 0
+        panels = sorted((o.center[0] - o.size[0] / 2, o.center[0] + o.size[0] / 2) for o in scene.objects
+                        if o.semantic == SEM["rack"] and o.size[0] < 0.05 and abs(o.center[1]) < 1e-9
+                        and abs(o.center[0]) < scene.rack_length / 2)
+        assert panels[0][0] == pytest.approx(-scene.rack_length / 2) and panels[-1][1] == pytest.approx(scene.rack_length / 2)
+        cells = [(a[1], b[0]) for a, b in zip(panels, panels[1:])]
+        for sh in scene.shelves:
+            assert sh.max_item_top < sh.clear_height
+            placed = []
+            for i in sh.items:
+                b = scene.objects[i].layout_box
+                items += 1
+                assert b.z0 == 0 and b.sz <= sh.max_item_top + 1e-9
+                assert -scene.rack_depth / 2 <= b.y_range()[0] and b.y_range()[1] <= scene.rack_depth / 2
+                x0, x1 = b.x_range()
+                cell = [k for k, (a, c) in enumerate(cells) if a - 1e-9 <= x0 and x1 <= c + 1e-9]
+                assert len(cell) == 1, f"scene {index}: an item crosses a panel"
+                placed.append((cell[0], x0, x1))
+            placed.sort()
+            for (ka, _, a1), (kb, b0, _) in zip(placed, placed[1:]):
+                if ka != kb:
+                    neighbours += 1
+                    assert b0 - a1 >= min(p[1] - p[0] for p in panels) - 1e-9
+    assert items > 100 and neighbours > 30, (items, neighbours)
 
 
 def test_load_unit_annotation_owns_the_pixels_of_its_parts():

@@ -7,6 +7,8 @@ from racklay.config import at_least
 def register(sub) -> None:
     import argparse
 
+    from racklay.synth.recipe import builtin_recipes
+
     p = sub.add_parser(
         "synth", help="generate a synthetic RackLay dataset (WareSynth: procedural racks, exact ground truth)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -21,7 +23,8 @@ def register(sub) -> None:
             "split files and COCO annotations. See docs/waresynth.md."),
         epilog="recipe keys (override with --set key=value):\n" + _keys_help())
     p.add_argument("--recipe", default="complex",
-                   help="built-in recipe name (simple, complex, proxy_real, release: racklay/synth/recipes/) or a YAML path")
+                   help=f"built-in recipe name ({', '.join(builtin_recipes())}: racklay/synth/recipes/, "
+                        "docs/waresynth.md) or a YAML path (default complex)")
     p.add_argument("--n", type=at_least(1), required=True, help="number of images in the whole dataset (all shards)")
     p.add_argument("--out", required=True, help="output dataset folder")
     p.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")

@@ -58,7 +58,7 @@ class Recipe:
     beam_height: list = _f([0.06, 0.12], "frange", 0.0, 0.3, "front/back beam height under each board")
     upright_width: float = _f(0.08, "float", 0.02, 0.3, "upright post width, metres")
     # --- pallet racking (drawn only where rack_style gives it a weight: other recipes keep their scenes) ---
-    rack_style: dict = _f({"shelving": 1.0}, "weights:shelving|pallet", doc="probability of each rack style: shelving (boards, boxes straight on them) or pallet racking (beam pairs, loads on pallets)")
+    rack_style: dict = _f({"shelving": 1.0}, "weights:shelving|pallet|cube", doc="probability of each rack style: shelving (boards, boxes straight on them), pallet racking (beam pairs, loads on pallets) or cube units (a grid of square cells between panels, a bin or small items in each)")
     pallet_levels: list = _f([2, 5], "irange", 1, 8, "pallet racking: storage levels, the floor position included")
     pallet_level_height: list = _f([1.2, 2.2], "frange", 0.5, 4.0, "pallet racking: beam level to beam level, metres")
     pallet_bay_length: list = _f([2.7, 3.6], "frange", 1.0, 6.0, "pallet racking: beam length (clear bay width), metres")
@@ -68,6 +68,12 @@ class Recipe:
     pallet_load: dict = _f({"cartons": 0.5, "wrapped": 0.35, "crates": 0.15}, "weights:cartons|wrapped|crates", doc="pallet racking: what stands on a pallet")
     pallet_gap: list = _f([0.06, 0.15], "frange", 0.0, 1.0, "pallet racking: clearance between neighbouring pallets, metres (one draw per level)")
     pallet_packing: float = _f(0.0, "float", 0.0, 1.0, "pallet racking: probability that a level's pallets stand packed at pallet_gap from each other (as in a bay sized for them) rather than spread evenly along the beams")
+    # --- cube units (drawn only where rack_style gives them a weight) ---
+    cube_columns: list = _f([2, 5], "irange", 1, 8, "cube units: cells side by side")
+    cube_rows: list = _f([2, 5], "irange", 1, 8, "cube units: rows of cells (each row's floor panel is a shelf)")
+    cube_cell: list = _f([0.28, 0.42], "frange", 0.1, 1.0, "cube units: inner width = height of a cell, metres")
+    cube_depth: list = _f([0.3, 0.42], "frange", 0.1, 1.0, "cube units: depth, metres")
+    cube_bin: float = _f(0.6, "float", 0.0, 1.0, "cube units: probability that a filled cell holds one bin filling most of it (else 1-4 small items)")
     # --- warehouse ------------------------------------------------------------------------
     background: dict = _f({"wall": 0.4, "busy": 0.6}, "weights:wall|busy", doc="probability of each background")
     wall_gap: list = _f([0.05, 0.6], "frange", 0.0, 5.0, "gap between the rack's back and the wall (wall background)")
@@ -269,9 +275,14 @@ def resolve_recipe_path(name_or_path: str) -> Path:
         return p
     q = RECIPE_DIR / f"{name_or_path}.yaml"
     if not q.is_file():
-        known = sorted(x.stem for x in RECIPE_DIR.glob("*.yaml"))
+        known = builtin_recipes()
         raise RecipeError(f"recipe '{name_or_path}' not found in {RECIPE_DIR} (known: {', '.join(known) or 'none'})")
     return q
+
+
+def builtin_recipes() -> list[str]:
+    """Names of the recipes shipped in RECIPE_DIR."""
+    return sorted(x.stem for x in RECIPE_DIR.glob("*.yaml"))
 
 
 def load_recipe(name_or_path: str | None = None, overrides: list[str] | dict | None = None) -> Recipe:

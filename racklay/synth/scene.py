@@ -136,7 +136,7 @@ class Scene:
     domain: str = "synthetic"
     shadows: bool = True          # the key light casts shadows
     light_falloff: float = 6.0    # metres at which a light's intensity has halved
-    rack_style: str = "shelving"  # "shelving" | "pallet" (Recipe.rack_style)
+    rack_style: str = "shelving"  # "shelving" | "pallet" | "cube" (Recipe.rack_style)
 
     def layout_inputs(self) -> list[tuple[L.Shelf, list[L.Box]]]:
         """(Shelf, boxes in the shelf frame) of each visible shelf, lowest first."""
@@ -350,6 +350,40 @@ def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: floa
     return units
 
 
+def fill_cube_row(rng, r: Recipe, columns: int, cell: float, panel: float, depth: float, max_top: float,
+                  density: float) -> list[tuple[int, L.Box]]:
+    """Items in one row of a cube unit (shelf frame; the row's floor panel is the board): each
+    cell, taken with probability `density`, holds one bin filling most of it (`cube_bin`) or 1-4
+    small items side by side. Everything stays inside its cell (x: between the panels; y: on the
+    panel) and below `max_top`, so neighbouring cells' loads are a panel's width apart at least."""
+    items: list[tuple[int, L.Box]] = []
+    length = columns * cell + (columns + 1) * panel
+    for j in range(columns):
+        if rng.uniform() >= density:
+            continue
+        x0 = -length / 2 + panel + j * (cell + panel)
+        if rng.uniform() < r.cube_bin:
+            cat = _pick(rng, CRATES) if rng.uniform() < 0.4 else _pick(rng, CARTONS)
+            sx = cell - float(rng.uniform(0.01, 0.04))
+            sy = min(depth - 0.01, depth * float(rng.uniform(0.75, 0.97)))
+            sz = min(max_top, cell * float(rng.uniform(0.7, 0.95)))
+            cx = x0 + cell / 2 + float(rng.uniform(-0.5, 0.5)) * (cell - sx)
+            cy = -depth / 2 + 0.005 + sy / 2 + float(rng.uniform(0, 0.3)) * (depth - 0.01 - sy)
+            items.append((cat, L.Box(cx=cx, cy=cy, sx=sx, sy=sy, sz=sz)))
+            continue
+        x = x0 + float(rng.uniform(0.0, 0.03))
+        for _ in range(int(rng.integers(1, 5))):
+            sx = float(rng.uniform(0.04, 0.15))
+            if x + sx > x0 + cell:
+                break
+            sy = float(rng.uniform(0.08, min(0.3, depth - 0.01)))
+            sz = float(rng.uniform(0.03, min(0.25, max_top)))
+            cy = -depth / 2 + 0.005 + sy / 2 + float(rng.uniform(0, 0.5)) * (depth - 0.01 - sy)
+            items.append((_pick(rng, CARTONS), L.Box(cx=x + sx / 2, cy=cy, sx=sx, sy=sy, sz=sz)))
+            x += sx + r.min_gap + float(rng.uniform(0.0, 0.04))
+    return items
+
+
 # --- the scene ------------------------------------------------------------------------------
 class _Builder:
     def __init__(self, rng, r: Recipe):
@@ -441,6 +475,30 @@ class _Builder:
             if shelf_infos is not None:
                 shelf_infos[si].items = idx
 
+    def cube_unit(self, x0, y0, length, depth, boards, columns, cell, panel, tint, back,
+                  shelf_infos=None):
+        """A cube unit centred at (x0, y0): a floor panel under every row (the shelf boards), a
+        top panel, two side panels and a divider between neighbouring cells (all `panel` thick),
+        a back panel where `back`, and items in the cells."""
+        r = self.r
+        top = boards[-1][0] + boards[-1][1]
+        for z_top, _h, _mt in boards:
+            self.add((x0, y0, z_top - panel / 2), (length, depth, panel), "board", SEM["shelf"], tint=tint)
+        self.add((x0, y0, top - panel / 2), (length, depth, panel), "board", SEM["rack"], tint=tint)
+        z_lo = boards[0][0] - panel
+        for j in range(columns + 1):
+            xs = x0 - length / 2 + panel / 2 + j * (cell + panel)
+            self.add((xs, y0, (z_lo + top) / 2), (panel, depth, top - z_lo), "board", SEM["rack"], tint=tint)
+        if back:
+            self.add((x0, y0 + depth / 2 + 0.003, (z_lo + top) / 2), (length, 0.006, top - z_lo), "board",
+                     SEM["rack"], tint=tint)
+        for si, (z_top, _h, max_top) in enumerate(boards):
+            items = fill_cube_row(self.rng, r, columns, cell, panel, depth, max_top, _u(self.rng, r.box_density))
+            idx = [self.item(cat, b, z_top, x0, y0, shelf=si if shelf_infos is not None else -1,
+                             keep_layout=shelf_infos is not None) for cat, b in items]
+            if shelf_infos is not None:
+                shelf_infos[si].items = idx
+
     def pallet_unit(self, kind: str, b: L.Box, z_board: float, x_off: float, y_off: float, shelf: int,
                     detailed: bool) -> int:
         """One load unit: an undrawn object holding the unit's box (what the ground truth
@@ -483,10 +541,21 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     # the considered rack; the style is drawn only when pallet racking has a weight, so recipes
     # without it keep their scenes draw for draw
     style, deck = "shelving", False
-    if r.rack_style.get("pallet", 0.0) > 0:
-        style = rng.choice(list(r.rack_style), p=list(r.rack_style.values()))
+    if any(w > 0 for k, w in r.rack_style.items() if k != "shelving"):
+        w = np.array(list(r.rack_style.values()))
+        style = str(rng.choice(list(r.rack_style), p=w / w.sum()))
     boards = []
-    if style == "pallet":
+    if style == "cube":
+        columns, rows = _ui(rng, r.cube_columns), _ui(rng, r.cube_rows)
+        cell, depth = _u(rng, r.cube_cell), _u(rng, r.cube_depth)
+        panel = float(rng.uniform(0.015, 0.035))
+        length = columns * cell + (columns + 1) * panel
+        cube_back = bool(rng.uniform() < 0.5)
+        z = float(rng.uniform(0.0, 0.1)) + panel     # on the floor or on short feet
+        for _ in range(rows):
+            boards.append((z, cell + panel, cell - 0.005))
+            z += cell + panel
+    elif style == "pallet":
         length, depth = _u(rng, r.pallet_bay_length), _u(rng, r.pallet_rack_depth)
         n = _ui(rng, r.pallet_levels)
         h_nom = _u(rng, r.pallet_level_height)
@@ -513,6 +582,8 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     shelves = [ShelfInfo(board_top=b[0], clear_height=b[1], max_item_top=b[2]) for b in boards]
     steel_tint = _tint(rng, 0.15, (0.25, 0.35, 0.65) if rng.uniform() < 0.6 else (0.55, 0.56, 0.58))
     beam_tint = _tint(rng, 0.1, (0.95, 0.45, 0.08) if rng.uniform() < 0.7 else (0.2, 0.3, 0.7))
+    if style == "cube":   # white, black or wood-effect panels
+        steel_tint = _tint(rng, 0.06, ((0.92, 0.92, 0.9), (0.13, 0.12, 0.12), (0.78, 0.62, 0.45))[int(rng.integers(3))])
     board_tint = wall_base = None
     # drawn only when the knob is on, so recipes without it keep their scenes draw for draw
     if r.palette_random > 0 and rng.uniform() < r.palette_random:
@@ -533,7 +604,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     if background == "busy":
         y_back = depth / 2
         for row in range(1, r.rack_rows + 1):
-            d2 = depth if row % 2 else _u(rng, r.pallet_rack_depth if style == "pallet" else r.rack_depth)
+            d2 = depth if row % 2 else _u(rng, {"pallet": r.pallet_rack_depth, "cube": r.cube_depth}.get(style, r.rack_depth))
             # back-to-back rows pair up (small flue gap), pairs are separated by corridors
             gap = float(rng.uniform(0.1, 0.3)) if row % 2 else _u(rng, r.corridor_width)
             rows_y.append(y_back + gap + d2 / 2)
@@ -557,7 +628,10 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
                 continue
             left_shared = ci > 0 and row[ci - 1]
             is_target = ri == 0 and col == 0
-            if style == "pallet":
+            if style == "cube":
+                B.cube_unit(col * pitch_x, yc, length, d2, boards, columns, cell, panel, steel_tint, cube_back,
+                            shelf_infos=shelves if is_target else None)
+            elif style == "pallet":
                 B.pallet_rack(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, beam_tint, deck,
                               shelf_infos=shelves if is_target else None, uprights=(not left_shared, True))
             else:
