@@ -196,6 +196,7 @@ def test_compare_writes_table2_rows_and_files(killed_then_resumed_compare):
     lines = (out / "table.csv").read_text().splitlines()
     assert [l.split(",")[0] for l in lines[1:]] == ["synthetic", "real", "finetune"]
     assert "top box mIoU mean" in lines[0] and "top box IoU std" in lines[0]
+    assert "front shelves in place mean" in lines[0] and "Boxes as boxes (front view;" in md
     runs = (out / "runs.csv").read_text().splitlines()
     assert len(runs) == 1 + 3
     for png in ("chart.png", "learning_curve.png"):
