@@ -34,6 +34,8 @@ DATASET_CELLS = [(v, c, f"{v} {c} IoU") for v in VIEW_ORDER for c in ("shelf", "
 #: boxes as boxes (racklay.metrics, front view): (key in metrics["front"]["separation"]["shelves"],
 #: column label); counts of shelves whose labels show separate loads, not x100
 SEPARATION_CELLS = [("separated", "front shelves separated"), ("placed", "front shelves in place")]
+#: every column of table.csv and runs.csv, in order
+TABLE_LABELS = [lab for *_, lab in PAPER_CELLS] + [lab for *_, lab in DATASET_CELLS] + [lab for _, lab in SEPARATION_CELLS]
 #: the paper's Table 2 (RackLay-D-disc, real test set), x100, same column order as PAPER_CELLS
 PAPER_TABLE2 = {
     "synthetic": [78.19, 93.66, 77.30, 91.43, 85.47, 97.69, 81.01, 94.34],
@@ -187,7 +189,7 @@ def table_csv(records: list[dict], fraction: float = 1.0) -> str:
     s = summarize(records, fraction)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    labels = [lab for *_, lab in PAPER_CELLS] + [lab for *_, lab in DATASET_CELLS] + [lab for _, lab in SEPARATION_CELLS]
+    labels = TABLE_LABELS
     w.writerow(["training", "seeds"] + [f"{lab} {k}" for lab in labels for k in ("mean", "std")])
     for regime in REGIMES:
         if regime in s:
@@ -199,7 +201,7 @@ def table_csv(records: list[dict], fraction: float = 1.0) -> str:
 def runs_csv(records: list[dict]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    labels = [lab for *_, lab in PAPER_CELLS] + [lab for *_, lab in DATASET_CELLS] + [lab for _, lab in SEPARATION_CELLS]
+    labels = TABLE_LABELS
     w.writerow(["regime", "fraction", "seed", "n_train", "train_seconds", "eval_seconds", "run"] + labels)
     for r in sorted(records, key=_sort_key):
         v = record_values(r)

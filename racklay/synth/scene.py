@@ -538,8 +538,8 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     rng = scene_rng(seed, index)
     B = _Builder(rng, r)
 
-    # the considered rack; the style is drawn only when pallet racking has a weight, so recipes
-    # without it keep their scenes draw for draw
+    # the considered rack; the style is drawn only when a style other than shelving has a weight,
+    # so recipes without one keep their scenes draw for draw
     style, deck = "shelving", False
     if any(w > 0 for k, w in r.rack_style.items() if k != "shelving"):
         w = np.array(list(r.rack_style.values()))
