@@ -34,12 +34,17 @@ called, the pipeline therefore re-seeds itself on its first call in a worker pro
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
 from .config import AUGMENT_PRESETS as PRESETS
 from .config import to_dict
+
+# albumentations asks PyPI for its latest version when imported; nothing here goes online at run
+# time (and on a machine without a network the lookup waits for DNS)
+os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")
 
 
 @dataclass(frozen=True)

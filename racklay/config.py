@@ -37,6 +37,7 @@ ENCODERS = ("resnet18", "efficientnet-lite0")
 #: training augmentation presets (racklay.augment.make_augment)
 AUGMENT_PRESETS = ("none", "paper", "strong")
 DEVICES = ("auto", "cpu", "cuda")
+SCHEDULES = ("steps", "time")
 
 
 # ----------------------------------------------------------------------------- value parsers
@@ -278,6 +279,11 @@ class TrainConfig:
                        gt=0, keep=True)
     weight_decay: float = option(0.0, "Adam weight decay (default {default})", lo=0, keep=True)
     warmup_steps: int = option(100, "linear warm-up steps (default {default})", lo=0, keep=True)
+    schedule: str = option(
+        "steps", "what the cosine decay runs over: steps (the epochs' steps; reproducible bit for bit) or "
+                 "time (--max-minutes, or the epochs if they end first: a time-budgeted run ends at the "
+                 "decayed rate whatever its throughput, but depends on the machine's speed) (default {default})",
+        choices=SCHEDULES, keep=True)
     # --- the network (ARCH_FIELDS; ModelConfig below shares these declarations) -------------
     image_size: int | tuple = option(
         256, "network input: S (square) or HxW, e.g. 160x256 for 470x280 photos; multiples of 32 "
@@ -387,6 +393,8 @@ class TrainConfig:
         self.amp = check_precision(self.amp, "amp")
         if self.label_weight == 0 and not self.teacher:
             raise ValueError("label_weight 0 leaves nothing to learn from without a teacher")
+        if self.schedule == "time" and self.max_minutes is None:
+            raise ValueError("schedule time decays over the time budget: give max_minutes too")
         self.model_config()  # validates views, sizes, R and the struct options together
 
     def model_config(self) -> "ModelConfig":

@@ -73,14 +73,14 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
     if shelf_length is not None and scale_from_truth:
         raise ValueError("give either a shelf length or scale_from_truth, not both")
     import torch
-    from torch.utils.data import DataLoader
 
     from .data import RackLayRoot
     from .metrics import LayoutMetrics
+    from .torchdata import data_loader
 
     pred = _predictor(weights, backend, threads)
     root, views, ds = split_dataset(pred, data, split, limit)
-    loader = DataLoader(ds, batch_size=batch_size, shuffle=False, num_workers=workers)
+    loader = data_loader(ds, workers, batch_size=batch_size, shuffle=False)
     metrics = LayoutMetrics()
     out_root = RackLayRoot(pred_out) if pred_out is not None else None
     bar = None

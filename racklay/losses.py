@@ -13,8 +13,9 @@ from .layout import NUM_CLASSES
 
 
 def layout_loss(logits: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """Per-shelf weighted pixel cross-entropy. logits (N, R, 3, S, S), target (N, R, S, S)."""
-    return F.cross_entropy(logits.float().transpose(1, 2), target, weight=weight)
+    """Per-shelf weighted pixel cross-entropy. logits (N, R, 3, S, S), target (N, R, S, S) class ids
+    (any integer type: the datasets give uint8)."""
+    return F.cross_entropy(logits.float().transpose(1, 2), target.long(), weight=weight)
 
 
 def layout_iou_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

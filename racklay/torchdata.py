@@ -1,7 +1,7 @@
 """A torch Dataset over a RackLay-format root, for training and evaluation.
 
 Each item is a dict: `image` float32 (3, H, W), ImageNet-normalised; `top` and/or `front`
-int64 (R, S, S) class ids at the model's layout size S (nearest-neighbour resize at pixel
+uint8 (R, S, S) class ids at the model's layout size S (nearest-neighbour resize at pixel
 centres, see `racklay.layout.resize_layouts`); `id` the sample id.
 
 `transform(image_uint8_hwc, layouts: dict[view -> (R, S, S) uint8]) -> (image, layouts)` runs
@@ -80,6 +80,19 @@ def squeeze_letterbox(image: np.ndarray, keep: float) -> np.ndarray:
     return image if nw == w else _pad_to(_resize(image, h, nw), h, w)
 
 
+def data_loader(dataset, workers: int = 0, **kw) -> torch.utils.data.DataLoader:
+    """A DataLoader over these datasets. With worker processes, OpenCV runs on one thread in this
+    process from now on, so every worker inherits one thread: OpenCV's own pool (a thread per CPU
+    in every worker) oversubscribes the cores (one thread each: +40 % images/s with 7 and +15 % with
+    14 workers on 16 CPUs, bench/speed/loader_speed.py); setting it inside a forked worker instead
+    can deadlock on the pool the fork copied."""
+    if workers > 0:
+        import cv2
+
+        cv2.setNumThreads(1)
+    return torch.utils.data.DataLoader(dataset, num_workers=workers, **kw)
+
+
 def image_to_tensor(image: np.ndarray) -> torch.Tensor:
     """RGB uint8 (H, W, 3) -> normalised float32 (3, H, W)."""
     x = (image.astype(np.float32) / 255.0 - IMAGENET_MEAN) / IMAGENET_STD
@@ -128,7 +141,9 @@ class RackLayDataset(Dataset):
             img, lays = self.transform(img, dict(lays))
         item = {"image": image_to_tensor(img), "id": self.ids[i]}
         for v, arr in lays.items():
-            item[v] = torch.from_numpy(np.ascontiguousarray(arr).astype(np.int64))
+            # uint8 class ids (the model's loss takes them as int64 on its device): 8x less to pass
+            # from loader workers to the training process and to a GPU than int64
+            item[v] = torch.from_numpy(np.ascontiguousarray(arr, dtype=np.uint8))
         return item
 
 

@@ -63,11 +63,14 @@ from .structure import structure_loss
 # ----------------------------------------------------------------------------- helpers
 
 
-def lr_at(step: int, total: int, cfg: TrainConfig) -> float:
-    """Linear warm-up over `warmup_steps`, then cosine decay to 1% of the peak at `total`."""
+def lr_at(step: int, total: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> float:
+    """Linear warm-up over `warmup_steps`, then cosine decay to 1% of the peak at `total` steps
+    or, with `schedule: time`, at the time budget if that comes first (`elapsed_s` of it spent)."""
     if step < cfg.warmup_steps:
         return cfg.lr * (step + 1) / cfg.warmup_steps
     t = min(1.0, (step - cfg.warmup_steps) / max(1, total - cfg.warmup_steps))
+    if cfg.schedule == "time":
+        t = max(t, min(1.0, elapsed_s / (cfg.max_minutes * 60)))
     return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
 
 
@@ -146,9 +149,9 @@ def validate(model, loader, cfg: TrainConfig, weight, device, progress=False, bf
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
             out = model(x)
         for v, logits in out.items():
-            tgt = batch[v].to(device)
+            tgt = batch[v].to(device).long()
             loss += float(layout_loss(logits, tgt, weight)) * x.shape[0]
-            m.update(v, logits.argmax(2).cpu().numpy().astype(np.uint8), tgt.cpu().numpy().astype(np.uint8))
+            m.update(v, logits.argmax(2).cpu().numpy().astype(np.uint8), batch[v].numpy())
         n += x.shape[0]
     model.train(was)
     res = m.result()
@@ -266,7 +269,7 @@ def train(cfg: TrainConfig, transform=None) -> Path:
             bar = tqdm(total=len(all_batches), initial=st.step, desc=f"epoch {epoch + 1}/{cfg.epochs}",
                        disable=not (cfg.progress and dist.main), dynamic_ncols=True)
             for batch in loader:
-                lr = lr_at(st.global_step, total_steps, cfg)
+                lr = lr_at(st.global_step, total_steps, cfg, run.elapsed())
                 for g in run.optimizers["gen"].param_groups:
                     g["lr"] = lr
                 losses = train_step(run, gen, disc, batch)
@@ -417,9 +420,7 @@ def check_run_data(cfg: TrainConfig, run_dir: Path, train_ids, val_ids) -> dict:
 def make_loaders(cfg: TrainConfig, transform, dist: Dist, run_dir: Path):
     """(training dataset, its loader, the loader's batch sampler, validation loader (rank 0 only), the
     record of checked files), after `check_run_data`."""
-    from torch.utils.data import DataLoader
-
-    from .torchdata import RackLayDataset, ReplayMix
+    from .torchdata import RackLayDataset, ReplayMix, data_loader
 
     train_ids, val_ids = split_ids(cfg)
     checked = check_run_data(cfg, run_dir, train_ids, val_ids)
@@ -434,9 +435,10 @@ def make_loaders(cfg: TrainConfig, transform, dist: Dist, run_dir: Path):
         train_ds = ReplayMix(train_ds, pool, cfg.replay_ratio, seed=cfg.seed)
     val_ds = RackLayDataset(cfg.data, ids=val_ids, **kw) if dist.main else None
     batches = Batches()
-    loader = DataLoader(Seeded(train_ds, cfg.seed), batch_sampler=batches, num_workers=cfg.workers,
-                        persistent_workers=cfg.workers > 0)
-    val_loader = (DataLoader(val_ds, batch_size=cfg.batch_size, shuffle=False, num_workers=cfg.workers)
+    pin = dist.device.type == "cuda"   # page-locked batches: the copy to the GPU overlaps the step
+    loader = data_loader(Seeded(train_ds, cfg.seed), cfg.workers, batch_sampler=batches,
+                         persistent_workers=cfg.workers > 0, pin_memory=pin)
+    val_loader = (data_loader(val_ds, cfg.workers, batch_size=cfg.batch_size, shuffle=False, pin_memory=pin)
                   if dist.main else None)
     return train_ds, loader, batches, val_loader, checked
 
@@ -487,10 +489,10 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
     with a teacher, + λ·adversarial loss when `disc` is given), then the discriminators on the
     one-hot truth vs the generator's probabilities."""
     cfg, device, bf16 = run.cfg, run.dist.device, run.bf16
-    x = batch["image"].to(device)
+    x = batch["image"].to(device, non_blocking=True)
     if run.channels_last:
         x = x.contiguous(memory_format=torch.channels_last)
-    targets = {v: batch[v].to(device) for v in cfg.views}
+    targets = {v: batch[v].to(device, non_blocking=True).long() for v in cfg.views}
     structured = cfg.decoder == "struct"
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
         out = gen(x, with_structure=True) if structured else gen(x)
@@ -585,7 +587,7 @@ def record_epoch(run: Run, st: RunState, tr: dict, val_loader, total_steps: int,
 
     cfg, epoch = run.cfg, st.epoch
     val = validate(run.model, val_loader, cfg, run.weight, run.dist.device, progress=cfg.progress, bf16=run.bf16)
-    row = history_row(epoch, st.step, lr_at(max(0, st.global_step - 1), total_steps, cfg),
+    row = history_row(epoch, st.step, lr_at(max(0, st.global_step - 1), total_steps, cfg, st.elapsed_s),
                        tr, val, time.time() - t_epoch, st.elapsed_s)
     st.history.append(row)
     improved = val["score"] > st.best_score

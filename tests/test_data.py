@@ -157,7 +157,7 @@ def test_torch_dataset_sizes_and_values(toy_root):
     d = RackLayDataset(toy_root, split="train", image_size=(48, 80), layout_size=32, cache=True)
     item = d[0]
     assert item["image"].shape == (3, 48, 80) and item["image"].dtype == torch.float32
-    assert item["top"].shape == (4, 32, 32) and item["top"].dtype == torch.int64
+    assert item["top"].shape == (4, 32, 32) and item["top"].dtype == torch.uint8
     assert set(item["front"].unique().tolist()) <= {0, 1, 2}
     assert len(d) == len(RackLayRoot(toy_root).split_ids("train"))
 

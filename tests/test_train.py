@@ -341,6 +341,22 @@ def test_time_budget_stops_mid_epoch_and_a_larger_budget_finishes_it(tmp_path, t
     assert [r["step"] for r in _rows(run)] == ["1", "4"]
 
 
+def test_time_schedule_decays_over_the_budget():
+    """`schedule: time` ends a time-budgeted run at the decayed rate however few steps fit; the
+    step schedule (the default) ignores the clock; time needs a budget to decay over."""
+    from racklay.train import lr_at
+
+    steps = TrainConfig(lr=1.0, warmup_steps=10, max_minutes=10)
+    timed = TrainConfig(lr=1.0, warmup_steps=10, max_minutes=10, schedule="time")
+    assert lr_at(5, 1000, timed, elapsed_s=599) == lr_at(5, 1000, steps) == 0.6     # warm-up: by step
+    assert lr_at(50, 1000, steps, elapsed_s=600) > 0.99                            # 4 % of the steps
+    assert lr_at(50, 1000, timed, elapsed_s=300) == pytest.approx(0.505)           # half the budget
+    assert lr_at(50, 1000, timed, elapsed_s=900) == pytest.approx(0.01)            # past it: the floor
+    assert lr_at(1000, 1000, timed, elapsed_s=1) == pytest.approx(0.01)            # epochs end first
+    with pytest.raises(ValueError, match="max_minutes"):
+        TrainConfig(schedule="time")
+
+
 def test_stale_checkpoint_temp_files_removed_at_next_start(tmp_path, toy):
     """A kill during a checkpoint write leaves `.last.safetensors.XXXX.tmp` (14 MB for the full
     model) beside the run; the next start of that run removes it, and nothing else."""
