@@ -302,7 +302,7 @@ def test_pallet_racking_units_stand_on_their_level_with_their_parts_inside():
 def test_recipes_without_pallet_racking_keep_their_scenes():
     """Adding the style knob changed nothing for the recipes that do not use it."""
     r = load_recipe("complex")
-    for zero in ({"shelving": 1.0, "pallet": 0.0}, {"shelving": 1.0, "pallet": 0.0, "cube": 0.0}):
+    for zero in ({"shelving": 1.0, "pallet": 0.0}, {"shelving": 1.0, "pallet": 0.0, "cube": 0.0, "wire": 0.0}):
         r0 = load_recipe("complex", {"rack_style": zero})
         for index in range(5):
             a, b = sample_scene(r, 4, index), sample_scene(r0, 4, index)
@@ -345,6 +345,36 @@ def test_cube_units_keep_each_load_inside_its_cell():
                     neighbours += 1
                     assert b0 - a1 >= min(p[1] - p[0] for p in panels) - 1e-9
     assert items > 100 and neighbours > 30, (items, neighbours)
+
+
+def test_wire_shelving_loads_stand_on_their_deck_between_the_posts():
+    """Wire shelving (recipe `wire`): four round posts outside the decks' corners; every deck is a
+    shelf whose wires' tops are the board top; every load stands on its deck (or on another),
+    inside its length and depth, and below the next deck's frame."""
+    from racklay.synth.scene import SEM, WIRE_POST, WIRE_TRUSS
+
+    r = load_recipe("wire", {"box_density": [1.0, 1.0]})
+    items = 0
+    for index in range(12):
+        scene = sample_scene(r, 7, index)
+        assert scene.rack_style == "wire"
+        half = scene.rack_length / 2
+        posts = [o for o in scene.objects if o.shape == "cylinder" and o.semantic == SEM["rack"]
+                 and abs(o.center[1]) < scene.rack_depth / 2 and abs(o.center[0]) < half + WIRE_POST]
+        assert len(posts) == 4 and all(abs(o.center[0]) - o.size[0] / 2 == pytest.approx(half) for o in posts)
+        for si, sh in enumerate(scene.shelves):
+            wires = [o for o in scene.objects if o.semantic == SEM["shelf"] and o.material == "chrome"
+                     and abs(o.center[2] + o.size[2] / 2 - sh.board_top) < 1e-9]
+            assert len(wires) > 10, "the considered unit's decks are drawn wire by wire"
+            if si < len(scene.shelves) - 1:
+                assert sh.max_item_top <= sh.clear_height - WIRE_TRUSS
+            for i in sh.items:
+                b = scene.objects[i].layout_box
+                items += 1
+                assert b.z0 >= 0 and b.z0 + b.sz <= sh.max_item_top + 1e-9     # on the deck or stacked
+                assert -half - 1e-9 <= b.x_range()[0] and b.x_range()[1] <= half + 1e-9
+                assert -scene.rack_depth / 2 - 1e-9 <= b.y_range()[0] and b.y_range()[1] <= scene.rack_depth / 2 + 1e-9
+    assert items > 50, items
 
 
 def test_load_unit_annotation_owns_the_pixels_of_its_parts():

@@ -58,7 +58,7 @@ class Recipe:
     beam_height: list = _f([0.06, 0.12], "frange", 0.0, 0.3, "front/back beam height under each board")
     upright_width: float = _f(0.08, "float", 0.02, 0.3, "upright post width, metres")
     # --- pallet racking (drawn only where rack_style gives it a weight: other recipes keep their scenes) ---
-    rack_style: dict = _f({"shelving": 1.0}, "weights:shelving|pallet|cube", doc="probability of each rack style: shelving (boards, boxes straight on them), pallet racking (beam pairs, loads on pallets) or cube units (a grid of square cells between panels, a bin or small items in each)")
+    rack_style: dict = _f({"shelving": 1.0}, "weights:shelving|pallet|cube|wire", doc="probability of each rack style: shelving (boards, boxes straight on them), pallet racking (beam pairs, loads on pallets), cube units (a grid of square cells between panels, a bin or small items in each) or wire shelving (wire decks on four round posts)")
     pallet_levels: list = _f([2, 5], "irange", 1, 8, "pallet racking: storage levels, the floor position included")
     pallet_level_height: list = _f([1.2, 2.2], "frange", 0.5, 4.0, "pallet racking: beam level to beam level, metres")
     pallet_bay_length: list = _f([2.7, 3.6], "frange", 1.0, 6.0, "pallet racking: beam length (clear bay width), metres")
@@ -74,6 +74,11 @@ class Recipe:
     cube_cell: list = _f([0.28, 0.42], "frange", 0.1, 1.0, "cube units: inner width = height of a cell, metres")
     cube_depth: list = _f([0.3, 0.42], "frange", 0.1, 1.0, "cube units: depth, metres")
     cube_bin: float = _f(0.6, "float", 0.0, 1.0, "cube units: probability that a filled cell holds one bin filling most of it (else 1-4 small items)")
+    # --- wire shelving (drawn only where rack_style gives it a weight) ---
+    wire_length: list = _f([0.6, 1.85], "frange", 0.3, 3.0, "wire shelving: deck length between the posts, metres (36-72 in. units and shorter)")
+    wire_depth: list = _f([0.3, 0.61], "frange", 0.2, 1.0, "wire shelving: deck depth, metres (14-24 in.)")
+    wire_levels: list = _f([3, 6], "irange", 1, 8, "wire shelving: decks per unit")
+    wire_level_height: list = _f([0.25, 0.5], "frange", 0.15, 1.0, "wire shelving: deck to deck, metres")
     # --- warehouse ------------------------------------------------------------------------
     background: dict = _f({"wall": 0.4, "busy": 0.6}, "weights:wall|busy", doc="probability of each background")
     wall_gap: list = _f([0.05, 0.6], "frange", 0.0, 5.0, "gap between the rack's back and the wall (wall background)")

@@ -48,6 +48,10 @@ PALLET_UNITS = {c[len("pallet_"):]: i for i, c in enumerate(CATEGORY_NAMES) if c
 PALLET_HEIGHT = 0.144     # a euro pallet's height, metres
 PALLET_FOOTPRINTS = ((1.2, 0.8), (1.2, 1.0))   # euro and UK/industrial pallets, metres
 DECK_LOOSE = 0.35         # a wire-deck level holds loose cartons / crates (no pallets) this often
+WIRE_POST = 0.025         # wire shelving: post diameter, metres
+WIRE_TRUSS = 0.03         # wire shelving: height of a deck's front / back frame under its top, metres
+#: wire shelving finishes (chrome, black / white / green epoxy) and how often each is drawn
+WIRE_FINISHES = (((0.9, 0.9, 0.92), 0.5), ((0.1, 0.1, 0.11), 0.25), ((0.9, 0.9, 0.87), 0.15), ((0.3, 0.45, 0.36), 0.1))
 
 
 @dataclass
@@ -136,7 +140,7 @@ class Scene:
     domain: str = "synthetic"
     shadows: bool = True          # the key light casts shadows
     light_falloff: float = 6.0    # metres at which a light's intensity has halved
-    rack_style: str = "shelving"  # "shelving" | "pallet" | "cube" (Recipe.rack_style)
+    rack_style: str = "shelving"  # "shelving" | "pallet" | "cube" | "wire" (Recipe.rack_style)
 
     def layout_inputs(self) -> list[tuple[L.Shelf, list[L.Box]]]:
         """(Shelf, boxes in the shelf frame) of each visible shelf, lowest first."""
@@ -499,6 +503,38 @@ class _Builder:
             if shelf_infos is not None:
                 shelf_infos[si].items = idx
 
+    def wire_unit(self, x0, y0, length, depth, boards, tint, pitch, shelf_infos=None):
+        """A wire-shelving unit centred at (x0, y0): four round posts just outside the decks'
+        corners and a deck at every board top, cartons and crates on it. The considered unit's
+        decks are drawn wire by wire (wires front to back every `pitch`, tops at the board top,
+        two support wires along it, a frame band WIRE_TRUSS tall at the front and back); the
+        neighbours' as one mesh-textured slab. Wires are shelf, posts and frames rack structure."""
+        r, detailed = self.r, shelf_infos is not None
+        top = boards[-1][0] + 0.04
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                self.add((x0 + sx * (length / 2 + WIRE_POST / 2), y0 + sy * (depth / 2 - WIRE_POST / 2), top / 2),
+                         (WIRE_POST, WIRE_POST, top), "chrome", SEM["rack"], tint=tint, shape="cylinder")
+        for z_top, _h, _mt in boards:
+            for sy in (-1, 1):
+                self.add((x0, y0 + sy * (depth / 2 - 0.004), z_top - WIRE_TRUSS / 2), (length, 0.008, WIRE_TRUSS),
+                         "chrome", SEM["rack"], tint=tint)
+            if not detailed:
+                self.add((x0, y0, z_top - 0.003), (length, depth - 0.016, 0.006), "deck", SEM["shelf"], tint=tint)
+                continue
+            n = max(2, int(round(length / pitch)))
+            for k in range(n + 1):
+                self.add((x0 - length / 2 + 0.002 + k * (length - 0.004) / n, y0, z_top - 0.002),
+                         (0.004, depth - 0.016, 0.004), "chrome", SEM["shelf"], tint=tint)
+            for f in (-0.25, 0.25):
+                self.add((x0, y0 + f * depth, z_top - 0.006), (length, 0.004, 0.004), "chrome", SEM["shelf"], tint=tint)
+        for si, (z_top, _h, max_top) in enumerate(boards):
+            items = fill_shelf(self.rng, r, length, depth, max_top, _u(self.rng, r.box_density), _ui(self.rng, r.max_stack))
+            idx = [self.item(cat, b, z_top, x0, y0, shelf=si if detailed else -1, keep_layout=detailed)
+                   for cat, b in items]
+            if detailed:
+                shelf_infos[si].items = idx
+
     def pallet_unit(self, kind: str, b: L.Box, z_board: float, x_off: float, y_off: float, shelf: int,
                     detailed: bool) -> int:
         """One load unit: an undrawn object holding the unit's box (what the ground truth
@@ -555,6 +591,16 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
         for _ in range(rows):
             boards.append((z, cell + panel, cell - 0.005))
             z += cell + panel
+    elif style == "wire":
+        length, depth = _u(rng, r.wire_length), _u(rng, r.wire_depth)
+        n, h_nom = _ui(rng, r.wire_levels), _u(rng, r.wire_level_height)
+        wire_pitch = float(rng.uniform(0.02, 0.035))
+        z = float(rng.uniform(0.1, 0.25))     # the lowest deck, above the posts' feet
+        for i in range(n):
+            h = h_nom * (1 + float(rng.uniform(-r.shelf_height_jitter, r.shelf_height_jitter)))
+            # loads stay under the next deck's frame; the top deck is open above
+            boards.append((z, h, h - WIRE_TRUSS - 0.02 if i < n - 1 else h - 0.02))
+            z += h
     elif style == "pallet":
         length, depth = _u(rng, r.pallet_bay_length), _u(rng, r.pallet_rack_depth)
         n = _ui(rng, r.pallet_levels)
@@ -584,6 +630,9 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     beam_tint = _tint(rng, 0.1, (0.95, 0.45, 0.08) if rng.uniform() < 0.7 else (0.2, 0.3, 0.7))
     if style == "cube":   # white, black or wood-effect panels
         steel_tint = _tint(rng, 0.06, ((0.92, 0.92, 0.9), (0.13, 0.12, 0.12), (0.78, 0.62, 0.45))[int(rng.integers(3))])
+    elif style == "wire":
+        finish = rng.choice(range(len(WIRE_FINISHES)), p=[w for _, w in WIRE_FINISHES])
+        steel_tint = _tint(rng, 0.04, WIRE_FINISHES[finish][0])
     board_tint = wall_base = None
     # drawn only when the knob is on, so recipes without it keep their scenes draw for draw
     if r.palette_random > 0 and rng.uniform() < r.palette_random:
@@ -597,14 +646,14 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
 
     # occupancy map at bay granularity: rows (y) x bays (x); the considered bay is at row 0, col K
     K = r.bays_per_side if background == "busy" else 0
-    pitch_x = length + r.upright_width
+    pitch_x = length + (2 * WIRE_POST + 0.005 if style == "wire" else r.upright_width)  # wire units: own posts
     rows_y = [0.0]
     depths = [depth]
     occ = []
     if background == "busy":
         y_back = depth / 2
         for row in range(1, r.rack_rows + 1):
-            d2 = depth if row % 2 else _u(rng, {"pallet": r.pallet_rack_depth, "cube": r.cube_depth}.get(style, r.rack_depth))
+            d2 = depth if row % 2 else _u(rng, {"pallet": r.pallet_rack_depth, "cube": r.cube_depth, "wire": r.wire_depth}.get(style, r.rack_depth))
             # back-to-back rows pair up (small flue gap), pairs are separated by corridors
             gap = float(rng.uniform(0.1, 0.3)) if row % 2 else _u(rng, r.corridor_width)
             rows_y.append(y_back + gap + d2 / 2)
@@ -630,6 +679,9 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             is_target = ri == 0 and col == 0
             if style == "cube":
                 B.cube_unit(col * pitch_x, yc, length, d2, boards, columns, cell, panel, steel_tint, cube_back,
+                            shelf_infos=shelves if is_target else None)
+            elif style == "wire":
+                B.wire_unit(col * pitch_x, yc, length, d2, boards, steel_tint, wire_pitch,
                             shelf_infos=shelves if is_target else None)
             elif style == "pallet":
                 B.pallet_rack(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, beam_tint, deck,

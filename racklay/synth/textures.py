@@ -310,5 +310,8 @@ def build_bank(family: str = "warehouse", seed: int = 0, texture_dir: str = "") 
     bank.materials["deck"] = Material([dk], [dk], uv_tile=0.5, specular=0.3, shininess=24)
     wr = bank.add(stretch_wrap(rng))
     bank.materials["wrap"] = Material([wr], [wr], uv_tile=1.0, specular=0.45, shininess=40)
+    # wire shelving: chrome or epoxy-coated wire (its colour is the object's tint)
+    ch = bank.add(steel(rng, family, slots=False))
+    bank.materials["chrome"] = Material([ch], [ch], uv_tile=0.5, specular=0.7, shininess=64)
     _BANK_CACHE[key] = bank
     return bank
