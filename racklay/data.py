@@ -475,49 +475,42 @@ class CheckReport:
                 f"{shape}, splits: {sp} -> {status}")
 
 
-def check_samples(root: str | os.PathLike, ids: Sequence[str], views: Sequence[str], R: int | None = None,
-                  D: int | None = None, passed: dict | None = None, progress: bool = False,
-                  sizes: dict | None = None, decode: bool = False) -> tuple[list[str], tuple | None]:
-    """The per-sample checks of `check_dataset` (which decodes every image: `decode`) and of
-    `racklay train` before its first step (which reads the image's header, pixel limit and PNG
-    completeness only): for these sample ids, the image and every view's layout (present,
-    readable, strict values, R channels, D pixels), and that all layouts share one size. Returns
-    (problems, (R, D) most layouts have). `passed` ({path: [size, mtime_ns, shape]}) remembers
-    files that passed: they are not read again while unchanged (updated in place), so a restart
-    checks in moments. `sizes`, when given, collects the image paths by (width, height):
-    {(w, h): [path, ...]}."""
+def _stamp(p: Path) -> list:
+    st = p.stat()
+    return [st.st_size, st.st_mtime_ns]
+
+
+def _check_ids(root, ids: Sequence[str], views: Sequence[str], R: int | None, D: int | None, passed: dict,
+               decode: bool, progress: bool = False) -> list[tuple]:
+    """The per-sample part of `check_samples`: for each id in order, (problems, entries newly
+    passed, {layout path: shape}, (image path, (w, h)) or None)."""
     ds = RackLayRoot(root)
-    problems: list[str] = []
-    shapes: Counter = Counter()
-    shape_of: dict[str, tuple] = {}
-    passed = {} if passed is None else passed
-
-    def stamp(p: Path):
-        st = p.stat()
-        return [st.st_size, st.st_mtime_ns]
-
+    out = []
     it = ids
     if progress:
         from tqdm import tqdm
         it = tqdm(ids, desc="check-data", unit="img", leave=False)
     for sid in it:
+        problems: list[str] = []
+        new: dict = {}
+        shape_of: dict[str, tuple] = {}
+        image_size = None
         img = ds.image_path(sid)
         try:
             key = str(img)
             hit = passed.get(key)
             if decode:
                 h, w = read_image(img).shape[:2]
-                hit = passed[key] = stamp(img) + [[w, h]]
-            elif not (img.is_file() and hit is not None and hit[:2] == stamp(img)):
+                hit = new[key] = _stamp(img) + [[w, h]]
+            elif not (img.is_file() and hit is not None and hit[:2] == _stamp(img)):
                 info = image_info(img)
                 if info.format == "PNG":
                     with open(img, "rb") as f:
                         f.seek(max(0, img.stat().st_size - 12))
                         if b"IEND" not in f.read():
                             raise DataError(f"{img}: truncated PNG (no IEND chunk)")
-                hit = passed[key] = stamp(img) + [[info.width, info.height]]
-            if sizes is not None:
-                sizes.setdefault(tuple(hit[2]), []).append(key)
+                hit = new[key] = _stamp(img) + [[info.width, info.height]]
+            image_size = (key, tuple(hit[2]))
         except DataError as e:
             problems.append(str(e))
         for view in views:
@@ -527,7 +520,7 @@ def check_samples(root: str | os.PathLike, ids: Sequence[str], views: Sequence[s
                 continue
             key = str(p)
             hit = passed.get(key)
-            if hit is not None and hit[:2] == stamp(p):
+            if hit is not None and hit[:2] == _stamp(p):
                 shape = tuple(hit[2])
             else:
                 try:
@@ -537,12 +530,46 @@ def check_samples(root: str | os.PathLike, ids: Sequence[str], views: Sequence[s
                     problems.append(str(e))
                     continue
                 shape = tuple(arr.shape)
-                passed[key] = stamp(p) + [list(shape)]
-            shapes[shape] += 1
+                new[key] = _stamp(p) + [list(shape)]
             shape_of[key] = shape
+        out.append((problems, new, shape_of, image_size))
+    return out
+
+
+def check_samples(root: str | os.PathLike, ids: Sequence[str], views: Sequence[str], R: int | None = None,
+                  D: int | None = None, passed: dict | None = None, progress: bool = False,
+                  sizes: dict | None = None, decode: bool = False, workers: int = 0) -> tuple[list[str], tuple | None]:
+    """The per-sample checks of `check_dataset` (which decodes every image: `decode`) and of
+    `racklay train` before its first step (which reads the image's header, pixel limit and PNG
+    completeness only): for these sample ids, the image and every view's layout (present,
+    readable, strict values, R channels, D pixels), and that all layouts share one size. Returns
+    (problems, (R, D) most layouts have). `passed` ({path: [size, mtime_ns, shape]}) remembers
+    files that passed: they are not read again while unchanged (updated in place), so a restart
+    checks in moments. `sizes`, when given, collects the image paths by (width, height):
+    {(w, h): [path, ...]}. `workers` > 1 checks in that many processes (the same result, in the
+    same order)."""
+    passed = {} if passed is None else passed
+    if workers > 1 and len(ids) > 4 * workers:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        chunks = [list(ids[i::workers]) for i in range(workers)]   # interleaved: equal shares of slow files
+        ctx = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else None)
+        with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+            parts = list(pool.map(_check_ids, *zip(*[(root, c, views, R, D, passed, decode) for c in chunks])))
+        results = [parts[k % workers][k // workers] for k in range(len(ids))]   # back in the order of ids
+    else:
+        results = _check_ids(root, ids, views, R, D, passed, decode, progress)
+    problems = [m for r in results for m in r[0]]
+    shape_of = {}
+    for _, new, shapes, image_size in results:
+        passed.update(new)
+        shape_of.update(shapes)
+        if sizes is not None and image_size is not None:
+            sizes.setdefault(image_size[1], []).append(image_size[0])
     common = None
-    if shapes:
-        common = shapes.most_common(1)[0][0]
+    if shape_of:
+        common = Counter(shape_of.values()).most_common(1)[0][0]
         for p, shp in shape_of.items():
             if shp != common:
                 problems.append(f"{p}: shape {shp} differs from the dataset's {common}")
@@ -552,7 +579,7 @@ def check_samples(root: str | os.PathLike, ids: Sequence[str], views: Sequence[s
 
 
 def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None = None,
-                  progress: bool = False) -> CheckReport:
+                  progress: bool = False, workers: int = 1) -> CheckReport:
     """Validate every sample of a dataset; return a report with one line per problem."""
     ds = RackLayRoot(root)
     rep = CheckReport(root=ds.root)
@@ -571,7 +598,8 @@ def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None =
     for sid, n in stems.items():
         if n > 1:
             rep.problems.append(f"{ds.root / IMAGES_DIR}: {n} image files share the id {sid}")
-    problems, common = check_samples(ds.root, ids, rep.views, R=R, D=D, progress=progress, decode=True)
+    problems, common = check_samples(ds.root, ids, rep.views, R=R, D=D, progress=progress, decode=True,
+                                     workers=workers)
     rep.problems += problems
     if common is not None:
         rep.R, rep.D = common

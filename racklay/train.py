@@ -388,8 +388,9 @@ DATA_CHECK = "data-check.json"
 def check_run_data(cfg: TrainConfig, run_dir: Path, train_ids, val_ids) -> dict:
     """Every training and validation sample checked before the first step (image header, layouts
     present with strict values, the run's R, one layout size), as `racklay check-data` would: a bad
-    file fails the run in seconds, naming it, not at step 7 or after an epoch. Files that passed in
-    an earlier start of the run (run_dir/data-check.json) and are unchanged are not read again.
+    file fails the run in seconds, naming it, not at step 7 or after an epoch; in `workers`
+    processes. Files that passed in an earlier start of the run (run_dir/data-check.json) and are
+    unchanged are not read again.
     Returns the updated record of passed files."""
     import json
 
@@ -405,7 +406,7 @@ def check_run_data(cfg: TrainConfig, run_dir: Path, train_ids, val_ids) -> dict:
     ids = list(dict.fromkeys([*train_ids, *val_ids]))
     sizes: dict = {}
     problems, _ = check_samples(cfg.data, ids, cfg.views, R=cfg.R, passed=passed, progress=cfg.progress,
-                                sizes=sizes)
+                                sizes=sizes, workers=cfg.workers)
     if problems:
         more = f" (and {len(problems) - 1} more: racklay check-data {cfg.data})" if len(problems) > 1 else ""
         raise DataError(f"training data not usable: {problems[0]}{more}")

@@ -113,6 +113,30 @@ def test_check_missing_pair_and_orphan_layout(ds):
     assert any("999999" in p and "no image" in p for p in _problems(ds.root))
 
 
+def test_check_in_worker_processes_gives_the_serial_report(ds):
+    """`racklay check-data --workers N` and a training run with DataLoader workers check samples
+    in N processes: the same problems in the same order, the same sizes and passed files."""
+    from racklay.data import check_samples
+
+    ids = ds.ids()
+    ds.image_path(ids[1]).write_bytes(ds.image_path(ids[1]).read_bytes()[:200])
+    ds.layout_path("front", ids[4]).unlink()
+    np.save(ds.layout_path("top", ids[7]), np.zeros((4, 64, 32), np.uint8))
+    a = ds.layout_path("top", ids[8])
+    arr = np.load(a)
+    arr[0, 0, 0] = 114
+    np.save(a, arr)
+    reports = []
+    for workers in (0, 2):
+        passed, sizes = {}, {}
+        problems, common = check_samples(ds.root, ids, ("top", "front"), passed=passed, sizes=sizes, workers=workers)
+        reports.append((problems, common, passed, sizes))
+    assert reports[0] == reports[1]
+    problems = reports[0][0]
+    assert [next(k for k, m in enumerate(problems) if ids[i] in m) for i in (1, 4, 7, 8)] == [0, 1, 2, 3]
+    assert check_dataset(ds.root, workers=2).problems == check_dataset(ds.root).problems
+
+
 def test_check_split_to_missing_file_and_duplicates(ds):
     sp = ds.split_path("test")
     sp.write_text(sp.read_text() + "Images/424242.png\n")

@@ -16,6 +16,8 @@ def register(sub) -> None:
     p.add_argument("root", help="dataset folder (Images/, topLayouts/, frontLayouts/, splits/)")
     p.add_argument("--R", type=at_least(1), default=None, help="expected number of shelf channels")
     p.add_argument("--D", type=at_least(1), default=None, help="expected layout size in pixels")
+    p.add_argument("--workers", type=at_least(1), default=1,
+                   help="check in this many processes (the same report; default 1)")
     p.add_argument("--json", default=None, help="also write the report as JSON here")
     p.add_argument("--max-problems", type=at_least(1), default=200, help="print at most this many problem lines (all are counted)")
     p.set_defaults(func=run)
@@ -25,7 +27,7 @@ def run(args) -> int:
     from racklay.atomic import atomic_write_json
     from racklay.data import check_dataset
 
-    rep = check_dataset(args.root, R=args.R, D=args.D, progress=sys.stderr.isatty())
+    rep = check_dataset(args.root, R=args.R, D=args.D, progress=sys.stderr.isatty(), workers=args.workers)
     for line in rep.problems[: args.max_problems]:
         print(line)
     if len(rep.problems) > args.max_problems:
