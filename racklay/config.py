@@ -373,7 +373,8 @@ class TrainConfig:
     device: str = option("auto", "device (default {default})", choices=DEVICES)
     workers: int = option(0, "DataLoader workers (default {default}: best on 2 cores with caching)", lo=0)
     cache: bool = option(True, "keep decoded, resized samples in memory (default {default})")
-    threads: int | None = option(None, "torch threads per process (default: cores / processes)", lo=1)
+    threads: int | None = option(None, "torch threads per process (default: cores / processes on a CPU, "
+                                       "torch's own on a GPU)", lo=1)
     resume: bool = option(False, "continue OUT/NAME/last.safetensors (its config.yaml is the base)",
                           action="store_true")
     patience: int | None = option(8, "early stopping after N epochs without improvement (0: off; "

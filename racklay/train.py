@@ -238,6 +238,8 @@ def train(cfg: TrainConfig, transform=None) -> Path:
     try:
         if dist.device.type == "cpu":
             torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // dist.world))
+        elif cfg.threads:   # on a GPU the host threads of the training process (its loader workers need cores)
+            torch.set_num_threads(cfg.threads)
         resume_ck = open_resume(cfg, run_dir, dist.main)
         run = build_run(cfg, dist, run_dir, t_start, init=resume_ck is None)
         st = RunState() if resume_ck is None else restore(run, resume_ck)
