@@ -149,7 +149,7 @@ def validate(model, loader, cfg: TrainConfig, weight, device, progress=False, bf
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
             out = model(x)
         for v, logits in out.items():
-            tgt = batch[v].to(device).long()
+            tgt = batch[v].to(device)
             loss += float(layout_loss(logits, tgt, weight)) * x.shape[0]
             m.update(v, logits.argmax(2).cpu().numpy().astype(np.uint8), batch[v].numpy())
         n += x.shape[0]
