@@ -8,11 +8,14 @@ import io
 from pathlib import Path
 
 
-def history_row(epoch, step, lr, tr: dict, val: dict | None, seconds, elapsed) -> dict:
-    """One epoch's row of metrics.csv: step, learning rate, training losses, time, and the
-    validation loss, score and per-view IoU when the epoch was validated."""
+def history_row(epoch, step, lr, tr: dict, val: dict | None, seconds, elapsed, val_seconds=None) -> dict:
+    """One epoch's row of metrics.csv: step, learning rate, training losses, time (the epoch's,
+    of it validation's, and the run's), and the validation loss, score and per-view IoU when the
+    epoch was validated."""
     row = {"epoch": epoch, "step": step, "lr": lr, **{f"train_{k}": v for k, v in tr.items()},
            "seconds": round(seconds, 1), "elapsed_min": round(elapsed / 60, 2)}
+    if val_seconds is not None:
+        row["val_seconds"] = round(val_seconds, 1)
     if val is not None:
         row["val_loss"] = val["loss"]
         row["val_score"] = val["score"]

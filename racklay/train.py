@@ -589,9 +589,11 @@ def record_epoch(run: Run, st: RunState, tr: dict, val_loader, total_steps: int,
     from .checkpoint import save_checkpoint
 
     cfg, epoch = run.cfg, st.epoch
+    t_val = time.time()
     val = validate(run.model, val_loader, cfg, run.weight, run.dist.device, progress=cfg.progress, bf16=run.bf16)
+    val_s = time.time() - t_val
     row = history_row(epoch, st.step, lr_at(max(0, st.global_step - 1), total_steps, cfg, st.elapsed_s),
-                       tr, val, time.time() - t_epoch, st.elapsed_s)
+                       tr, val, time.time() - t_epoch, st.elapsed_s, val_seconds=val_s)
     st.history.append(row)
     improved = val["score"] > st.best_score
     if improved:
@@ -603,7 +605,7 @@ def record_epoch(run: Run, st: RunState, tr: dict, val_loader, total_steps: int,
         st.bad_epochs += 1
     print(f"epoch {epoch + 1}: train loss {tr['loss']:.4f}, val loss {val['loss']:.4f}, "
           f"val score {val['score']:.4f}" + (" (best)" if improved else "")
-          + f", {time.time() - t_epoch:.0f} s")
+          + f", {time.time() - t_epoch:.0f} s ({val_s:.0f} s of it validation)")
 
 
 def save_last(run: Run, st: RunState) -> None:
