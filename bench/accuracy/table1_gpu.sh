@@ -10,6 +10,8 @@
 #   racklay eval --weights OUT/A.safetensors --data /work/data/complex-test --native
 # (the test set of bench/accuracy/release_targets.py: complex, seed 2027, 2,000 images, D = 512).
 #   MINUTES=6 N=9000 WORK=/dev/shm/table1 OUT=runs/table1 bench/accuracy/table1_gpu.sh
+# ARGS adds training flags to both arms (e.g. ARGS="--threads 2"). What limited the 2026-11-27
+# lease (the training processes, not the GPU or the loader): docs/results/2026-11-27-ninth-session.md.
 # A dry run on a CPU: DEVICE=cpu N=40 MINUTES=0.3 SYNTH_WORKERS=1 WORKERS=0 BATCH=4 bench/accuracy/table1_gpu.sh
 set -euo pipefail
 MINUTES=${MINUTES:-6}
@@ -20,6 +22,7 @@ DEVICE=${DEVICE:-cuda}
 SYNTH_WORKERS=${SYNTH_WORKERS:-$(nproc)}
 WORKERS=${WORKERS:-$(( ($(nproc) - 2) / 2 ))}   # DataLoader workers per arm
 BATCH=${BATCH:-32}
+ARGS=${ARGS:-}
 PY=${PY:-python3}
 mkdir -p "$OUT" "$WORK"
 t0=$(date +%s)
@@ -30,7 +33,7 @@ $PY -m racklay synth --recipe complex --n "$N" --seed 11 --out "$WORK/complex" -
 echo "synth: $N images in $(( $(date +%s) - t0 )) s"
 COMMON="--data $WORK/complex --out $WORK/runs --decoder light --no-disc --augment paper --class-weights 1,5,10
   --batch-size $BATCH --lr 1e-3 --warmup-steps 200 --epochs 200 --schedule time --max-minutes $MINUTES
-  --patience 0 --checkpoint-every 0 --no-cache --workers $WORKERS --device $DEVICE --seed 0 --no-progress"
+  --patience 0 --checkpoint-every 0 --no-cache --workers $WORKERS --device $DEVICE --seed 0 --no-progress $ARGS"
 $PY -m racklay train $COMMON --name A --image-size 160x256 --layout-size 256 > "$OUT/A.log" 2>&1 &
 a=$!
 $PY -m racklay train $COMMON --name B --image-size 288x480 --layout-size 512 > "$OUT/B.log" 2>&1 &
