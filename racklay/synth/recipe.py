@@ -67,7 +67,6 @@ class Recipe:
     wire_deck: float = _f(0.3, "float", 0.0, 1.0, "pallet racking: probability of wire-mesh decks on the beams (else open beams)")
     pallet_load: dict = _f({"cartons": 0.5, "wrapped": 0.35, "crates": 0.15}, "weights:cartons|wrapped|crates", doc="pallet racking: what stands on a pallet")
     pallet_gap: list = _f([0.06, 0.15], "frange", 0.0, 1.0, "pallet racking: clearance between neighbouring pallets, metres (one draw per level)")
-    pallet_load_fill: list = _f([0.35, 1.0], "frange", 0.0, 1.0, "pallet racking: height of a load above its pallet, as a fraction of the room the level leaves above the pallet")
     pallet_packing: float = _f(0.0, "float", 0.0, 1.0, "pallet racking: probability that a level's pallets stand packed at pallet_gap from each other (as in a bay sized for them) rather than spread evenly along the beams")
     # --- cube units (drawn only where rack_style gives them a weight) ---
     cube_columns: list = _f([2, 5], "irange", 1, 8, "cube units: cells side by side")

@@ -349,7 +349,7 @@ def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: floa
         else:
             cx = -length / 2 + pitch * (k + 0.5) + float(rng.uniform(-0.25, 0.25)) * (pitch - along)
         cy = -depth / 2 + 0.01 + deep / 2 + float(rng.uniform(0, max(0.0, depth - 0.02 - deep)))
-        sz = PALLET_HEIGHT + _u(rng, r.pallet_load_fill) * (max_top - PALLET_HEIGHT)
+        sz = PALLET_HEIGHT + float(rng.uniform(0.35, 1.0)) * (max_top - PALLET_HEIGHT)
         units.append((kind, L.Box(cx=cx, cy=cy, sx=along, sy=deep, sz=sz, z0=0.0, yaw=0.0)))
     return units
 
