@@ -407,6 +407,14 @@ class _Builder:
                         mat, sem, yaw=box.yaw, category=cat, shelf=shelf,
                         layout_box=box if keep_layout else None)
 
+    def place_items(self, items, si: int, z_top: float, x0: float, y0: float, shelf_infos=None) -> None:
+        """Add one level's (category, Box) items to the bay centred at (x0, y0), standing on its
+        board top `z_top`; in the considered bay (`shelf_infos` given) they are shelf `si`'s items."""
+        mine = shelf_infos is not None
+        idx = [self.item(cat, b, z_top, x0, y0, shelf=si if mine else -1, keep_layout=mine) for cat, b in items]
+        if mine:
+            shelf_infos[si].items = idx
+
     def uprights(self, x0, y0, length, depth, top_z, tint, which=(True, True), frame=False):
         """The uprights of a bay centred at (x0, y0), front and back, on the sides `which` says
         (left, right; a side shared with the neighbouring bay is drawn once). `frame`: pallet
@@ -442,11 +450,8 @@ class _Builder:
         for si, (z_top, h, max_top) in enumerate(boards):
             density = _u(self.rng, r.box_density)
             stack_max = _ui(self.rng, r.max_stack)
-            items = fill_shelf(self.rng, r, length, depth, max_top, density, stack_max)
-            idx = [self.item(cat, b, z_top, x0, y0, shelf=si if shelf_infos is not None else -1,
-                             keep_layout=shelf_infos is not None) for cat, b in items]
-            if shelf_infos is not None:
-                shelf_infos[si].items = idx
+            self.place_items(fill_shelf(self.rng, r, length, depth, max_top, density, stack_max),
+                             si, z_top, x0, y0, shelf_infos)
 
     def pallet_rack(self, x0, y0, length, depth, boards, beam_h, top_z, steel_tint, beam_tint, deck,
                     shelf_infos=None, uprights=(True, True)):
@@ -469,13 +474,12 @@ class _Builder:
             density = _u(self.rng, r.box_density)
             if deck and z_top > 0 and self.rng.uniform() < DECK_LOOSE:
                 # cartons and crates straight on the wire deck, as on shelving
-                items = fill_shelf(self.rng, r, length, depth, max_top, density, _ui(self.rng, r.max_stack))
-                idx = [self.item(cat, b, z_top, x0, y0, shelf=shelf_of(si), keep_layout=shelf_infos is not None)
-                       for cat, b in items]
-            else:
-                units = fill_pallet_level(self.rng, r, length, depth, max_top, density)
-                idx = [self.pallet_unit(kind, b, z_top, x0, y0, shelf_of(si), detailed=shelf_infos is not None)
-                       for kind, b in units]
+                self.place_items(fill_shelf(self.rng, r, length, depth, max_top, density, _ui(self.rng, r.max_stack)),
+                                 si, z_top, x0, y0, shelf_infos)
+                continue
+            units = fill_pallet_level(self.rng, r, length, depth, max_top, density)
+            idx = [self.pallet_unit(kind, b, z_top, x0, y0, shelf_of(si), detailed=shelf_infos is not None)
+                   for kind, b in units]
             if shelf_infos is not None:
                 shelf_infos[si].items = idx
 
@@ -497,11 +501,8 @@ class _Builder:
             self.add((x0, y0 + depth / 2 + 0.003, (z_lo + top) / 2), (length, 0.006, top - z_lo), "board",
                      SEM["rack"], tint=tint)
         for si, (z_top, _h, max_top) in enumerate(boards):
-            items = fill_cube_row(self.rng, r, columns, cell, panel, depth, max_top, _u(self.rng, r.box_density))
-            idx = [self.item(cat, b, z_top, x0, y0, shelf=si if shelf_infos is not None else -1,
-                             keep_layout=shelf_infos is not None) for cat, b in items]
-            if shelf_infos is not None:
-                shelf_infos[si].items = idx
+            self.place_items(fill_cube_row(self.rng, r, columns, cell, panel, depth, max_top, _u(self.rng, r.box_density)),
+                             si, z_top, x0, y0, shelf_infos)
 
     def wire_unit(self, x0, y0, length, depth, boards, tint, pitch, shelf_infos=None):
         """A wire-shelving unit centred at (x0, y0): four round posts just outside the decks'
@@ -529,11 +530,8 @@ class _Builder:
             for f in (-0.25, 0.25):
                 self.add((x0, y0 + f * depth, z_top - 0.006), (length, 0.004, 0.004), "chrome", SEM["shelf"], tint=tint)
         for si, (z_top, _h, max_top) in enumerate(boards):
-            items = fill_shelf(self.rng, r, length, depth, max_top, _u(self.rng, r.box_density), _ui(self.rng, r.max_stack))
-            idx = [self.item(cat, b, z_top, x0, y0, shelf=si if detailed else -1, keep_layout=detailed)
-                   for cat, b in items]
-            if detailed:
-                shelf_infos[si].items = idx
+            self.place_items(fill_shelf(self.rng, r, length, depth, max_top, _u(self.rng, r.box_density),
+                                        _ui(self.rng, r.max_stack)), si, z_top, x0, y0, shelf_infos)
 
     def pallet_unit(self, kind: str, b: L.Box, z_board: float, x_off: float, y_off: float, shelf: int,
                     detailed: bool) -> int:
