@@ -124,13 +124,20 @@ class RackLayDataset(Dataset):
     def __len__(self) -> int:
         return len(self.ids)
 
+    def prepared_image(self, i: int) -> np.ndarray:
+        """Sample i's uint8 image at the input size, read from disk."""
+        return prepare_image(self.root.read_image(self.ids[i]), self.image_size, self.letterbox)
+
+    def prepared_layouts(self, i: int) -> dict[str, np.ndarray]:
+        """Sample i's class-id layouts at the layout size, read from disk."""
+        return {v: L.resize_layouts(self.root.read_layouts(v, self.ids[i], R=self.R), self.layout_size)
+                for v in self.views}
+
     def load_raw(self, i: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """uint8 image at the input size and class-id layouts at the layout size."""
         if self.cache and i in self._cache:
             return self._cache[i]
-        sid = self.ids[i]
-        img = prepare_image(self.root.read_image(sid), self.image_size, self.letterbox)
-        lays = {v: L.resize_layouts(self.root.read_layouts(v, sid, R=self.R), self.layout_size) for v in self.views}
+        img, lays = self.prepared_image(i), self.prepared_layouts(i)
         if self.cache:
             self._cache[i] = (img, lays)
         return img, lays
