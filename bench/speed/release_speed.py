@@ -1,8 +1,8 @@
-"""Batch-1 inference latency of the shipped model against the reference architecture (ResNet-18 +
+"""Inference latency (batch 1 unless `--batch N`) of the shipped model against the reference architecture (ResNet-18 +
 the authors' `paper` decoder) at the shipped input and layout size and the same precision
 (the model issue's target: the reference >= 3x slower than the shipped struct model).
 
-    nice -n 5 .venv/bin/python -m bench.speed.release_speed [--weights FILE] [--precision auto|fp32|bf16] [--onnx]
+    nice -n 5 .venv/bin/python -m bench.speed.release_speed [--weights FILE] [--precision auto|fp32|bf16] [--onnx] [--batch N]
 
 Both models run both views, in the memory format given (default channels_last, as `racklay
 predict` runs a model; `--memory-format contiguous` gives the default PyTorch layout); the
@@ -32,6 +32,9 @@ def main(argv=None) -> int:
     ap.add_argument("--onnx", action="store_true",
                     help="also run both models through onnxruntime (fp32, graphs as `racklay export` writes them), "
                          "in the same interleaved rounds")
+    ap.add_argument("--batch", type=int, default=1,
+                    help="images per call (default 1: one photo at a time, as the target is stated; larger "
+                         "batches spread the per-layer overhead that dominates the struct decoder at batch 1)")
     add_common_args(ap, rounds=3, calls=5, warmup=2)
     args = ap.parse_args(argv)
     start(args)
@@ -49,7 +52,9 @@ def main(argv=None) -> int:
     torch.manual_seed(0)
     reference = RackLayNet(ref_cfg).eval()
     h, w = cfg.input_hw
-    x = torch.randn(1, 3, h, w)
+    if args.batch < 1:
+        ap.error(f"--batch must be >= 1, got {args.batch}")
+    x = torch.randn(args.batch, 3, h, w)
     bf16 = prec == "bf16"
     models = {f"shipped (EfficientNet-Lite0 + {cfg.decoder})": shipped.eval(), "reference (ResNet-18 + paper)": reference}
     if cfg.decoder == "fast":   # the same tensors in light's order (v5's decoder): what the decoder change bought
@@ -101,7 +106,7 @@ def main(argv=None) -> int:
     rows += [row(enc_name), ratio(names[1], enc_name, "ceiling: reference / shipped encoder alone", bold=False)]
     if ort_names:
         rows += [row(ort_names[0]), row(ort_names[1]), ratio(ort_names[1], ort_names[0], "**reference / shipped, onnxruntime**")]
-    print(f"\nbatch 1, both views, input {w}x{h} -> layouts {cfg.layout_size}, {prec}, {args.memory_format}, "
+    print(f"\nbatch {args.batch} (times per call), both views, input {w}x{h} -> layouts {cfg.layout_size}, {prec}, {args.memory_format}, "
           f"{args.rounds}x{args.calls} interleaved calls per model (target: reference >= 3x slower):")
     print(markdown_table(["model", "wall ms median (min)", "CPU ms median"], rows))
     return 0
