@@ -16,6 +16,11 @@ precision-recall curve of the pixel classifier "is class k".
 Separate boxes (front view): shelf channels whose truth holds two or more box runs along x, how
 many of them the prediction separates too, and how many with its gaps where the truth's are
 (`racklay.layout.separated_shelves`), counted over channels and over images.
+
+Shelves found (per view): a shelf channel holds a shelf when any of its pixels is not background;
+per image, whether the prediction holds as many shelves as the truth, fewer or more, and of the
+images whose truth holds two or more shelves, in how many the prediction holds at least as many
+(a model that merges or misses a level of a multi-level rack shows here before it shows in IoU).
 """
 from __future__ import annotations
 
@@ -28,6 +33,20 @@ from .layout import BOX, CLASS_NAMES, GAP_TOLERANCE, NUM_CLASSES, SHELF, VIEWS, 
 EVAL_CLASSES = {"rack": SHELF, "box": BOX}
 #: the counts of `separated_shelves` kept per view (front only), in this order
 SEPARATION_KEYS = ("truth", "separated", "placed", "predicted")
+#: the per-image shelf-count comparison kept per view, in this order (`shelf_counts`)
+SHELF_COUNT_KEYS = ("equal", "fewer", "more", "multi", "multi_found")
+
+
+def shelf_counts(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Per-image shelf-count comparison of (N, R, D, D) class ids, summed over the images, in
+    SHELF_COUNT_KEYS order: images whose prediction holds as many shelves as the truth, fewer,
+    more; images whose truth holds >= 2 shelves, and of those the ones the prediction holds at
+    least as many shelves as the truth. A channel holds a shelf when any pixel is not background."""
+    n_pred = (pred.reshape(*pred.shape[:2], -1) > 0).any(-1).sum(1)
+    n_gt = (gt.reshape(*gt.shape[:2], -1) > 0).any(-1).sum(1)
+    multi = n_gt >= 2
+    return np.array([(n_pred == n_gt).sum(), (n_pred < n_gt).sum(), (n_pred > n_gt).sum(),
+                     multi.sum(), (multi & (n_pred >= n_gt)).sum()], np.int64)
 
 
 def paper_scores(pred: np.ndarray, gt: np.ndarray, cls: int) -> tuple[np.ndarray, np.ndarray]:
@@ -59,6 +78,8 @@ class _ViewAcc:
     images: int = 0
     # separate boxes (front view): [shelf channels, images] x SEPARATION_KEYS
     sep: np.ndarray = field(default_factory=lambda: np.zeros((2, len(SEPARATION_KEYS)), np.int64))
+    # shelves found: SHELF_COUNT_KEYS
+    shelves: np.ndarray = field(default_factory=lambda: np.zeros(len(SHELF_COUNT_KEYS), np.int64))
 
 
 class LayoutMetrics:
@@ -89,6 +110,7 @@ class LayoutMetrics:
             acc.iou[name].append(iou.ravel())
             acc.prec[name].append(prec.ravel())
         acc.cm += confusion(pred, gt)
+        acc.shelves += shelf_counts(pred, gt)
         if view == "front":
             sep = separated_shelves(gt, pred)
             parts = (sep.truth, sep.hit, sep.placed, sep.pred)
@@ -119,6 +141,7 @@ class LayoutMetrics:
                     d["AP"] = average_precision_from_hist(acc.hist[cls, 1], acc.hist[cls, 0])
                 r["dataset"][cname] = d
             r["confusion"] = acc.cm.tolist()
+            r["shelf_count"] = dict(zip(SHELF_COUNT_KEYS, map(int, acc.shelves)))
             if view == "front":
                 r["separation"] = {unit: dict(zip(SEPARATION_KEYS, map(int, row)))
                                    for unit, row in zip(("shelves", "images"), acc.sep)}
@@ -184,6 +207,12 @@ def format_tables(result: dict, title: str = "") -> str:
             ap = d.get("AP")
             lines.append(f"| {v} | {cname} | {_pct(d['IoU'])} | {_pct(d['precision'])} | "
                          f"{_pct(d['recall'])} | {_pct(ap) if ap is not None else 'n/a'} |")
+    v = "front" if "front" in views else views[0]   # the views draw the same shelves: one line
+    c = result[v].get("shelf_count")
+    if c:
+        lines += ["", f"Shelves found ({v} view): the prediction holds as many shelves as the truth in {c['equal']} "
+                      f"of {result[v]['images']} images, fewer in {c['fewer']}, more in {c['more']}; all of them "
+                      f"in {c['multi_found']} of the {c['multi']} images whose truth holds two or more."]
     sep = result.get("front", {}).get("separation")
     if sep:
         c, i = sep["shelves"], sep["images"]

@@ -98,3 +98,18 @@ def test_eval_counts_separate_boxes_in_place_in_the_front_view():
     assert "separates 2 of them, 1 with its gaps where the truth's are" in format_tables(m.result())
     m.update("top", truth, truth)
     assert "separation" not in m.result()["top"]
+
+
+def test_eval_counts_images_whose_prediction_misses_or_merges_a_shelf():
+    """What `racklay eval` reports for multi-level racks: per image, whether the prediction holds
+    as many shelves as the truth, fewer or more, and how many two-shelf images keep both."""
+    G = L.Grid(size=64, extent=4.0)
+    shelf = L.rasterize_shelf(L.Shelf(2.0, 0.8, 0.6), [], G)
+    one = L.stack_shelves([shelf], R=3, grid=G)[1]
+    two = L.stack_shelves([shelf, shelf], R=3, grid=G)[1]
+    m = LayoutMetrics()
+    # two shelves seen as one (the failure), two as two, one as two, one as one
+    m.update("front", np.stack([one, two, two, one]), np.stack([two, two, one, one]))
+    c = m.result()["front"]["shelf_count"]
+    assert c == {"equal": 2, "fewer": 1, "more": 1, "multi": 2, "multi_found": 1}
+    assert "fewer in 1, more in 1; all of them in 1 of the 2 images whose truth holds two or more" in format_tables(m.result())

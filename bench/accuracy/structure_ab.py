@@ -15,7 +15,9 @@ held-out split of `--data` (WareSynth `complex` for the reproduction row):
   point of validation score (mean of shelf and box IoU, x100);
 - with `--photos` (an annotate project, e.g. the labelled real photos): metric and scale-from-truth
   IoU on them (out of domain: the arms were trained on renders only), and the photos whose labels
-  show two or more separate boxes on a shelf (front view) and how many of them the arm shows so.
+  show two or more separate boxes on a shelf (front view) and how many of them the arm shows so,
+  and the photos whose labels hold two or more shelves and how many of them the arm finds all of
+  (`racklay.metrics.shelf_counts`: a merged or missed level).
 Targets of the issue are printed beside the numbers (MET / NOT MET); nothing is asserted.
 """
 from __future__ import annotations
@@ -131,6 +133,7 @@ def main() -> int:
         if photos is not None:
             res = evaluate(pred, photos, split="test", native=True, progress=False)
             row["photos_metric"], row["photos_separation"] = scores(res), separation(res, "images")
+            row["photos_shelves"] = res.get("front", res.get("top", {})).get("shelf_count")
             row["photos_shape"] = scores(evaluate(pred, photos, split="test", native=True, progress=False,
                                                   scale_from_truth=True))
         out[name] = row
@@ -166,10 +169,14 @@ def main() -> int:
     if photos is not None:
         print(f"\nlabelled photos ({args.photos}; arms trained on renders only): shelf, box IoU (top / front)")
         print("| arm | metric | scale from truth (targets: shelf >= 70, box >= 50) | "
-              "photos with separate boxes (label and prediction / label; placed; prediction) |")
-        print("|---|---|---|---|")
+              "photos with separate boxes (label and prediction / label; placed; prediction) | "
+              "photos with >= 2 labelled shelves, all found / all; photos with fewer, more shelves than labelled |")
+        print("|---|---|---|---|---|")
         for name, r in out.items():
-            print(f"| {name} | {fmt(r['photos_metric'])} | {fmt(r['photos_shape'])} | {sep_cell(r['photos_separation'])} |")
+            c = r["photos_shelves"]
+            shelves = f"{c['multi_found']} / {c['multi']}; {c['fewer']}, {c['more']}" if c else "-"
+            print(f"| {name} | {fmt(r['photos_metric'])} | {fmt(r['photos_shape'])} | "
+                  f"{sep_cell(r['photos_separation'])} | {shelves} |")
         print(f"(one cut in the middle of every shelf would place {centre_cut(photos, 'test', None, None, True)})")
     tmp.cleanup()
     if args.json:
