@@ -410,3 +410,24 @@ def test_packed_pallet_levels_stand_their_loads_a_gap_apart():
                 out += [b0 - a1 for (_, a1), (b0, _) in zip(xs, xs[1:])]
     assert len(seen) > 10 and all(0.7 * gap - 1e-9 <= g <= 1.3 * gap + 1e-9 for g in seen), seen
     assert np.median(spread_gaps) > 0.15, np.median(spread_gaps)
+
+
+def test_a_level_cut_by_the_frame_top_counts_when_its_board_shows_and_the_recipe_says_so():
+    """`visible_fraction_board`: a level whose board is in the photo and whose opening the frame's
+    top edge cuts counts as visible, as labellers count it (docs/annotate.md); a level whose
+    board is below the frame does not, however much of its opening shows; 1.0 (the default)
+    leaves the opening rule alone."""
+    from racklay.synth.scene import Camera, ShelfInfo, rotation_world_to_cam, visible_shelves
+
+    W, H, f = 470, 280, 400.0
+    C = np.array([0.0, -0.4 - 2.0, 1.0])                     # 2 m in front of a 0.8 m deep rack, eye at 1 m
+    R = rotation_world_to_cam(0.0, 0.0, 0.0)
+    cam = Camera(K=np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]]), R=R, t=-R @ C, width=W, height=H)
+    # the frame spans z = 1 -+ 140 / 400 * 2 m = 0.30 ... 1.70 m on the rack's front plane
+    shelves = [ShelfInfo(0.0, 0.5, 0.45),    # board below the frame, 40 % of its opening in it
+               ShelfInfo(0.5, 0.8, 0.75),    # entirely in the frame
+               ShelfInfo(1.3, 1.2, 1.1)]     # board in the frame, 33 % of its opening in it
+    assert visible_shelves(cam, 2.0, 0.8, shelves, 0.5, 12.0) == [1]
+    assert visible_shelves(cam, 2.0, 0.8, shelves, 0.5, 12.0, board_fraction=1.0) == [1]
+    assert visible_shelves(cam, 2.0, 0.8, shelves, 0.5, 12.0, board_fraction=0.15) == [1, 2]
+    assert visible_shelves(cam, 2.0, 0.8, shelves, 0.5, 12.0, board_fraction=0.4) == [1]

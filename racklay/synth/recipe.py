@@ -105,6 +105,7 @@ class Recipe:
     pitch_jitter_deg: float = _f(3.0, "float", 0.0, 30.0, "camera pitch jitter ~ U(-a, a)")
     roll_jitter_deg: float = _f(1.0, "float", 0.0, 15.0, "camera roll jitter ~ U(-a, a)")
     visible_fraction: float = _f(0.5, "float", 0.05, 1.0, "a shelf is visible when this fraction of its front opening's height is in the image")
+    visible_fraction_board: float = _f(1.0, "float", 0.05, 1.0, "a shelf whose board's front edge is in the image is visible when this fraction of its front opening's height is (a level whose top the frame cuts, as labellers count one; 1.0: visible_fraction decides alone)")
     detection_range_m: float = _f(12.0, "float", 0.5, 100.0, "range of detection d: farther shelves are not visible")
     # --- lighting -------------------------------------------------------------------------
     ambient: list = _f([0.2, 0.35], "frange", 0.0, 2.0, "ambient light level")

@@ -797,12 +797,14 @@ def rotation_world_to_cam(yaw: float, pitch: float, roll: float) -> np.ndarray:
 
 
 def visible_shelves(cam: Camera, length: float, depth: float, shelves: list, fraction: float,
-                    max_range: float) -> list[int]:
+                    max_range: float, board_fraction: float = 1.0) -> list[int]:
     """The visible-shelf rule (documented in docs/waresynth.md). Shelf i is visible when the
     vertical segment of its front opening at the x of the camera (clamped to the rack), from
     the board top to board top + clear height on the rack's front plane, projects in front of
     the camera with at least `fraction` of its image-height inside the image rows, its column
-    inside the image, and its midpoint within `max_range` metres of the camera."""
+    inside the image, and its midpoint within `max_range` metres of the camera. A shelf whose
+    board (the segment's lower end) is inside the image rows needs only `board_fraction` of it
+    (below `fraction`: a level whose top the frame cuts counts, as a labeller counts it)."""
     C = cam.center
     x = float(np.clip(C[0], -length / 2, length / 2))
     out = []
@@ -818,7 +820,10 @@ def visible_shelves(cam: Camera, length: float, depth: float, shelves: list, fra
         span = v1 - v0
         inside = max(0.0, min(v1, cam.height) - max(v0, 0.0))
         col = uv[:, 0].mean()
-        if span > 0 and inside >= fraction * span and 0 <= col < cam.width:
+        need = fraction
+        if 0 <= uv[0, 1] < cam.height:   # the board's front edge is in the image
+            need = min(fraction, board_fraction)
+        if span > 0 and inside >= need * span and 0 <= col < cam.width:
             out.append(i)
     return out
 
@@ -846,7 +851,8 @@ def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries):
         R = rotation_world_to_cam(yaw, pitch, roll)
         K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
         cam = Camera(K=K, R=R, t=-R @ C, width=W, height=H)
-        vis = visible_shelves(cam, length, depth, shelves, r.visible_fraction, r.detection_range_m)
+        vis = visible_shelves(cam, length, depth, shelves, r.visible_fraction, r.detection_range_m,
+                              r.visible_fraction_board)
         last = (cam, vis)
         if 1 <= len(vis) <= r.R:
             return cam, vis
