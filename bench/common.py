@@ -104,3 +104,27 @@ def interleaved(runners: dict, args) -> dict:
         for k, fn in runners.items():
             times[k] += time_calls(fn, args.calls)
     return times
+
+
+def reference_model(cfg):
+    """The speed target's reference architecture (ResNet-18 + the authors' `paper` decoder) at a
+    model config's input size, layout size, views and R, randomly initialised (seeded; weights
+    do not change the cost), in eval mode."""
+    import torch
+
+    from racklay.model import ModelConfig, RackLayNet
+
+    torch.manual_seed(0)
+    return RackLayNet(ModelConfig(image_size=cfg.image_size, layout_size=cfg.layout_size, views=cfg.views,
+                                  R=cfg.R, encoder="resnet18", decoder="paper")).eval()
+
+
+def forward_runner(model, x, bf16: bool):
+    """A no-argument call that runs `model(x)` as `racklay predict` does (inference mode, bf16
+    autocast when `bf16`), for `interleaved`."""
+    import torch
+
+    def f():
+        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            model(x)
+    return f

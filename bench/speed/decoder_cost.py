@@ -18,7 +18,16 @@ import argparse
 import sys
 from dataclasses import replace
 
-from bench.common import add_common_args, ensure_malloc_env, interleaved, markdown_table, start, summarise
+from bench.common import (
+    add_common_args,
+    ensure_malloc_env,
+    forward_runner,
+    interleaved,
+    markdown_table,
+    reference_model,
+    start,
+    summarise,
+)
 from racklay.precision import PRECISIONS
 
 WIDTHS = (128, 64, 32)
@@ -54,8 +63,7 @@ def main(argv=None) -> int:
                                               width=width, fine=fine, gap=cfg.struct_gap)
             shipped = width == 128 and fine == cfg.struct_fine
             models[f"struct width {width}{', 1/4 branch' if fine else ''}{' (shipped)' if shipped else ''}"] = m.eval()
-    models["reference (ResNet-18 + paper)"] = RackLayNet(replace(cfg, encoder="resnet18", decoder="paper",
-                                                                 struct_fine=False, struct_gap=False)).eval()
+    models["reference (ResNet-18 + paper)"] = reference_model(cfg)
     h, w = cfg.input_hw
     x = torch.randn(args.batch, 3, h, w)
     macs = {}
@@ -70,16 +78,9 @@ def main(argv=None) -> int:
     x = x.contiguous(memory_format=torch.channels_last)
     models = {k: m.to(memory_format=torch.channels_last) for k, m in models.items()}
     bf16 = prec == "bf16"
-
-    def runner(m):
-        def f():
-            with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                m(x)
-        return f
-
     first = next(iter(models.values()))
-    runners = {k: runner(m) for k, m in models.items()}
-    runners["encoder alone (a decoder costing nothing)"] = runner(first.encoder)
+    runners = {k: forward_runner(m, x, bf16) for k, m in models.items()}
+    runners["encoder alone (a decoder costing nothing)"] = forward_runner(first.encoder, x, bf16)
     times = interleaved(runners, args)
     st = {k: summarise(v, 1000.0) for k, v in times.items()}
     ref = st["reference (ResNet-18 + paper)"]["wall_median"]

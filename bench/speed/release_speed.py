@@ -18,7 +18,16 @@ import argparse
 import sys
 from dataclasses import replace
 
-from bench.common import add_common_args, ensure_malloc_env, interleaved, markdown_table, start, summarise
+from bench.common import (
+    add_common_args,
+    ensure_malloc_env,
+    forward_runner,
+    interleaved,
+    markdown_table,
+    reference_model,
+    start,
+    summarise,
+)
 from racklay.precision import PRECISIONS
 
 
@@ -37,23 +46,20 @@ def main(argv=None) -> int:
                          "batches spread the per-layer overhead that dominates the struct decoder at batch 1)")
     add_common_args(ap, rounds=3, calls=5, warmup=2)
     args = ap.parse_args(argv)
+    if args.batch < 1:
+        ap.error(f"--batch must be >= 1, got {args.batch}")
     start(args)
     import torch
 
     from racklay.checkpoint import load_model
-    from racklay.model import ModelConfig, RackLayNet
+    from racklay.model import RackLayNet
     from racklay.precision import resolve_precision
     from racklay.release import resolve_weights
 
     prec = resolve_precision(args.precision)
     shipped, cfg, _ = load_model(resolve_weights(args.weights))
-    ref_cfg = ModelConfig(image_size=cfg.image_size, layout_size=cfg.layout_size, views=cfg.views, R=cfg.R,
-                          encoder="resnet18", decoder="paper")
-    torch.manual_seed(0)
-    reference = RackLayNet(ref_cfg).eval()
+    reference = reference_model(cfg)
     h, w = cfg.input_hw
-    if args.batch < 1:
-        ap.error(f"--batch must be >= 1, got {args.batch}")
     x = torch.randn(args.batch, 3, h, w)
     bf16 = prec == "bf16"
     models = {f"shipped (EfficientNet-Lite0 + {cfg.decoder})": shipped.eval(), "reference (ResNet-18 + paper)": reference}
@@ -66,7 +72,7 @@ def main(argv=None) -> int:
         from racklay.onnx import export_onnx_bytes, onnx_session
 
         xn = x.numpy()
-        for k, (m, c) in (("shipped, onnxruntime", (shipped, cfg)), ("reference, onnxruntime", (reference, ref_cfg))):
+        for k, (m, c) in (("shipped, onnxruntime", (shipped, cfg)), ("reference, onnxruntime", (reference, reference.cfg))):
             sess, _ = onnx_session(export_onnx_bytes(m, c), threads=args.threads, source=k)
             feed = {sess.get_inputs()[0].name: xn}
             ort_runners[k] = (lambda s_=sess, f_=feed: s_.run(None, f_))
@@ -74,16 +80,10 @@ def main(argv=None) -> int:
         x = x.contiguous(memory_format=torch.channels_last)
         models = {k: m.to(memory_format=torch.channels_last) for k, m in models.items()}
 
-    def runner(m):
-        def f():
-            with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-                m(x)
-        return f
-
-    runners = {k: runner(m) for k, m in models.items()}
+    runners = {k: forward_runner(m, x, bf16) for k, m in models.items()}
     # the shipped model's encoder alone: what the ratio could reach if its decoders cost nothing
     enc_name = "shipped encoder alone"
-    runners[enc_name] = runner(shipped.encoder)
+    runners[enc_name] = forward_runner(shipped.encoder, x, bf16)
     runners.update(ort_runners)
     ort_names = list(ort_runners)
     times = interleaved(runners, args)
