@@ -106,6 +106,13 @@ def interleaved(runners: dict, args) -> dict:
     return times
 
 
+def add_batch_arg(ap, help_extra: str = "") -> None:
+    """--batch N (images per forward call, >= 1, default 1) for the inference benchmarks."""
+    from racklay.config import at_least
+
+    ap.add_argument("--batch", type=at_least(1), default=1, help="images per call (default 1" + help_extra + ")")
+
+
 def reference_model(cfg):
     """The speed target's reference architecture (ResNet-18 + the authors' `paper` decoder) at a
     model config's input size, layout size, views and R, randomly initialised (seeded; weights

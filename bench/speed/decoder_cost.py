@@ -19,6 +19,7 @@ import sys
 from dataclasses import replace
 
 from bench.common import (
+    add_batch_arg,
     add_common_args,
     ensure_malloc_env,
     forward_runner,
@@ -37,11 +38,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--precision", choices=PRECISIONS, default="auto",
                     help="every model at this precision (default auto: bf16 only on CPUs with native bf16)")
-    ap.add_argument("--batch", type=int, default=1, help="images per call (default 1)")
+    add_batch_arg(ap)
     add_common_args(ap, rounds=3, calls=5, warmup=2)
     args = ap.parse_args(argv)
-    if args.batch < 1:
-        ap.error(f"--batch must be >= 1, got {args.batch}")
     start(args)
     import torch
     from torch.utils.flop_counter import FlopCounterMode

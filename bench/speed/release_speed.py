@@ -19,6 +19,7 @@ import sys
 from dataclasses import replace
 
 from bench.common import (
+    add_batch_arg,
     add_common_args,
     ensure_malloc_env,
     forward_runner,
@@ -41,13 +42,10 @@ def main(argv=None) -> int:
     ap.add_argument("--onnx", action="store_true",
                     help="also run both models through onnxruntime (fp32, graphs as `racklay export` writes them), "
                          "in the same interleaved rounds")
-    ap.add_argument("--batch", type=int, default=1,
-                    help="images per call (default 1: one photo at a time, as the target is stated; larger "
-                         "batches spread the per-layer overhead that dominates the struct decoder at batch 1)")
+    add_batch_arg(ap, ": one photo at a time, as the target is stated; larger batches spread the per-layer "
+                      "overhead that dominates the struct decoder at batch 1")
     add_common_args(ap, rounds=3, calls=5, warmup=2)
     args = ap.parse_args(argv)
-    if args.batch < 1:
-        ap.error(f"--batch must be >= 1, got {args.batch}")
     start(args)
     import torch
 
