@@ -207,9 +207,9 @@ def format_tables(result: dict, title: str = "") -> str:
             ap = d.get("AP")
             lines.append(f"| {v} | {cname} | {_pct(d['IoU'])} | {_pct(d['precision'])} | "
                          f"{_pct(d['recall'])} | {_pct(ap) if ap is not None else 'n/a'} |")
-    v = "front" if "front" in views else views[0]   # the views draw the same shelves: one line
-    c = result[v].get("shelf_count")
-    if c:
+    found = shelves_found(result)
+    if found:
+        v, c = found
         lines += ["", f"Shelves found ({v} view): the prediction holds as many shelves as the truth in {c['equal']} "
                       f"of {result[v]['images']} images, fewer in {c['fewer']}, more in {c['more']}; all of them "
                       f"in {c['multi_found']} of the {c['multi']} images whose truth holds two or more."]
@@ -221,6 +221,16 @@ def format_tables(result: dict, title: str = "") -> str:
                       f"{c['placed']} with its gaps where the truth's are (within {GAP_TOLERANCE:.0%} of the shelf's length), "
                       f"and separates {c['predicted']} shelves in all."]
     return "\n".join(lines)
+
+
+def shelves_found(result: dict) -> tuple[str, dict] | None:
+    """(view, `shelf_count` counts) that a report quotes from a `LayoutMetrics.result()`: the
+    front view's, else the first view's (both views draw the same shelves), or None."""
+    views = [v for v in VIEWS if v in result and result[v].get("shelf_count")]
+    if not views:
+        return None
+    v = "front" if "front" in views else views[0]
+    return v, result[v]["shelf_count"]
 
 
 def _pct(x: float) -> str:

@@ -107,6 +107,7 @@ def main() -> int:
 
     from racklay import layout as L
     from racklay.evaluate import evaluate
+    from racklay.metrics import shelves_found
     from racklay.predict import Predictor
 
     photos = None
@@ -133,7 +134,8 @@ def main() -> int:
         if photos is not None:
             res = evaluate(pred, photos, split="test", native=True, progress=False)
             row["photos_metric"], row["photos_separation"] = scores(res), separation(res, "images")
-            row["photos_shelves"] = res.get("front", res.get("top", {})).get("shelf_count")
+            found = shelves_found(res)
+            row["photos_shelves"] = found[1] if found else None
             row["photos_shape"] = scores(evaluate(pred, photos, split="test", native=True, progress=False,
                                                   scale_from_truth=True))
         out[name] = row
