@@ -567,6 +567,11 @@ class _Builder:
         return unit
 
 
+def _depth_range(r: Recipe, style: str) -> tuple[float, float]:
+    """The recipe's rack depth range (m) for a rack style."""
+    return {"pallet": r.pallet_rack_depth, "cube": r.cube_depth, "wire": r.wire_depth}.get(style, r.rack_depth)
+
+
 def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -> Scene:
     """Sample the scene of image `index`; deterministic in (recipe, seed, index)."""
     rng = scene_rng(seed, index)
@@ -581,7 +586,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     boards = []
     if style == "cube":
         columns, rows = _ui(rng, r.cube_columns), _ui(rng, r.cube_rows)
-        cell, depth = _u(rng, r.cube_cell), _u(rng, r.cube_depth)
+        cell, depth = _u(rng, r.cube_cell), _u(rng, _depth_range(r, style))
         panel = float(rng.uniform(0.015, 0.035))
         length = columns * cell + (columns + 1) * panel
         cube_back = bool(rng.uniform() < 0.5)
@@ -590,7 +595,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             boards.append((z, cell + panel, cell - 0.005))
             z += cell + panel
     elif style == "wire":
-        length, depth = _u(rng, r.wire_length), _u(rng, r.wire_depth)
+        length, depth = _u(rng, r.wire_length), _u(rng, _depth_range(r, style))
         n, h_nom = _ui(rng, r.wire_levels), _u(rng, r.wire_level_height)
         wire_pitch = float(rng.uniform(0.02, 0.035))
         z = float(rng.uniform(0.1, 0.25))     # the lowest deck, above the posts' feet
@@ -600,7 +605,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             boards.append((z, h, h - WIRE_TRUSS - 0.02 if i < n - 1 else h - 0.02))
             z += h
     elif style == "pallet":
-        length, depth = _u(rng, r.pallet_bay_length), _u(rng, r.pallet_rack_depth)
+        length, depth = _u(rng, r.pallet_bay_length), _u(rng, _depth_range(r, style))
         n = _ui(rng, r.pallet_levels)
         h_nom = _u(rng, r.pallet_level_height)
         beam_h = float(rng.uniform(0.1, 0.16))
@@ -612,7 +617,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             boards.append((z, h, h - beam_h - 0.1 if i < n - 1 else h - 0.1))
             z += h
     else:
-        length, depth = _u(rng, r.rack_length), _u(rng, r.rack_depth)
+        length, depth = _u(rng, r.rack_length), _u(rng, _depth_range(r, style))
         n = _ui(rng, r.n_shelves)
         h_nom = _u(rng, r.shelf_height)
         beam_h = _u(rng, r.beam_height)
@@ -651,7 +656,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     if background == "busy":
         y_back = depth / 2
         for row in range(1, r.rack_rows + 1):
-            d2 = depth if row % 2 else _u(rng, {"pallet": r.pallet_rack_depth, "cube": r.cube_depth, "wire": r.wire_depth}.get(style, r.rack_depth))
+            d2 = depth if row % 2 else _u(rng, _depth_range(r, style))
             # back-to-back rows pair up (small flue gap), pairs are separated by corridors
             gap = float(rng.uniform(0.1, 0.3)) if row % 2 else _u(rng, r.corridor_width)
             rows_y.append(y_back + gap + d2 / 2)
