@@ -131,7 +131,8 @@ def _rescaled(classes: dict, probs: dict, truth: dict, views, grid: L.Grid, shel
     return out_c, out_p
 
 
-def eval_report(result: dict, weights, data, split, cfg=None, native: bool = False, scale: str = "model") -> dict:
+def eval_report(result: dict, weights, data, split, cfg=None, native: bool = False, scale: str = "model",
+                gap_cut: bool = True) -> dict:
     """The JSON `racklay eval --json` writes: run description + the metrics dict."""
     views = [v for v in L.VIEWS if v in result]
     return {
@@ -139,6 +140,7 @@ def eval_report(result: dict, weights, data, split, cfg=None, native: bool = Fal
         "images": max((result[v]["images"] for v in views), default=0),
         "resolution": "dataset" if native else "model",
         "scale": scale,
+        "gap_cut": gap_cut,
         "model": cfg.to_dict() if cfg is not None else None,
         "metrics": result,
     }

@@ -428,6 +428,8 @@ class StructDecoder(nn.Module):
 
     #: the submodules a checkpoint without the detail branch / the gap output lacks (see `grown_tensor_names`)
     GROWN = ("red4", "detail", "gap_head")
+    #: with a gap output, draw boxes cut at its gaps (False: the box output alone; `RackLayNet.set_gap_cut`)
+    cut_gaps = True
 
     def __init__(self, view: str, R: int, layout_size: int, extent: float, enc_channels, T: int = DEFAULT_T,
                  width: int = 128, fine: bool = False, gap: bool = False):
@@ -495,7 +497,9 @@ class StructDecoder(nn.Module):
               "box": out[:, :, 0]}
         if self.gap:
             st["gap"] = self.gap_head(h).float().reshape(N, R, T)
-            st["box_raw"], st["box"] = st["box"], cut_at_gaps(st["box"], st["gap"])
+            st["box_raw"] = st["box"]
+            if self.cut_gaps:
+                st["box"] = cut_at_gaps(st["box"], st["gap"])
         if self.view == "front":
             st["height"] = torch.sigmoid(out[:, :, 1])
         else:
@@ -583,6 +587,15 @@ class RackLayNet(nn.Module):
                     dec.col_map.weight.zero_()
                     dec.col_map.bias.zero_()
 
+    def set_gap_cut(self, on: bool) -> None:
+        """Draw boxes cut at the gap output's gaps (on, as trained) or from the box output alone
+        (off: what the gap output adds or costs on a dataset, `racklay eval --no-gap-cut`)."""
+        if not (self.cfg.decoder == "struct" and self.cfg.struct_gap):
+            raise ValueError(f"this model has no gap output (the {self.cfg.decoder} decoder"
+                             f"{'' if self.cfg.decoder != 'struct' else ' without --struct-gap'})")
+        for dec in self.decoders.values():
+            dec.cut_gaps = bool(on)
+
     def forward(self, x: torch.Tensor, shelf_length=None, with_structure: bool = False):
         """{view: (N, R, 3, S, S) logits}. `struct` decoder only: `shelf_length` (metres, a number
         or (N, R)) fixes every shelf's length and so the scale; `with_structure` also returns
@@ -592,7 +605,8 @@ class RackLayNet(nn.Module):
                              f"{self.cfg.decoder} decoder (racklay.predict.with_shelf_length scales any model's layouts)")
         feats = self.encoder(x)
         if self.cfg.decoder == "struct":
-            structs = tie_views({v: dec.structure(feats) for v, dec in self.decoders.items()})
+            structs = tie_views({v: dec.structure(feats) for v, dec in self.decoders.items()},
+                                cut_gaps=all(dec.cut_gaps for dec in self.decoders.values()))
             if shelf_length is not None:
                 structs = {v: rescale_structure(st, shelf_length) for v, st in structs.items()}
             out = {v: dec.draw(structs[v]) for v, dec in self.decoders.items()}
@@ -604,13 +618,14 @@ class RackLayNet(nn.Module):
         return out
 
 
-def tie_views(structs: dict) -> dict:
+def tie_views(structs: dict, cut_gaps: bool = True) -> dict:
     """Both views of a shelf are one board seen from above and from the front: whether it is
     there, its length and where along it boxes stand are the same quantities. With both views
     predicted, each view's structure gets the mean of the two estimates (presence and per-position
     box logits; length geometrically); depth, clear height and the box fractions stay per view.
     Measured on a struct model trained untied: every shelf and box IoU up 0.1-1.0 points on WareSynth
-    complex and on the real photos (docs/results/2026-11-22-to-26-accuracy-log.md), and the views can no longer disagree."""
+    complex and on the real photos (docs/results/2026-11-22-to-26-accuracy-log.md), and the views can no longer disagree.
+    `cut_gaps` False: the averaged box logits are not cut at the averaged gaps (`RackLayNet.set_gap_cut`)."""
     if set(structs) != {"top", "front"}:
         return structs
     a, b = structs["top"], structs["front"]
@@ -619,7 +634,7 @@ def tie_views(structs: dict) -> dict:
               "box": (a["box"] + b["box"]) / 2}
     if "gap" in a:     # the gap output: both estimates averaged, then the cut (StructDecoder)
         shared["gap"], shared["box_raw"] = (a["gap"] + b["gap"]) / 2, (a["box_raw"] + b["box_raw"]) / 2
-        shared["box"] = cut_at_gaps(shared["box_raw"], shared["gap"])
+        shared["box"] = cut_at_gaps(shared["box_raw"], shared["gap"]) if cut_gaps else shared["box_raw"]
     return {v: {**st, **shared} for v, st in structs.items()}
 
 

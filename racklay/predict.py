@@ -98,9 +98,12 @@ class Predictor:
     The torch backend runs the model it loads in channels_last memory format (oneDNN's native
     layout on CPU: 1.2-1.5x faster than the default layout, same logits to ~1e-5,
     docs/benchmarks.md).
+    cut_gaps: False draws a struct model's boxes from its box output alone, without the gap
+    output's cuts (torch backend; `RackLayNet.set_gap_cut`).
     """
 
-    def __init__(self, weights, backend: str = "torch", threads: int | None = None, precision: str = "fp32"):
+    def __init__(self, weights, backend: str = "torch", threads: int | None = None, precision: str = "fp32",
+                 cut_gaps: bool = True):
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         self.weights = Path(weights)
@@ -110,6 +113,8 @@ class Predictor:
         self.precision = precision
         if backend == "onnx" and precision != "fp32":
             raise ValueError("precision bf16 is for the torch backend; onnxruntime runs fp32")
+        if backend == "onnx" and not cut_gaps:
+            raise ValueError("drawing without the gap cut is for the torch backend; an ONNX graph has the cut built in")
         self.backend = backend
         self.threads = threads
         self.model = None
@@ -121,6 +126,11 @@ class Predictor:
             from .checkpoint import load_model
 
             model, self.cfg, self.meta = load_model(self.weights, map_location="cpu")
+            if not cut_gaps:
+                try:
+                    model.set_gap_cut(False)
+                except ValueError as e:
+                    raise ValueError(f"{self.weights}: {e}") from None
             if backend == "onnx":
                 data = export_onnx_bytes(model.eval(), self.cfg)
                 self.session, _ = onnx_session(data, threads=threads, source=str(self.weights))

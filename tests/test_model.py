@@ -137,6 +137,30 @@ def test_struct_gap_output_grows_from_a_struct_checkpoint_and_cuts_box_runs():
         ModelConfig(decoder="light", struct_gap=True)
 
 
+def test_the_gap_cut_can_be_switched_off_to_draw_the_box_output_alone():
+    """`set_gap_cut(False)` draws boxes from the (view-tied) box output without the gap output's
+    cuts, in both views, and leaves every other output as it was; on again restores the trained
+    drawing; a model without a gap output says so."""
+    _, b, x = _struct_grown_with("struct_gap")
+    with torch.no_grad():
+        for dec in b.decoders.values():
+            dec.gap_head.bias.fill_(4.0)                     # a gap everywhere: every box cut
+        cut, sc = b(x, with_structure=True)
+        b.set_gap_cut(False)
+        raw, sr = b(x, with_structure=True)
+        b.set_gap_cut(True)
+        again = b(x)
+    for v in ("top", "front"):
+        assert torch.equal(sr[v]["box"], sr[v]["box_raw"]) and torch.equal(sr[v]["box_raw"], sc[v]["box_raw"])
+        assert (sc[v]["box"] <= -4.0 + 1e-4).all() and not torch.equal(sc[v]["box"], sr[v]["box"])
+        assert torch.equal(sr[v]["length"], sc[v]["length"]) and torch.equal(again[v], cut[v])
+    with pytest.raises(ValueError, match="no gap output"):
+        RackLayNet(ModelConfig(R=2, image_size=(64, 128), layout_size=96, encoder="resnet18")).set_gap_cut(False)
+    from racklay.predict import Predictor
+    with pytest.raises(ValueError, match="torch backend; an ONNX graph has the cut built in"):
+        Predictor("model.onnx", cut_gaps=False)
+
+
 def test_fast_decoder_is_light_with_its_last_conv_before_the_resize():
     """`fast` has exactly `light`'s tensors (a light checkpoint loads into it strictly, both ways),
     computes the logits at the last stage's resolution and only then resizes them to S, so it

@@ -32,6 +32,9 @@ def register(sub) -> None:
                             "score of the shape alone, which a known dimension (--shelf-length) would give")
     scale.add_argument("--shelf-length", type=positive_float, default=None, metavar="M",
                        help="scale every predicted shelf to this known length in metres before scoring")
+    p.add_argument("--no-gap-cut", action="store_true",
+                   help="a struct model with a gap output: draw boxes from the box output alone, without "
+                        "the gap output's cuts (what the cuts add or cost on this data; torch backend)")
     p.add_argument("--workers", type=at_least(0), default=0, help="DataLoader worker processes (default 0)")
     add_precision_args(p)
     p.add_argument("--threads", type=at_least(1), default=None, help="intra-op threads (default: library default)")
@@ -55,18 +58,19 @@ def run(args) -> int:
         from racklay.data import check_prediction_out
         check_prediction_out(args.save_predictions, data=args.data)
     pred = Predictor(args.weights, backend=args.backend, threads=args.threads,
-                     precision=args.precision)
+                     precision=args.precision, cut_gaps=not args.no_gap_cut)
     result = evaluate(pred, args.data, split=args.split, batch_size=args.batch_size, workers=args.workers,
                       limit=args.limit, native=args.native, pred_out=args.save_predictions,
                       shelf_length=args.shelf_length, scale_from_truth=args.scale_from_truth)
     scale = ("from truth" if args.scale_from_truth else
              f"shelf length {args.shelf_length:g} m" if args.shelf_length else "model")
     report = eval_report(result, args.weights, args.data, args.split, cfg=pred.cfg, native=args.native,
-                         scale=scale)
+                         scale=scale, gap_cut=not args.no_gap_cut)
     where = "dataset resolution" if args.native else f"{pred.layout_size}x{pred.layout_size}"
     print(format_tables(result, title=f"{Path(args.weights).name} on {args.data} [{args.split}], "
                                       f"{report['images']} images, layouts at {where}"
-                                      + ("" if scale == "model" else f", scale {scale}")))
+                                      + ("" if scale == "model" else f", scale {scale}")
+                                      + (", gap cut off" if args.no_gap_cut else "")))
     if args.save_predictions:
         print(f"predicted layouts written to {args.save_predictions}")
     if args.json:
