@@ -4,7 +4,10 @@
       --data /work/data/complex [--split test] [--limit N] [--photos datasets/real-photos]
 
 For every arm (a `racklay train` run folder: its best.safetensors, config.yaml and metrics.csv; or
-a checkpoint file such as a release, which has no training cost to report) it prints, on the
+a checkpoint file such as a release, which has no training cost to report; or several of them,
+comma-separated: render draws or training seeds of one arm, each scored and the numbers averaged,
+each run's box IoU listed under the tables — one draw and one seed of a renders-only arm are
+readable only beyond ~10 box points on the photos, docs/accuracy.md) it prints, on the
 held-out split of `--data` (WareSynth `complex` for the reproduction row):
 - dataset-level shelf / box IoU (top / front) and the paper-protocol mIoU, metric and with
   `--scale-from-truth` (each predicted shelf scaled to its true length: shape alone);
@@ -47,7 +50,7 @@ def separation(res: dict, unit: str = "shelves") -> dict | None:
 
 def sep_cell(c: dict | None) -> str:
     """The table cell "separated / truth; placed; predicted"."""
-    return f"{c['separated']} / {c['truth']}; {c['placed']}; {c['predicted']}" if c else "-"
+    return f"{c['separated']:g} / {c['truth']:g}; {c['placed']:g}; {c['predicted']:g}" if c else "-"
 
 
 def centre_cut(root, split, limit, D: int | None, per_image: bool = False) -> int:
@@ -97,10 +100,54 @@ def fmt(s: dict) -> str:
     return " / ".join(f"{s[v]['shelf']:.1f}, {s[v]['box']:.1f}" for v in ("top", "front") if v in s)
 
 
+def score_run(pred, run: Path, ckpt: Path, args, photos) -> dict:
+    """One run's numbers (the keys of the JSON's arm rows)."""
+    from racklay.evaluate import evaluate
+    from racklay.metrics import shelves_found
+    from racklay.predict import Predictor
+
+    row = {"decoder": pred.cfg.decoder}
+    res = evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False)
+    row["metric"], row["separation"] = scores(res), separation(res)
+    row["shape"] = scores(evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False,
+                                   scale_from_truth=True))
+    row["cpu_minutes"], row["best_val"] = run_cost(run) if run.is_dir() else (None, None)
+    if photos is not None:
+        res = evaluate(pred, photos, split="test", native=True, progress=False)
+        row["photos_metric"], row["photos_separation"] = scores(res), separation(res, "images")
+        found = shelves_found(res)
+        row["photos_shelves"] = found[1] if found else None
+        row["photos_shape"] = scores(evaluate(pred, photos, split="test", native=True, progress=False,
+                                              scale_from_truth=True))
+    if pred.cfg.decoder == "struct" and pred.cfg.struct_gap:
+        raw = Predictor(str(ckpt), precision="auto", cut_gaps=False)
+        res = evaluate(raw, args.data, split=args.split, limit=args.limit, progress=False)
+        row["no_gap_cut"] = {"metric": scores(res), "separation": separation(res)}
+        if photos is not None:
+            res = evaluate(raw, photos, split="test", native=True, progress=False)
+            row["no_gap_cut"].update(photos_metric=scores(res), photos_separation=separation(res, "images"))
+    return row
+
+
+def mean_rows(rows: list):
+    """The mean of several runs' rows, key by key (numbers averaged, so counts may be fractional;
+    a key missing or None in any run is None; strings from the first)."""
+    first = rows[0]
+    if isinstance(first, dict):
+        keys = [k for k in first if all(isinstance(r, dict) and k in r for r in rows)]
+        return {k: mean_rows([r[k] for r in rows]) for k in keys}
+    if any(r is None for r in rows):
+        return None
+    if isinstance(first, (int, float)) and not isinstance(first, bool):
+        return sum(rows) / len(rows)
+    return first
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--arm", action="append", required=True, metavar="NAME=RUN",
-                    help="an arm: a name and a `racklay train` run folder or a checkpoint file (repeat)")
+    ap.add_argument("--arm", action="append", required=True, metavar="NAME=RUN[,RUN...]",
+                    help="an arm: a name and a `racklay train` run folder or a checkpoint file, or several "
+                         "comma-separated (render draws / training seeds of one arm: scored each, averaged) (repeat)")
     ap.add_argument("--data", required=True, type=Path, help="RackLay dataset with the held-out split")
     ap.add_argument("--split", default="test", help="held-out split (default test)")
     ap.add_argument("--limit", type=int, default=None, help="only the first N images of the split")
@@ -110,8 +157,6 @@ def main() -> int:
     args = ap.parse_args()
 
     from racklay import layout as L
-    from racklay.evaluate import evaluate
-    from racklay.metrics import shelves_found
     from racklay.predict import Predictor
 
     photos = None
@@ -124,32 +169,17 @@ def main() -> int:
             raise SystemExit(f"{args.photos}: annotate export failed")
     out = {}
     for item in args.arm:
-        name, _, run = item.partition("=")
-        run = Path(run)
-        ckpt = run if run.is_file() else run / args.weights
-        pred = Predictor(str(ckpt), precision="auto")
-        print(f"{name}: {ckpt} ({pred.cfg.decoder} decoder, {pred.precision})", file=sys.stderr, flush=True)
-        row = {"decoder": pred.cfg.decoder}
-        res = evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False)
-        row["metric"], row["separation"] = scores(res), separation(res)
-        row["shape"] = scores(evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False,
-                                       scale_from_truth=True))
-        row["cpu_minutes"], row["best_val"] = run_cost(run) if run.is_dir() else (None, None)
-        if photos is not None:
-            res = evaluate(pred, photos, split="test", native=True, progress=False)
-            row["photos_metric"], row["photos_separation"] = scores(res), separation(res, "images")
-            found = shelves_found(res)
-            row["photos_shelves"] = found[1] if found else None
-            row["photos_shape"] = scores(evaluate(pred, photos, split="test", native=True, progress=False,
-                                                  scale_from_truth=True))
-        if pred.cfg.decoder == "struct" and pred.cfg.struct_gap:
-            raw = Predictor(str(ckpt), precision="auto", cut_gaps=False)
-            res = evaluate(raw, args.data, split=args.split, limit=args.limit, progress=False)
-            row["no_gap_cut"] = {"metric": scores(res), "separation": separation(res)}
-            if photos is not None:
-                res = evaluate(raw, photos, split="test", native=True, progress=False)
-                row["no_gap_cut"].update(photos_metric=scores(res), photos_separation=separation(res, "images"))
-        out[name] = row
+        name, _, runs = item.partition("=")
+        rows = []
+        for run in runs.split(","):
+            run = Path(run)
+            ckpt = run if run.is_file() else run / args.weights
+            pred = Predictor(str(ckpt), precision="auto")
+            print(f"{name}: {ckpt} ({pred.cfg.decoder} decoder, {pred.precision})", file=sys.stderr, flush=True)
+            rows.append(score_run(pred, run, ckpt, args, photos))
+        out[name] = mean_rows(rows)
+        if len(rows) > 1:
+            out[name]["runs"] = [{"run": r, "metric": row["metric"]} for r, row in zip(runs.split(","), rows)]
 
     n = f"first {args.limit} of " if args.limit else ""
     print(f"\n{n}{args.data} [{args.split}]: dataset-level shelf, box IoU (top / front); paper-protocol mIoU")
@@ -187,10 +217,17 @@ def main() -> int:
         print("|---|---|---|---|---|")
         for name, r in out.items():
             c = r["photos_shelves"]
-            shelves = f"{c['multi_found']} / {c['multi']}; {c['fewer']}, {c['more']}" if c else "-"
+            shelves = f"{c['multi_found']:g} / {c['multi']:g}; {c['fewer']:g}, {c['more']:g}" if c else "-"
             print(f"| {name} | {fmt(r['photos_metric'])} | {fmt(r['photos_shape'])} | "
                   f"{sep_cell(r['photos_separation'])} | {shelves} |")
         print(f"(one cut in the middle of every shelf would place {centre_cut(photos, 'test', None, None, True)})")
+    multi = {name: r["runs"] for name, r in out.items() if "runs" in r}
+    if multi:
+        print(f"\narms of several runs (the tables show their means): each run's box IoU on {args.data.name} [{args.split}]")
+        for name, runs in multi.items():
+            print(f"- {name}: " + "; ".join(
+                f"{r['run']} " + " / ".join(f"{r['metric'][v]['box']:.1f}" for v in ("top", "front") if v in r["metric"])
+                for r in runs))
     cut_off = {name: r["no_gap_cut"] for name, r in out.items() if "no_gap_cut" in r}
     if cut_off:
         print("\nwith the gap cut off (boxes from the box output alone): shelf, box IoU (top / front); separated as above")
