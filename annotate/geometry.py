@@ -379,36 +379,36 @@ class Proposal:
 
 
 def front_box_rects(front: np.ndarray, top: np.ndarray | None, grid: L.Grid, shelf_v, width: float,
-                    rack_depth: float, probs_box: np.ndarray | None = None,
-                    min_px: int = 4, tops=None) -> list[Proposal]:
-    """Turn every connected component of BOX pixels in each shelf's front layout into a metric
-    rectangle on the rack plane. Only shelves with a marked board height (shelf_v) are used.
-    Depth and front offset come from the top layout's BOX rows in the same columns, if given.
-    `tops` (plane heights, one per shelf) clips each rectangle to the space below the next board."""
-    import cv2
+                    rack_depth: float, probs_box: np.ndarray | None = None, tops=None) -> list[Proposal]:
+    """One metric rectangle on the rack plane per box stack that the rack reasoning reads in each
+    shelf's layouts (racklay.reasoning.analyze_shelf with its defaults: box regions, cut where their
+    top steps, fused with the top view), so stacks that touch come out one per stack. Only shelves
+    with a marked board height (shelf_v) are used. Depth and front offset come from the stack's
+    top-view rows, if a top view is given. `tops` (plane heights, one per shelf) clips each
+    rectangle to the space below the next board; `probs_box` (R, S, S) scores a rectangle by the mean
+    box probability of its front-view box pixels."""
+    from racklay.reasoning import analyze_shelf
 
+    centres = grid.centers()
     out = []
     for i, v in enumerate(shelf_v):
         if i >= front.shape[0]:
             break
-        mask = (front[i] == L.BOX).astype(np.uint8)
-        n, lab, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=4)
-        for k in range(1, n):
-            x, y, w, h, area = (int(t) for t in stats[k])
-            if area < min_px:
-                continue
-            xa, xb = float(grid.col_to_x(x)), float(grid.col_to_x(x + w))
-            za, zb = float(grid.row_to_z(y + h)), float(grid.row_to_z(y))
+        shelf = analyze_shelf(None if top is None else top[i], front[i], grid, index=i)
+        if shelf is None or shelf.missing_view == "front":
+            continue
+        for b in shelf.boxes:
             depth, off = None, 0.0
-            if top is not None:
-                rows = np.nonzero((top[i][:, x:x + w] == L.BOX).any(axis=1))[0]
-                if rows.size:
-                    ya, yb = float(grid.row_to_y(rows.max() + 1)), float(grid.row_to_y(rows.min()))
-                    off = float(np.clip(L.y_to_offset(ya, rack_depth), 0.0, rack_depth))
-                    depth = float(np.clip(yb - ya, grid.res, rack_depth - off)) if rack_depth - off > 0 else None
-            score = float(probs_box[i][lab == k].mean()) if probs_box is not None else None
-            u0, u1 = np.clip(L.x_to_u(np.array([xa, xb]), width), 0.0, width)
-            v0, v1 = v + max(za, 0.0), v + zb
+            if shelf.complete:
+                off = float(np.clip(L.y_to_offset(b.y[0], rack_depth), 0.0, rack_depth))
+                depth = float(np.clip(b.y[1] - b.y[0], grid.res, rack_depth - off)) if rack_depth - off > 0 else None
+            score = None
+            if probs_box is not None:
+                cols = (centres >= b.x[0]) & (centres < b.x[1])
+                px = probs_box[i][:, cols][front[i][:, cols] == L.BOX]
+                score = float(px.mean()) if px.size else None
+            u0, u1 = np.clip(L.x_to_u(np.array(b.x), width), 0.0, width)
+            v0, v1 = v + b.z[0], v + b.z[1]
             if tops is not None:
                 v1 = min(v1, tops[i])
             if u1 <= u0 or v1 <= v0:

@@ -63,6 +63,11 @@ class ReasoningConfig:
                                                           "convention), metres", lo=0)
     connectivity: int = option(4, "pixel connectivity of components (4 keeps diagonally touching boxes apart)",
                                choices=(4, 8))
+    split_step_m: float = option(0.08, "split a front-view box region into stacks where its top steps by at "
+                                      "least this much, metres; 0: only gaps separate stacks (default {default})",
+                                 lo=0, flags=["--split-step"])
+    min_stack_m: float = option(0.1, "narrowest stack a step split may cut off, metres (default {default})",
+                                lo=0, flags=["--min-stack"])
 
     def __post_init__(self):
         check_fields(self)
@@ -274,6 +279,71 @@ def _column_profile(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return top, bot
 
 
+def step_segments(h: np.ndarray, step: float, min_len: int) -> list[tuple[int, int]]:
+    """Half-open spans [a, b) cutting the 1-D profile `h` into pieces of near-constant value: the
+    least-squares piecewise-constant fit with a cost of step² · min_len / 2 per extra piece (two
+    pieces of min_len whose levels differ by `step` are worth cutting; a level change smaller
+    than that, or spread over a ramp, mostly is not), every piece at least `min_len` long, then
+    neighbours whose medians differ by less than `step` merged again. One span when nothing steps."""
+    h = np.asarray(h, dtype=np.float64)
+    n = len(h)
+    if step <= 0 or n < 2 * max(min_len, 1):
+        return [(0, n)]
+    m = max(min_len, 1)
+    c1 = np.concatenate([[0.0], np.cumsum(h)])
+    c2 = np.concatenate([[0.0], np.cumsum(h * h)])
+    lam = step * step * m / 2.0
+    best = np.full(n + 1, np.inf)
+    best[0] = -lam
+    arg = np.zeros(n + 1, dtype=np.int64)
+    for j in range(m, n + 1):
+        i = np.arange(0, j - m + 1)
+        i = i[np.isfinite(best[i])]
+        if i.size == 0:
+            continue
+        k = j - i
+        sse = (c2[j] - c2[i]) - (c1[j] - c1[i]) ** 2 / k
+        tot = best[i] + sse + lam
+        t = int(np.argmin(tot))
+        best[j], arg[j] = tot[t], i[t]
+    cuts = [n]
+    while cuts[-1] > 0:
+        cuts.append(int(arg[cuts[-1]]))
+    spans = [(a, b) for a, b in zip(cuts[::-1][:-1], cuts[::-1][1:])]
+    while len(spans) > 1:
+        med = [float(np.median(h[a:b])) for a, b in spans]
+        d = [abs(med[k + 1] - med[k]) for k in range(len(spans) - 1)]
+        k = int(np.argmin(d))
+        if d[k] >= step:
+            break
+        spans[k:k + 2] = [(spans[k][0], spans[k + 1][1])]
+    return spans
+
+
+#: a step cut within this distance of a top-view footprint's end is that footprint's edge, metres
+_EDGE_TOL_M = 0.04
+
+
+def _split_entity(e: dict, grid: L.Grid, cfg: ReasoningConfig, top_edges: np.ndarray) -> list[dict]:
+    """A front entity cut where its top edge steps (step_segments on the top profile), one entity
+    per piece; the entity itself when nothing steps or splitting is off. A cut where a top-view
+    footprint starts or ends (`top_edges`, columns) is not made: separate footprints already explain
+    that step (a taller stack behind a shorter one), and the fusion gives each its own columns."""
+    cols = np.flatnonzero(e["cols"])
+    if cfg.split_step_m <= 0 or cols.size == 0:
+        return [e]
+    tol = grid.m_to_px(_EDGE_TOL_M)
+    out = []
+    for run in np.split(cols, np.flatnonzero(np.diff(cols) > 1) + 1):
+        spans = step_segments(e["top"][run] * grid.res, cfg.split_step_m, grid.m_to_px(cfg.min_stack_m))
+        cuts = [b for _, b in spans[:-1] if not (np.abs(top_edges - run[b]) <= tol).any()]
+        for a, b in zip([0] + cuts, cuts + [len(run)]):
+            c = np.zeros_like(e["cols"])
+            c[run[a:b]] = True
+            out.append({**e, "cols": c, "pieces": []})
+    return out
+
+
 def _groups(n: int, linked) -> list[list[int]]:
     """Indices 0..n-1 grouped transitively by the predicate linked(i, j) (union-find)."""
     parent = list(range(n))
@@ -344,9 +414,11 @@ def analyze_shelf(top: np.ndarray | None, front: np.ndarray | None, grid: L.Grid
                              cfg.min_box_area_m2, cfg.connectivity)
 
     if not res.complete:
-        # one view only: count its components as stacks, no volume
-        res.boxes = [_one_view_box(m, grid, res, top_view=t_reg is not None, z_base=z_base) for m in
-                     (t_boxes or f_boxes)]
+        # one view only: count its components (front: cut where their top steps) as stacks, no volume
+        if t_reg is not None:
+            res.boxes = [_one_view_box(m, grid) for m in t_boxes]
+        else:
+            res.boxes = [_front_only_box(e, grid, z_base) for e in _front_entities(f_boxes, grid, cfg)]
         return res
 
     res.boxes, res.unmatched_top, res.unmatched_front = fuse_views(t_boxes, f_boxes, grid, cfg, z_base,
@@ -354,14 +426,45 @@ def analyze_shelf(top: np.ndarray | None, front: np.ndarray | None, grid: L.Grid
     return res
 
 
-def _one_view_box(mask, grid, shelf: ShelfResult, top_view: bool, z_base: float) -> BoxStack:
+def _one_view_box(mask, grid) -> BoxStack:
+    """A top-view component alone: its footprint, no height."""
     r0, r1, c0, c1 = _bbox(mask)
-    x = grid.col_span_to_x(c0, c1)
-    if top_view:
-        return BoxStack(x=x, y=grid.row_span_to_v(r0, r1), z=(0.0, 0.0),
-                        footprint_m2=L.layout_area_m2(mask, grid), volume_m3=0.0)
-    z = grid.row_span_to_v(r0, r1)
-    return BoxStack(x=x, y=(0.0, 0.0), z=(z[0] - z_base, z[1] - z_base), footprint_m2=0.0, volume_m3=0.0)
+    return BoxStack(x=grid.col_span_to_x(c0, c1), y=grid.row_span_to_v(r0, r1), z=(0.0, 0.0),
+                    footprint_m2=L.layout_area_m2(mask, grid), volume_m3=0.0)
+
+
+def _entity_z(e: dict, cols: np.ndarray, grid: L.Grid) -> tuple[float, float]:
+    """Median top and bottom edge (metres) of a front entity over the given columns (robust to
+    ragged predicted tops)."""
+    idx = np.flatnonzero(cols)
+    return grid.row_span_to_v(int(np.floor(np.median(e["top"][idx]))), int(np.ceil(np.median(e["bot"][idx]))))
+
+
+def _front_only_box(e: dict, grid: L.Grid, z_base: float) -> BoxStack:
+    """A front entity alone: its x-range and height, no footprint."""
+    z0, z1 = _entity_z(e, e["cols"], grid)
+    c = np.flatnonzero(e["cols"])
+    return BoxStack(x=grid.col_span_to_x(int(c[0]), int(c[-1]) + 1), y=(0.0, 0.0),
+                    z=(max(z0 - z_base, 0.0), z1 - z_base), footprint_m2=0.0, volume_m3=0.0)
+
+
+def _front_entities(f_boxes: Sequence[np.ndarray], grid: L.Grid, cfg: ReasoningConfig,
+                    t_boxes: Sequence[np.ndarray] = ()) -> list[dict]:
+    """Front entities: front components whose columns overlap (a stack seen with a gap), each cut
+    where its top steps (_split_entity; not at the ends of the top view's footprints `t_boxes`).
+    Each: {"cols": (D,) bool, "top"/"bot": per-column edge rows, "pieces": []}."""
+    D = grid.size
+    f_cols = [m.any(axis=0) for m in f_boxes]
+    top_edges = np.array([e for t in t_boxes for c in [np.flatnonzero(t.any(axis=0))] for e in (c[0], c[-1] + 1)])
+    entities = []
+    for group in _union_overlapping(f_cols):
+        m = np.zeros((D, D), bool)
+        for j in group:
+            m |= f_boxes[j]
+        top_row, bot_row = _column_profile(m)
+        entities += _split_entity({"cols": m.any(axis=0), "top": top_row, "bot": bot_row, "pieces": []}, grid, cfg,
+                                  top_edges)
+    return entities
 
 
 def fuse_views(t_boxes: Sequence[np.ndarray], f_boxes: Sequence[np.ndarray], grid: L.Grid,
@@ -371,15 +474,7 @@ def fuse_views(t_boxes: Sequence[np.ndarray], f_boxes: Sequence[np.ndarray], gri
     shared x axis (see the module docstring). Returns (stacks, unmatched_top, unmatched_front)."""
     D = grid.size
     min_px = cfg.min_box_area_m2 / grid.pixel_area_m2()
-    # front entities: front components whose columns overlap
-    f_cols = [m.any(axis=0) for m in f_boxes]
-    entities = []
-    for group in _union_overlapping(f_cols):
-        m = np.zeros((D, D), bool)
-        for j in group:
-            m |= f_boxes[j]
-        top_row, bot_row = _column_profile(m)
-        entities.append({"cols": m.any(axis=0), "top": top_row, "bot": bot_row, "pieces": []})
+    entities = _front_entities(f_boxes, grid, cfg, t_boxes)
 
     unmatched_top = 0
     for t in t_boxes:
@@ -414,12 +509,7 @@ def fuse_views(t_boxes: Sequence[np.ndarray], f_boxes: Sequence[np.ndarray], gri
                     others |= oc
             own = cols & ~others
             hidden = not own.any()
-            hcols = cols if hidden else own
-            idx = np.flatnonzero(hcols)
-            # median edges over the height columns (robust to ragged predicted tops)
-            top_row = int(np.floor(np.median(e["top"][idx])))
-            bot_row = int(np.ceil(np.median(e["bot"][idx])))
-            z0, z1 = grid.row_span_to_v(top_row, bot_row)
+            z0, z1 = _entity_z(e, cols if hidden else own, grid)
             z0, z1 = max(z0 - z_base, 0.0), min(z1 - z_base, clear_height)
             fp = piece & cols[None, :]
             r0, r1, c0, c1 = _bbox(fp)

@@ -167,6 +167,18 @@ def test_proposals_clipped_below_next_board():
     assert len(props) == 1 and props[0].v1 == pytest.approx(0.75) and props[0].v0 == pytest.approx(0.1)
 
 
+def test_touching_stacks_are_proposed_one_by_one():
+    """A wall of cartons (two stacks touching, different heights) is two proposals, not one band."""
+    shelf = L.Shelf(W, DEPTH, 0.6)
+    lay = L.rasterize_shelf(shelf, [L.Box(-0.4, 0.0, 0.6, 0.4, 0.25), L.Box(0.2, 0.0, 0.6, 0.4, 0.5)], GRID)
+    top, front = (np.stack([v] + [np.zeros_like(v)] * 3) for v in (lay.top, lay.front))
+    props = sorted(G.front_box_rects(front, top, GRID, [0.1], W, DEPTH), key=lambda p: p.u0)
+    assert len(props) == 2
+    np.testing.assert_allclose([(p.u0, p.u1) for p in props], [(W / 2 - 0.7, W / 2 - 0.1), (W / 2 - 0.1, W / 2 + 0.5)],
+                               atol=GRID.res)
+    np.testing.assert_allclose([p.v1 - p.v0 for p in props], [0.25, 0.5], atol=GRID.res)
+
+
 def _one_box_scene(v0, v1, on_board=None):
     """A frontal 2 x 2 m rack filling a 640 x 640 photo (320 px a metre), boards at 0.1 and 0.75 m."""
     ann = S.new_annotation("x.png", 640, 640)

@@ -120,6 +120,37 @@ def test_touching_in_front_view_but_not_top_is_split_by_column_occupancy():
     assert not any(q.hidden for q in got)
 
 
+def test_touching_stacks_of_different_heights_are_cut_at_the_step():
+    # a wall of cartons: three stacks side by side, touching in both views (one blob in each)
+    boxes = [L.Box(-0.6, 0.0, 0.4, 0.5, 0.3), L.Box(-0.2, 0.0, 0.4, 0.5, 0.55), L.Box(0.2, 0.0, 0.4, 0.5, 0.3)]
+    s, lay = one_shelf(boxes)
+    from racklay.reasoning import components
+    assert len(components(lay.top == L.BOX, G, 0.01)) == 1 and len(components(lay.front == L.BOX, G, 0.01)) == 1
+    got = sorted(s.boxes, key=lambda q: q.x[0])
+    assert len(got) == 3
+    for q, b in zip(got, boxes):
+        assert q.x == pytest.approx(b.x_range(), abs=RES) and q.z[1] == pytest.approx(b.sz, abs=RES)
+    assert s.occupied_m3 == pytest.approx(sum(expected_volume(b) for b in boxes), rel=1e-9)
+    # the same wall with splitting off is one stack; steps below split_step_m do not cut
+    off, _ = one_shelf(boxes, cfg=ReasoningConfig(split_step_m=0))
+    assert len(off.boxes) == 1
+    coarse, _ = one_shelf(boxes, cfg=ReasoningConfig(split_step_m=0.3))
+    assert len(coarse.boxes) == 1
+
+
+def test_step_segments_cuts_steps_not_noise():
+    from racklay.reasoning import step_segments
+
+    rng = np.random.default_rng(0)
+    h = np.r_[np.full(30, 0.30), np.full(20, 0.50)] + rng.normal(0, 0.01, 50)
+    assert step_segments(h, 0.08, 4) == [(0, 30), (30, 50)]
+    assert step_segments(np.full(50, 0.4) + rng.normal(0, 0.02, 50), 0.08, 4) == [(0, 50)]
+    # no piece is narrower than min_len; too short a profile is one piece
+    spans = step_segments(np.r_[np.full(30, 0.3), np.full(3, 0.9)], 0.08, 4)
+    assert spans[0][0] == 0 and spans[-1][1] == 33 and all(b - a >= 4 for a, b in spans)
+    assert step_segments(np.r_[0.1, 0.9], 0.08, 4) == [(0, 2)]
+
+
 def test_stack_hidden_behind_another_gets_the_front_height():
     front_box = L.Box(0.2, -0.2, 0.4, 0.3, 0.5)   # x in [0, 0.4), near the camera, tall
     behind = L.Box(0.2, 0.2, 0.2, 0.3, 0.2)       # x in [0.1, 0.3): fully hidden in the front view

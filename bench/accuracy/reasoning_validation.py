@@ -17,6 +17,14 @@ the sum of the boxes' own volumes, a stack = boxes whose footprints overlap.
         --weights runs/accuracy-default/best.safetensors --json bench/results/reasoning.json
     .venv/bin/python -m bench.accuracy.reasoning_validation --toy 40     # no dataset: a D=512 toy set
     .venv/bin/python -m bench.accuracy.reasoning_validation --synth 200  # WareSynth scenes, no rendering
+    .venv/bin/python -m bench.accuracy.reasoning_validation --photos datasets/real-photos --split test \
+        --weights racklay/weights/racklay-lite0-struct-v8.safetensors --split-step 0 --split-step 0.08
+
+--photos reads a labelled photo project (annotate): its truth is the labelled boxes (a stack =
+labelled boxes whose footprints overlap; two cartons drawn side by side are two stacks), its layouts
+are the project's own rasterisation; --split selects photos by SOURCES.tsv's split column (`all`:
+every photo). --split-step (repeatable) compares racklay.reasoning's step split settings side by
+side (0: connected components only).
 
 --synth samples WareSynth scenes (racklay.synth.scene.sample_scene: the generator's own racks,
 stacks and back rows) and rasterises their visible shelves with racklay.layout.rasterize_shelf
@@ -38,7 +46,7 @@ import numpy as np
 from bench.common import markdown_table
 from racklay import layout as L
 from racklay.data import DataError, RackLayRoot
-from racklay.reasoning import ShelfTruth, analyze_layouts
+from racklay.reasoning import ReasoningConfig, ShelfTruth, analyze_layouts
 
 BOX_FIELDS = ("cx", "cy", "sx", "sy", "sz", "z0", "yaw")
 
@@ -92,6 +100,19 @@ def compare(result, truth: list[ShelfTruth]) -> dict:
             "shelves_read": result.n_shelves, "free_true": free_true, "free_read": result.free_m3,
             "occ_true": occ_true, "occ_read": result.occupied_m3, "cap_true": cap_true,
             "cap_read": result.capacity_m3, "per_shelf": shelves}
+
+
+def add_rows(rows: dict, configs: dict, truth: list[ShelfTruth], top, front, grid: L.Grid, pred: dict | None,
+             sid: str) -> None:
+    """Analyse one image's truth layouts (and prediction, if given) under every reasoning config and
+    append the comparisons to rows[column name]."""
+    for label, cfg in configs.items():
+        sfx = f" ({label})" if label else ""
+        gt = analyze_layouts(top, front, grid, cfg, source=sid)
+        rows.setdefault("ground-truth layouts" + sfx, []).append(compare(gt, truth) | {"id": sid})
+        if pred is not None:
+            pr = analyze_layouts(pred.get("top"), pred.get("front"), pred["grid"], cfg, source=sid)
+            rows.setdefault("predicted layouts" + sfx, []).append(compare(pr, truth) | {"id": sid})
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -162,10 +183,18 @@ def main(argv=None) -> int:
     ap.add_argument("--weights", default=None, help="checkpoint for predicted layouts (skipped when absent)")
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--json", default=None, help="write the numbers here")
+    ap.add_argument("--photos", default=None, help="instead of --data: a labelled photo project (annotate)")
+    ap.add_argument("--split-step", type=float, action="append", default=None, metavar="M",
+                    help="racklay.reasoning split_step_m; repeat to compare settings (default: "
+                         f"{ReasoningConfig().split_step_m})")
     args = ap.parse_args(argv)
 
+    steps = args.split_step or [ReasoningConfig().split_step_m]
+    args.configs = {(f"step {st:g} m" if len(steps) > 1 else ""): ReasoningConfig(split_step_m=st) for st in steps}
     if args.synth:
         return synth_main(args)
+    if args.photos:
+        return photos_main(args)
     tmp = None
     if args.data:
         ds = RackLayRoot(args.data)
@@ -188,9 +217,7 @@ def main(argv=None) -> int:
         else:
             print(f"{args.weights}: no checkpoint, predicted layouts skipped")
 
-    rows = {"ground-truth layouts": []}
-    if predictor:
-        rows["predicted layouts"] = []
+    rows = {}
     t0 = time.perf_counter()
     errors = 0
     for n, sid in enumerate(ids):
@@ -201,12 +228,8 @@ def main(argv=None) -> int:
             extent = float((meta.get("grid") or {}).get("extent_m", L.DEFAULT_EXTENT_M))
             if args.size:
                 top, front = L.resize_layouts(top, args.size), L.resize_layouts(front, args.size)
-            gt = analyze_layouts(top, front, L.Grid(top.shape[-1], extent), source=sid)
-            rows["ground-truth layouts"].append(compare(gt, truth) | {"id": sid})
-            if predictor:
-                pred = predictor.predict(ds.read_image(sid))
-                pr = analyze_layouts(pred.get("top"), pred.get("front"), pred["grid"], source=sid)
-                rows["predicted layouts"].append(compare(pr, truth) | {"id": sid})
+            pred = predictor.predict(ds.read_image(sid)) if predictor else None
+            add_rows(rows, args.configs, truth, top, front, L.Grid(top.shape[-1], extent), pred, sid)
         except (DataError, L.LayoutError) as e:
             errors += 1
             print(f"error: {e}", file=sys.stderr)
@@ -218,7 +241,7 @@ def main(argv=None) -> int:
           f"(2 shared CPU cores, other jobs running)\n")
     if results:
         print(table(results))
-    worst = sorted(rows["ground-truth layouts"], key=lambda r: -abs(r["free_read"] - r["free_true"]) / max(r["free_true"], 1e-9))[:5]
+    worst = sorted(next(iter(rows.values()), []), key=lambda r: -abs(r["free_read"] - r["free_true"]) / max(r["free_true"], 1e-9))[:5]
     print("\nworst ground-truth-layout images (free volume):")
     for r in worst:
         print(f"  {r['id']}: free read {r['free_read']:.3f} vs true {r['free_true']:.3f} m³, "
@@ -241,7 +264,7 @@ def synth_main(args) -> int:
 
     recipe = load_recipe(args.recipe) if args.recipe else Recipe()
     grid = L.Grid(512, recipe.extent_m)
-    rows, t0, t_an = [], time.perf_counter(), 0.0
+    rows, t0, t_an = {}, time.perf_counter(), 0.0
     for i in range(args.synth):
         scene = sample_scene(recipe, args.seed, i)
         inputs = scene.layout_inputs()
@@ -252,18 +275,18 @@ def synth_main(args) -> int:
             top, front = L.resize_layouts(top, args.size), L.resize_layouts(front, args.size)
             g = L.Grid(args.size, grid.extent)
         t1 = time.perf_counter()
-        result = analyze_layouts(top, front, g, source=f"scene {i}")
-        t_an += time.perf_counter() - t1
         truth = [ShelfTruth(sh, list(boxes)) for sh, boxes in inputs]
-        rows.append(compare(result, truth) | {"id": f"scene{i:05d}"})
+        add_rows(rows, args.configs, truth, top, front, g, None, f"scene{i:05d}")
+        t_an += time.perf_counter() - t1
     dt = time.perf_counter() - t0
-    results = {"ground-truth layouts": summarise(rows)}
-    print(f"WareSynth scenes (recipe {recipe.name}, seed {args.seed}): {len(rows)} racks, layouts at "
+    results = {k: summarise(v) for k, v in rows.items()}
+    n = len(next(iter(rows.values()), []))
+    print(f"WareSynth scenes (recipe {recipe.name}, seed {args.seed}): {n} racks, layouts at "
           f"D={args.size or 512}, "
-          f"{dt:.1f} s total, analysis {t_an / max(len(rows), 1) * 1000:.0f} ms per rack "
+          f"{dt:.1f} s total, analysis {t_an / max(n * len(rows), 1) * 1000:.0f} ms per rack and setting "
           f"(2 shared CPU cores, other jobs running)\n")
     print(table(results))
-    worst = sorted(rows, key=lambda r: -abs(r["free_read"] - r["free_true"]) / max(r["free_true"], 1e-9))[:5]
+    worst = sorted(next(iter(rows.values())), key=lambda r: -abs(r["free_read"] - r["free_true"]) / max(r["free_true"], 1e-9))[:5]
     print("\nworst racks (free volume):")
     for r in worst:
         print(f"  {r['id']}: free read {r['free_read']:.3f} vs true {r['free_true']:.3f} m³, "
@@ -272,6 +295,53 @@ def synth_main(args) -> int:
         from racklay.atomic import atomic_write_json
 
         atomic_write_json(args.json, {"data": f"WareSynth scenes n={args.synth} seed={args.seed} recipe={recipe.name}",
+                                      "results": results, "per_image": rows})
+    return 0
+
+
+def photos_main(args) -> int:
+    """Validate on a labelled photo project: truth = the labelled boxes, layouts = their rasterisation."""
+    from annotate import dataset as DS
+    from annotate import geometry as G
+    from annotate import schema as S
+    from annotate.store import Project
+
+    proj = Project(args.photos)
+    names = [n for n in proj.images() if (proj.read_annotation(n) or {}).get("status") in ("done", "approved")]
+    if args.split != "all":
+        src = Path(args.photos) / "SOURCES.tsv"
+        if not src.is_file():
+            sys.exit(f"{src}: missing, so no split to select --split {args.split} by (use --split all)")
+        split_of = DS.read_split_file(src)
+        names = [n for n in names if split_of.get(n) == args.split]
+    names = names[: args.limit]
+    predictor = None
+    if args.weights:
+        from racklay.predict import Predictor
+
+        predictor = Predictor(args.weights, precision="auto")
+    st = proj.settings
+    grid = L.Grid(st["D"], st["extent"])
+    rows: dict = {}
+    t0 = time.perf_counter()
+    for name in names:
+        ann = proj.load(name)
+        top, front, scene = DS.annotation_layouts(proj, ann)
+        truth = [ShelfTruth(sh, scene.layout_boxes(i)) for i, sh in enumerate(scene.shelves())]
+        pred = None
+        if predictor:
+            from racklay.data import read_image
+
+            pred = predictor.predict(G.restore_aspect(read_image(Path(args.photos) / name), S.pixel_aspect(st)))
+        add_rows(rows, args.configs, truth, top, front, grid, pred, name)
+    results = {k: summarise(v) for k, v in rows.items()}
+    print(f"{args.photos} split {args.split}: {len(names)} labelled photos, layouts at D={grid.size}"
+          f"{', predictions by ' + args.weights if predictor else ''}; {time.perf_counter() - t0:.0f} s\n")
+    print(table(results))
+    if args.json:
+        from racklay.atomic import atomic_write_json
+
+        atomic_write_json(args.json, {"data": args.photos, "split": args.split, "weights": args.weights,
                                       "results": results, "per_image": rows})
     return 0
 

@@ -8,6 +8,8 @@ from pathlib import Path
 from racklay.config import add_flags, at_least, positive_float
 
 FORMATS = ("glb", "ply", "both", "none")
+#: racklay.reasoning.ReasoningConfig fields that `racklay analyze` exposes as flags
+KNOBS = ("open_m", "min_box_area_m2", "split_step_m", "min_stack_m")
 
 
 def register(sub) -> None:
@@ -45,14 +47,14 @@ def register(sub) -> None:
     p.add_argument("--no-render", action="store_true", help="skip the PNG render (about 1 s per image)")
     p.add_argument("--limit", type=at_least(1), default=None, help="analyse at most this many images")
     g = p.add_argument_group("analysis knobs (metric; see docs/reasoning.md)")
-    add_flags(g, ReasoningConfig, ["open_m", "min_box_area_m2"], default=None)
+    add_flags(g, ReasoningConfig, list(KNOBS), default=None)
     p.set_defaults(func=run)
 
 
 def _config(args):
     from racklay.reasoning import ReasoningConfig
 
-    return ReasoningConfig(**{k: getattr(args, k) for k in ("open_m", "min_box_area_m2") if getattr(args, k) is not None})
+    return ReasoningConfig(**{k: getattr(args, k) for k in KNOBS if getattr(args, k) is not None})
 
 
 def write_outputs(result, out: Path, sid: str, image=None, fmt: str = "glb", render: bool = True) -> list[Path]:
