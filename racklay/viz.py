@@ -12,6 +12,8 @@ from .layout import CLASS_NAMES, Grid
 
 #: RGB colour per class id: background, shelf (free space), box (occupied)
 PALETTE = np.array([[24, 24, 32], [70, 160, 230], [250, 150, 40]], dtype=np.uint8)
+#: outline of a box stack read by racklay.reasoning (dark on the box colour, where stacks touch)
+STACK_EDGE = "#202020"
 
 
 def colorize(classes: np.ndarray) -> np.ndarray:
@@ -35,15 +37,16 @@ def content_window(stacks: Sequence[np.ndarray], margin: float = 0.15, min_px: i
 
 def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.ndarray | None,
                   out: str | os.PathLike | None = None, title: str = "", grid: Grid | None = None,
-                  crop: bool = True, dpi: int = 110):
+                  crop: bool = True, dpi: int = 110, analysis=None):
     """Paper-style figure: the photo on the left, then one column per shelf (lowest first) with
-    its top view above its front view. Returns the matplotlib Figure (closed after saving when
-    `out` is given)."""
+    its top view above its front view. `analysis` (a racklay.reasoning.RackResult of these layouts)
+    outlines every box stack it read, so stacks that touch are told apart. Returns the matplotlib
+    Figure (closed after saving when `out` is given)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Patch
+    from matplotlib.patches import Patch, Rectangle
 
     stacks = [s for s in (top, front) if s is not None]
     if not stacks:
@@ -74,6 +77,12 @@ def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.nd
         for i in range(R):
             ax = fig.add_subplot(gs[ri, off + i])
             ax.imshow(colorize(stack[i, lo:hi, lo:hi]), extent=extent, interpolation="nearest")
+            for b in (sh.boxes for sh in (analysis.shelves if analysis else []) if sh.index == i):
+                for q in b:
+                    v = q.y if name == "top" else q.z
+                    if v[1] > v[0] and q.x[1] > q.x[0]:
+                        ax.add_patch(Rectangle((q.x[0], v[0]), q.x[1] - q.x[0], v[1] - v[0], fill=False,
+                                               edgecolor=STACK_EDGE, linewidth=0.8))
             ax.set_title(f"shelf {i + 1} {name}", fontsize=9)
             ax.tick_params(labelsize=6)
             ax.locator_params(nbins=5)     # at most ~5 ticks: labels never touch
@@ -82,7 +91,9 @@ def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.nd
             if ri == len(rows) - 1:
                 ax.set_xlabel("x (m)", fontsize=7)
     handles = [Patch(color=PALETTE[c] / 255, label=CLASS_NAMES[c]) for c in range(3)]
-    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    if analysis is not None:
+        handles.append(Patch(fill=False, edgecolor=STACK_EDGE, label="box stack read (racklay analyze)"))
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
     if title:
         fig.suptitle(title, fontsize=10)
     if out is not None:

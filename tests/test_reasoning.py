@@ -138,6 +138,22 @@ def test_touching_stacks_of_different_heights_are_cut_at_the_step():
     assert len(coarse.boxes) == 1
 
 
+def test_layout_figure_outlines_each_stack_read(tmp_path):
+    from matplotlib.patches import Rectangle
+
+    from racklay.viz import layout_figure
+
+    boxes = [L.Box(-0.6, 0.0, 0.4, 0.5, 0.3), L.Box(-0.2, 0.0, 0.4, 0.5, 0.55), L.Box(0.5, 0.0, 0.3, 0.5, 0.2)]
+    lay = L.rasterize_shelf(SHELF, boxes, G)
+    top, front = L.stack_shelves([lay], 4, G)
+    fig = layout_figure(None, top, front, out=tmp_path / "f.png", grid=G, analysis=analyze_layouts(top, front, G))
+    outlines = [[p for p in ax.patches if isinstance(p, Rectangle)] for ax in fig.axes]
+    assert [len(o) for o in outlines] == [3, 0, 0, 0, 3, 0, 0, 0]     # shelf 1 top, then front
+    x0s = sorted(p.get_x() for p in outlines[4])
+    assert x0s == pytest.approx([b.x_range()[0] for b in boxes], abs=RES)
+    assert (tmp_path / "f.png").stat().st_size > 0
+
+
 def test_step_segments_cuts_steps_not_noise():
     from racklay.reasoning import step_segments
 
