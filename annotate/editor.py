@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from racklay import layout as L
+from racklay.reasoning import ReasoningConfig
 
 from . import draw as D
 from . import geometry as G
@@ -49,6 +50,8 @@ class Tool:
         self.project = project
         self.predictor = predictor
         self.user = user
+        #: how the model's layouts are read into box proposals (racklay.reasoning's knobs)
+        self.reasoning = ReasoningConfig()
         self._images: OrderedDict[str, np.ndarray] = OrderedDict()
         self._photo_b64: OrderedDict[str, str] = OrderedDict()
         self._preds: OrderedDict[str, dict] = OrderedDict()
@@ -846,7 +849,7 @@ class Tool:
         probs = pred.get("probs", {}).get("front")
         props = G.front_box_rects(pred["front"], pred.get("top"), pred["grid"], scene.shelf_v, scene.width,
                                   scene.depth, probs_box=None if probs is None else probs[:, L.BOX],
-                                  tops=[v + c for v, c in zip(scene.shelf_v, scene.clear)])
+                                  tops=[v + c for v, c in zip(scene.shelf_v, scene.clear)], cfg=self.reasoning)
         have = [(b.shelf, (b.u0, b.u1, b.v0, b.v1)) for b in scene.boxes]
         rejected = [(int(r[0]), tuple(r[1:])) for r in ann.get("rejected", [])]
         out = []

@@ -379,22 +379,22 @@ class Proposal:
 
 
 def front_box_rects(front: np.ndarray, top: np.ndarray | None, grid: L.Grid, shelf_v, width: float,
-                    rack_depth: float, probs_box: np.ndarray | None = None, tops=None) -> list[Proposal]:
+                    rack_depth: float, probs_box: np.ndarray | None = None, tops=None, cfg=None) -> list[Proposal]:
     """One metric rectangle on the rack plane per box stack that the rack reasoning reads in each
     shelf's layouts (racklay.reasoning.analyze_shelf with its defaults: box regions, cut where their
     top steps, fused with the top view), so stacks that touch come out one per stack. Only shelves
     with a marked board height (shelf_v) are used. Depth and front offset come from the stack's
     top-view rows, if a top view is given. `tops` (plane heights, one per shelf) clips each
     rectangle to the space below the next board; `probs_box` (R, S, S) scores a rectangle by the mean
-    box probability of its front-view box pixels."""
-    from racklay.reasoning import analyze_shelf
+    box probability of its front-view box pixels; `cfg`: the reasoning's knobs (default: its defaults)."""
+    from racklay.reasoning import ReasoningConfig, analyze_shelf
 
     centres = grid.centers()
     out = []
     for i, v in enumerate(shelf_v):
         if i >= front.shape[0]:
             break
-        shelf = analyze_shelf(None if top is None else top[i], front[i], grid, index=i)
+        shelf = analyze_shelf(None if top is None else top[i], front[i], grid, cfg or ReasoningConfig(), index=i)
         if shelf is None or shelf.missing_view == "front":
             continue
         for b in shelf.boxes:

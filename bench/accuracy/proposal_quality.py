@@ -1,0 +1,132 @@
+"""How many of the annotator's model proposals a labeller can accept, on labelled photos.
+
+    .venv/bin/python -m bench.accuracy.proposal_quality [--project datasets/real-photos] [--split test]
+        [--weights FILE] [--split-step 0 --split-step 0.08]
+
+For every labelled photo, the labeller's own rack (corners, size) and shelves are given to the
+annotation tool with no boxes, and the tool proposes boxes exactly as it does in the browser
+(`annotate.editor.Tool.refresh_proposals`: the model run on the photo as taken, its layouts scaled
+to the typed rack width, read into one rectangle per box stack by `racklay.reasoning`). The
+proposals are matched one to one (greedy, highest IoU first) with the labels' box stacks (labelled
+boxes whose footprints overlap, as `racklay.reasoning.group_stacks` groups them; one rectangle
+around each stack on the rack plane) on the same shelf: a proposal with IoU >= --iou is one a
+labeller accepts as it is.
+
+Prints, per reasoning setting (`--split-step`, repeatable; 0: regions split only at gaps, as before
+the step cut): label stacks, proposals, accepted (IoU >= --iou), precision, recall, the mean IoU of
+the accepted, and the labeller's input for the boxes alone: with no model, two clicks per stack;
+with proposals, one key per accepted proposal, two clicks per stack left to draw and two keys on
+each photo where proposals are left over (`d` rejects the waiting ones after asking once); 1.5 s
+a click, 1 s a key, as in bench/speed/labelling_actions.py. Asserts nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import sys
+from pathlib import Path
+
+from bench.common import REPO
+from bench.speed.labelling_actions import CLICK_S, KEY_S
+
+
+def label_stacks(scene) -> list[tuple[int, tuple[float, float, float, float]]]:
+    """(shelf, (u0, u1, v0, v1)) around each labelled box stack, on the rack plane."""
+    from racklay.reasoning import group_stacks
+
+    out = []
+    for i in range(len(scene.shelf_v)):
+        boxes = [b for b in scene.boxes if b.shelf == i]
+        for group in group_stacks(scene.layout_boxes(i)):
+            bs = [boxes[k] for k in group]
+            out.append((i, (min(b.u0 for b in bs), max(b.u1 for b in bs), min(b.v0 for b in bs),
+                            max(b.v1 for b in bs))))
+    return out
+
+
+def match(props, truth, iou_min: float) -> list[float]:
+    """IoUs of the one-to-one matches with IoU >= iou_min (greedy, highest first, same shelf)."""
+    from annotate.geometry import rect_iou
+
+    pairs = sorted(((rect_iou(p, t), i, j) for i, (sp, p) in enumerate(props) for j, (st, t) in enumerate(truth)
+                    if sp == st), reverse=True)
+    used_p, used_t, out = set(), set(), []
+    for iou, i, j in pairs:
+        if iou < iou_min:
+            break
+        if i not in used_p and j not in used_t:
+            used_p.add(i)
+            used_t.add(j)
+            out.append(iou)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--project", default=str(REPO / "datasets" / "real-photos"), help="labelled photo project")
+    ap.add_argument("--split", default="test", help="photos of this SOURCES.tsv split (default test; all: every one)")
+    ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
+    ap.add_argument("--split-step", type=float, action="append", default=None, metavar="M",
+                    help="racklay.reasoning split_step_m for reading proposals; repeat to compare (default: 0 and "
+                         "the default)")
+    ap.add_argument("--iou", type=float, default=0.5, help="a proposal this close to a label stack is accepted")
+    ap.add_argument("--limit", type=int, default=None)
+    args = ap.parse_args(argv)
+
+    from dataclasses import replace
+
+    from annotate import dataset as DS
+    from annotate import geometry as G
+    from annotate.editor import Tool
+    from annotate.store import Project
+    from racklay.predict import Predictor
+    from racklay.reasoning import ReasoningConfig
+    from racklay.release import resolve_weights
+
+    proj = Project(args.project)
+    names = [n for n in proj.images() if (proj.read_annotation(n) or {}).get("status") in ("done", "approved")]
+    if args.split != "all":
+        split_of = DS.read_split_file(Path(args.project) / "SOURCES.tsv")
+        names = [n for n in names if split_of.get(n) == args.split]
+    names = names[: args.limit]
+    weights = resolve_weights(args.weights)
+    tool = Tool(proj, Predictor(weights, precision="auto"))
+    steps = args.split_step or [0.0, ReasoningConfig().split_step_m]
+    rows = {s: {"truth": 0, "props": 0, "ious": [], "left": 0} for s in steps}
+    for name in names:
+        ann = proj.load(name)
+        scene = G.build_scene(ann, proj.settings)
+        truth = label_stacks(scene)
+        for s in steps:
+            tool.reasoning = replace(ReasoningConfig(), split_step_m=s)
+            bare = copy.deepcopy(ann)
+            bare["boxes"], bare["proposals"], bare["rejected"] = [], [], []
+            tool.refresh_proposals(bare)
+            props = []
+            for b in bare["proposals"]:
+                mb = G.metric_box(scene.plane, b, scene.shelf_v, scene.depth, scene.depth)
+                if mb.shelf is not None:
+                    props.append((mb.shelf, (mb.u0, mb.u1, mb.v0, mb.v1)))
+            r = rows[s]
+            r["truth"] += len(truth)
+            r["props"] += len(props)
+            ious = match(props, truth, args.iou)
+            r["ious"] += ious
+            r["left"] += len(props) > len(ious)
+    print(f"{args.project}, split {args.split}: {len(names)} labelled photos; proposals of {Path(weights).name}, "
+          f"accepted at IoU >= {args.iou} with a label stack\n")
+    print("| step cut | label stacks | proposals | accepted | precision | recall | mean IoU accepted "
+          "| input for the boxes, s (no model / with proposals) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for s, r in rows.items():
+        acc = len(r["ious"])
+        manual = 2 * CLICK_S * r["truth"]
+        assisted = KEY_S * (acc + 2 * r["left"]) + 2 * CLICK_S * (r["truth"] - acc)
+        print(f"| {s:g} m | {r['truth']} | {r['props']} | {acc} | {100 * acc / max(r['props'], 1):.1f} % "
+              f"| {100 * acc / max(r['truth'], 1):.1f} % | {sum(r['ious']) / max(acc, 1):.3f} "
+              f"| {manual:.0f} / {assisted:.0f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
