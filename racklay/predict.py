@@ -291,7 +291,6 @@ def write_prediction(out_root, sid: str, image: np.ndarray, pred: dict, views: S
     colour PNGs per shelf (png/ID_VIEW_shelfK.png) and a paper-style figure (figures/ID.png)."""
     from .atomic import atomic_save_png
     from .data import RackLayRoot
-    from .reasoning import analyze_layouts
     from .viz import colorize, layout_figure
 
     root = RackLayRoot(out_root)
@@ -307,7 +306,7 @@ def write_prediction(out_root, sid: str, image: np.ndarray, pred: dict, views: S
         if figure:
             layout_figure(image, pred.get("top"), pred.get("front"), out=root.root / "figures" / f"{sid}.png",
                           title=f"{Path(source).name or sid}: predicted layouts", grid=g, crop=crop,
-                          analysis=analyze_layouts(pred.get("top"), pred.get("front"), g, source=sid))
+                          outline_stacks=True)
     except BaseException:
         # a sample is written whole or not at all: no layouts without their figure, no stale mix
         # of this prediction's files with an earlier one's

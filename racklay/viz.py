@@ -37,11 +37,12 @@ def content_window(stacks: Sequence[np.ndarray], margin: float = 0.15, min_px: i
 
 def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.ndarray | None,
                   out: str | os.PathLike | None = None, title: str = "", grid: Grid | None = None,
-                  crop: bool = True, dpi: int = 110, analysis=None):
+                  crop: bool = True, dpi: int = 110, outline_stacks: bool = False):
     """Paper-style figure: the photo on the left, then one column per shelf (lowest first) with
-    its top view above its front view. `analysis` (a racklay.reasoning.RackResult of these layouts)
-    outlines every box stack it read, so stacks that touch are told apart. Returns the matplotlib
-    Figure (closed after saving when `out` is given)."""
+    its top view above its front view. `outline_stacks`: outline every box stack that the rack
+    reasoning reads in these layouts (racklay.reasoning.analyze_layouts, its defaults), so stacks
+    that touch are told apart. Returns the matplotlib Figure (closed after saving when `out` is
+    given)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -55,6 +56,11 @@ def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.nd
     grid = grid or Grid(size=D)
     lo, hi = content_window(stacks) if crop else (0, D)
     half_m = (hi - lo) / 2 * grid.res
+    analysis = None
+    if outline_stacks:
+        from .reasoning import analyze_layouts
+
+        analysis = analyze_layouts(top, front, grid)
     rows = [("top", top), ("front", front)]
     rows = [(n, s) for n, s in rows if s is not None]
     ncols = R + (1 if image is not None else 0)

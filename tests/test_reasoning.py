@@ -146,7 +146,7 @@ def test_layout_figure_outlines_each_stack_read(tmp_path):
     boxes = [L.Box(-0.6, 0.0, 0.4, 0.5, 0.3), L.Box(-0.2, 0.0, 0.4, 0.5, 0.55), L.Box(0.5, 0.0, 0.3, 0.5, 0.2)]
     lay = L.rasterize_shelf(SHELF, boxes, G)
     top, front = L.stack_shelves([lay], 4, G)
-    fig = layout_figure(None, top, front, out=tmp_path / "f.png", grid=G, analysis=analyze_layouts(top, front, G))
+    fig = layout_figure(None, top, front, out=tmp_path / "f.png", grid=G, outline_stacks=True)
     outlines = [[p for p in ax.patches if isinstance(p, Rectangle)] for ax in fig.axes]
     assert [len(o) for o in outlines] == [3, 0, 0, 0, 3, 0, 0, 0]     # shelf 1 top, then front
     x0s = sorted(p.get_x() for p in outlines[4])

@@ -133,7 +133,7 @@ def predict_photos(weights: Path, photos: Path, out: Path, log, title: str = "sh
         img = read_image(f)
         r = pred.predict(img)
         fig = out / f"{f.stem}.png"
-        layout_figure(img, r.get("top"), r.get("front"), out=fig,
+        layout_figure(img, r.get("top"), r.get("front"), out=fig, grid=r["grid"], outline_stacks=True,
                       title=f"{f.name}: real photo, {title}'s prediction (no labels: shown, not scored)")
         written.append(fig)
         rows.append((f.name, img, r.get("top"), r.get("front")))
