@@ -302,7 +302,8 @@ def test_pallet_racking_units_stand_on_their_level_with_their_parts_inside():
 def test_recipes_without_pallet_racking_keep_their_scenes():
     """Adding the style knob changed nothing for the recipes that do not use it."""
     r = load_recipe("complex")
-    for zero in ({"shelving": 1.0, "pallet": 0.0}, {"shelving": 1.0, "pallet": 0.0, "cube": 0.0, "wire": 0.0}):
+    for zero in ({"shelving": 1.0, "pallet": 0.0},
+                 {"shelving": 1.0, "pallet": 0.0, "cube": 0.0, "wire": 0.0, "boltless": 0.0}):
         r0 = load_recipe("complex", {"rack_style": zero})
         for index in range(5):
             a, b = sample_scene(r, 4, index), sample_scene(r0, 4, index)
@@ -375,6 +376,41 @@ def test_wire_shelving_loads_stand_on_their_deck_between_the_posts():
                 assert -half - 1e-9 <= b.x_range()[0] and b.x_range()[1] <= half + 1e-9
                 assert -scene.rack_depth / 2 - 1e-9 <= b.y_range()[0] and b.y_range()[1] <= scene.rack_depth / 2 + 1e-9
     assert items > 50, items
+
+
+def test_boltless_decks_are_framed_by_beams_and_carry_their_loads():
+    """Boltless shelving (recipe `boltless`): an angle post at each corner of the considered bay,
+    a beam on every side of each level rising BOLTLESS_LIP above its deck top, the deck (shelf)
+    inside them; every load stands on its deck (or on another), inside the deck, and below the
+    next level's beams."""
+    from racklay.synth.scene import BOLTLESS_ANGLE, BOLTLESS_LIP, BOLTLESS_PLATE, SEM
+
+    r = load_recipe("boltless", {"box_density": [1.0, 1.0]})
+    items = steel = 0
+    for index in range(12):
+        scene = sample_scene(r, 8, index)
+        assert scene.rack_style == "boltless"
+        half, hd = scene.rack_length / 2, scene.rack_depth / 2
+        flanges = [o for o in scene.objects if o.semantic == SEM["rack"] and o.material == "steel"
+                   and half <= abs(o.center[0]) <= half + BOLTLESS_ANGLE and abs(o.center[1]) < hd]
+        assert len(flanges) == 8, "two flanges of an angle post at each of the bay's four corners"
+        for si, sh in enumerate(scene.shelves):
+            decks = [o for o in scene.objects if o.semantic == SEM["shelf"] and abs(o.center[0]) < 1e-9
+                     and abs(o.center[1]) < 1e-9 and abs(o.center[2] + o.size[2] / 2 - sh.board_top) < 1e-9]
+            assert len(decks) == 1 and decks[0].size[0] == pytest.approx(scene.rack_length)
+            steel += decks[0].material == "paint"
+            beams = [o for o in scene.objects if o.material == "beam" and abs(o.center[0]) <= half + BOLTLESS_PLATE
+                     and abs(o.center[1]) <= hd and abs(o.center[2] + o.size[2] / 2 - sh.board_top - BOLTLESS_LIP) < 1e-9]
+            assert len(beams) == 4, "front, back and two side beams frame every deck"
+            nxt = scene.shelves[si + 1].board_top if si + 1 < len(scene.shelves) else np.inf
+            assert sh.board_top + sh.max_item_top <= nxt + BOLTLESS_LIP - beams[0].size[2]
+            for i in sh.items:
+                b = scene.objects[i].layout_box
+                items += 1
+                assert b.z0 >= 0 and b.z0 + b.sz <= sh.max_item_top + 1e-9
+                assert -half - 1e-9 <= b.x_range()[0] and b.x_range()[1] <= half + 1e-9
+                assert -hd - 1e-9 <= b.y_range()[0] and b.y_range()[1] <= hd + 1e-9
+    assert items > 50 and 0 < steel < sum(len(sample_scene(r, 8, i).shelves) for i in range(12)), (items, steel)
 
 
 def test_load_unit_annotation_owns_the_pixels_of_its_parts():

@@ -58,7 +58,7 @@ class Recipe:
     beam_height: list = _f([0.06, 0.12], "frange", 0.0, 0.3, "front/back beam height under each board")
     upright_width: float = _f(0.08, "float", 0.02, 0.3, "upright post width, metres")
     # --- pallet racking (drawn only where rack_style gives it a weight: other recipes keep their scenes) ---
-    rack_style: dict = _f({"shelving": 1.0}, "weights:shelving|pallet|cube|wire", doc="probability of each rack style: shelving (boards, boxes straight on them), pallet racking (beam pairs, loads on pallets), cube units (a grid of square cells between panels, a bin or small items in each) or wire shelving (wire decks on four round posts)")
+    rack_style: dict = _f({"shelving": 1.0}, "weights:shelving|pallet|cube|wire|boltless", doc="probability of each rack style: shelving (boards on beams, boxes straight on them), pallet racking (beam pairs, loads on pallets), cube units (a grid of square cells between panels, a bin or small items in each), wire shelving (wire decks on four round posts) or boltless shelving (perforated angle posts, a beam on every side of each level framing a chipboard or steel-panel deck; sized by the shelving keys)")
     pallet_levels: list = _f([2, 5], "irange", 1, 8, "pallet racking: storage levels, the floor position included")
     pallet_level_height: list = _f([1.2, 2.2], "frange", 0.5, 4.0, "pallet racking: beam level to beam level, metres")
     pallet_bay_length: list = _f([2.7, 3.6], "frange", 1.0, 6.0, "pallet racking: beam length (clear bay width), metres")

@@ -50,6 +50,13 @@ PALLET_FOOTPRINTS = ((1.2, 0.8), (1.2, 1.0))   # euro and UK/industrial pallets,
 DECK_LOOSE = 0.35         # a wire-deck level holds loose cartons / crates (no pallets) this often
 WIRE_POST = 0.025         # wire shelving: post diameter, metres
 WIRE_TRUSS = 0.03         # wire shelving: height of a deck's front / back frame under its top, metres
+BOLTLESS_ANGLE = 0.04     # boltless shelving: flange width of the angle posts, metres
+BOLTLESS_PLATE = 0.003    # boltless shelving: steel thickness of posts and beams, metres
+BOLTLESS_LIP = 0.008      # boltless shelving: how far a level's beams rise above its deck top, metres
+BOLTLESS_RIB = 0.02       # boltless shelving: depth of the stiffening ribs under a steel-panel deck, metres
+#: boltless shelving finishes (blue, grey, orange, white, black, green) and how often each is drawn
+BOLTLESS_FINISHES = (((0.12, 0.22, 0.62), 0.35), ((0.6, 0.62, 0.64), 0.25), ((0.92, 0.45, 0.1), 0.15),
+                     ((0.9, 0.9, 0.88), 0.1), ((0.12, 0.12, 0.13), 0.1), ((0.2, 0.45, 0.3), 0.05))
 #: wire shelving finishes (chrome, black / white / green epoxy) and how often each is drawn
 WIRE_FINISHES = (((0.9, 0.9, 0.92), 0.5), ((0.1, 0.1, 0.11), 0.25), ((0.9, 0.9, 0.87), 0.15), ((0.3, 0.45, 0.36), 0.1))
 
@@ -533,6 +540,42 @@ class _Builder:
             self.place_items(fill_shelf(self.rng, r, length, depth, max_top, _u(self.rng, r.box_density),
                                         _ui(self.rng, r.max_stack)), si, z_top, x0, y0, shelf_infos)
 
+    def boltless_unit(self, x0, y0, length, depth, boards, beam_h, top_z, tint, steel_deck, shelf_infos=None,
+                      uprights=(True, True)):
+        """A boltless-shelving bay centred at (x0, y0): an angle post (two perforated flanges) at
+        each corner, on the sides `uprights` says (a post shared with the neighbouring bay is drawn
+        once); at every level a beam on each side framing the deck, its top BOLTLESS_LIP above the
+        deck top; the deck chipboard or, where `steel_deck`, a steel panel with ribs under it.
+        Decks are shelf, posts and beams rack structure; cartons and crates on the decks."""
+        r, a, t = self.r, BOLTLESS_ANGLE, BOLTLESS_PLATE
+        for side, want in zip((-1, 1), uprights):
+            if not want:
+                continue
+            for yy in (-1, 1):
+                self.add((x0 + side * (length / 2 + a / 2), y0 + yy * (depth / 2 - t / 2), top_z / 2), (a, t, top_z),
+                         "steel", SEM["rack"], tint=tint)
+                self.add((x0 + side * (length / 2 + a - t / 2), y0 + yy * (depth / 2 - a / 2), top_z / 2),
+                         (t, a, top_z), "steel", SEM["rack"], tint=tint)
+        for z_top, _h, _mt in boards:
+            zb = z_top + BOLTLESS_LIP - beam_h / 2
+            for yy in (-1, 1):
+                self.add((x0, y0 + yy * (depth / 2 - t / 2), zb), (length, t, beam_h), "beam", SEM["rack"], tint=tint)
+            for side in (-1, 1):
+                self.add((x0 + side * (length / 2 + t / 2), y0, zb), (t, depth - 2 * a, beam_h), "beam", SEM["rack"],
+                         tint=tint)
+            if steel_deck:
+                self.add((x0, y0, z_top - t / 2), (length, depth - 2 * t, t), "paint", SEM["shelf"], tint=tint)
+                for f in (-0.3, 0.0, 0.3):
+                    self.add((x0, y0 + f * depth, z_top - t - BOLTLESS_RIB / 2), (length, 0.01, BOLTLESS_RIB), "paint",
+                             SEM["rack"], tint=tint)
+            else:
+                bt = 0.016
+                self.add((x0, y0, z_top - bt / 2), (length, depth - 2 * t, bt), "board", SEM["shelf"],
+                         tint=None if self.board_tint is None else _tint(self.rng, 0.05, self.board_tint))
+        for si, (z_top, _h, max_top) in enumerate(boards):
+            self.place_items(fill_shelf(self.rng, r, length, depth, max_top, _u(self.rng, r.box_density),
+                                        _ui(self.rng, r.max_stack)), si, z_top, x0, y0, shelf_infos)
+
     def pallet_unit(self, kind: str, b: L.Box, z_board: float, x_off: float, y_off: float, shelf: int,
                     detailed: bool) -> int:
         """One load unit: an undrawn object holding the unit's box (what the ground truth
@@ -579,7 +622,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
 
     # the considered rack; the style is drawn only when a style other than shelving has a weight,
     # so recipes without one keep their scenes draw for draw
-    style, deck = "shelving", False
+    style, deck, steel_deck = "shelving", False, False
     if any(w > 0 for k, w in r.rack_style.items() if k != "shelving"):
         w = np.array(list(r.rack_style.values()))
         style = str(rng.choice(list(r.rack_style), p=w / w.sum()))
@@ -616,6 +659,19 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             # forklift clearance under the next beam; the top level ends at the uprights' top
             boards.append((z, h, h - beam_h - 0.1 if i < n - 1 else h - 0.1))
             z += h
+    elif style == "boltless":   # the shelving keys size it; its own construction and finishes
+        length, depth = _u(rng, r.rack_length), _u(rng, _depth_range(r, style))
+        n = _ui(rng, r.n_shelves)
+        h_nom = _u(rng, r.shelf_height)
+        beam_h = float(rng.uniform(0.035, 0.09))
+        steel_deck = bool(rng.uniform() < 0.5)
+        z = float(rng.uniform(0.04, 0.15))
+        # loads stay under the next level's beams and deck (and its ribs); the top level is open
+        under = max(beam_h - BOLTLESS_LIP, 0.016 + (BOLTLESS_PLATE + BOLTLESS_RIB if steel_deck else 0.0))
+        for i in range(n):
+            h = h_nom * (1 + float(rng.uniform(-r.shelf_height_jitter, r.shelf_height_jitter)))
+            boards.append((z, h, h - under - 0.02 if i < n - 1 else h - 0.05))
+            z += h
     else:
         length, depth = _u(rng, r.rack_length), _u(rng, _depth_range(r, style))
         n = _ui(rng, r.n_shelves)
@@ -636,6 +692,9 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     elif style == "wire":
         finish = rng.choice(range(len(WIRE_FINISHES)), p=[w for _, w in WIRE_FINISHES])
         steel_tint = _tint(rng, 0.04, WIRE_FINISHES[finish][0])
+    elif style == "boltless":   # one colour for posts, beams and steel decks
+        finish = rng.choice(range(len(BOLTLESS_FINISHES)), p=[w for _, w in BOLTLESS_FINISHES])
+        steel_tint = _tint(rng, 0.06, BOLTLESS_FINISHES[finish][0])
     board_tint = wall_base = None
     # drawn only when the knob is on, so recipes without it keep their scenes draw for draw
     if r.palette_random > 0 and rng.uniform() < r.palette_random:
@@ -649,7 +708,8 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
 
     # occupancy map at bay granularity: rows (y) x bays (x); the considered bay is at row 0, col K
     K = r.bays_per_side if background == "busy" else 0
-    pitch_x = length + (2 * WIRE_POST + 0.005 if style == "wire" else r.upright_width)  # wire units: own posts
+    # bay pitch: wire units stand apart on their own posts; boltless bays share their angle posts
+    pitch_x = length + {"wire": 2 * WIRE_POST + 0.005, "boltless": BOLTLESS_ANGLE}.get(style, r.upright_width)
     rows_y = [0.0]
     depths = [depth]
     occ = []
@@ -686,6 +746,9 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             elif style == "wire":
                 B.wire_unit(col * pitch_x, yc, length, d2, boards, steel_tint, wire_pitch,
                             shelf_infos=shelves if is_target else None)
+            elif style == "boltless":
+                B.boltless_unit(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, steel_deck,
+                                shelf_infos=shelves if is_target else None, uprights=(not left_shared, True))
             elif style == "pallet":
                 B.pallet_rack(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, beam_tint, deck,
                               shelf_infos=shelves if is_target else None, uprights=(not left_shared, True))
