@@ -16,8 +16,10 @@ Per shelf (one channel of the R x D x D stacks, predicted or ground truth):
    then split into connected components (`cv2.connectedComponentsWithStats`); components smaller
    than `min_box_area_m2` (metric area) are noise and dropped.
 3. Fusion along the shared x axis. Front components whose columns overlap are one *front
-   entity* (a stack seen with a gap). Each top component is matched with the front entities
-   its columns overlap:
+   entity* (a stack seen with a gap). An entity is cut where its top edge steps by at least
+   `split_step_m` (`step_segments`; touching stacks of different heights, a wall of cartons), but
+   not where a top-view component starts or ends (that step is two footprints, handled below).
+   Each top component is matched with the front entities its columns overlap:
    - it overlaps several (two stacks that touch in the top view but not the front view, e.g.
      bridged by a prediction): it is split by the entities' column occupancy, one piece per
      entity, pixels in gap columns are dropped, pieces below the minimum area too;
@@ -455,7 +457,11 @@ def _front_entities(f_boxes: Sequence[np.ndarray], grid: L.Grid, cfg: ReasoningC
     Each: {"cols": (D,) bool, "top"/"bot": per-column edge rows, "pieces": []}."""
     D = grid.size
     f_cols = [m.any(axis=0) for m in f_boxes]
-    top_edges = np.array([e for t in t_boxes for c in [np.flatnonzero(t.any(axis=0))] for e in (c[0], c[-1] + 1)])
+    top_edges = []
+    for t in t_boxes:
+        c = np.flatnonzero(t.any(axis=0))
+        top_edges += [c[0], c[-1] + 1]
+    top_edges = np.array(top_edges)
     entities = []
     for group in _union_overlapping(f_cols):
         m = np.zeros((D, D), bool)

@@ -83,12 +83,12 @@ def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.nd
         for i in range(R):
             ax = fig.add_subplot(gs[ri, off + i])
             ax.imshow(colorize(stack[i, lo:hi, lo:hi]), extent=extent, interpolation="nearest")
-            for b in (sh.boxes for sh in (analysis.shelves if analysis else []) if sh.index == i):
-                for q in b:
-                    v = q.y if name == "top" else q.z
-                    if v[1] > v[0] and q.x[1] > q.x[0]:
-                        ax.add_patch(Rectangle((q.x[0], v[0]), q.x[1] - q.x[0], v[1] - v[0], fill=False,
-                                               edgecolor=STACK_EDGE, linewidth=0.8))
+            shelf = next((sh for sh in analysis.shelves if sh.index == i), None) if analysis else None
+            for q in (shelf.boxes if shelf else []):
+                v = q.y if name == "top" else q.z
+                if v[1] > v[0] and q.x[1] > q.x[0]:
+                    ax.add_patch(Rectangle((q.x[0], v[0]), q.x[1] - q.x[0], v[1] - v[0], fill=False,
+                                           edgecolor=STACK_EDGE, linewidth=0.8))
             ax.set_title(f"shelf {i + 1} {name}", fontsize=9)
             ax.tick_params(labelsize=6)
             ax.locator_params(nbins=5)     # at most ~5 ticks: labels never touch
