@@ -135,3 +135,21 @@ def forward_runner(model, x, bf16: bool):
         with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             model(x)
     return f
+
+
+def labelled_photos(project, split: str = "all", limit: int | None = None) -> list[str]:
+    """The finished photos of an annotate project (`annotate.store.Project`), those of `split` in
+    its SOURCES.tsv unless split is `all`; the first `limit` of them."""
+    from annotate.dataset import read_split_file
+    from annotate.store import DONE_STATUSES
+
+    names = [n for n in project.images() if (project.read_annotation(n) or {}).get("status") in DONE_STATUSES]
+    if split != "all":
+        src = project.root / "SOURCES.tsv"
+        if not src.is_file():
+            raise SystemExit(f"{src}: missing, so no split to select --split {split} by (use --split all)")
+        split_of = read_split_file(src)
+        names = [n for n in names if split_of.get(n) == split]
+    if not names:
+        raise SystemExit(f"{project.root}: no finished photo{'' if split == 'all' else f' in split {split}'}")
+    return names[:limit]

@@ -26,7 +26,7 @@ import copy
 import sys
 from pathlib import Path
 
-from bench.common import REPO
+from bench.common import REPO, labelled_photos
 from bench.speed.labelling_actions import CLICK_S, KEY_S
 
 
@@ -75,7 +75,6 @@ def main(argv=None) -> int:
 
     from dataclasses import replace
 
-    from annotate import dataset as DS
     from annotate import geometry as G
     from annotate.editor import Tool
     from annotate.store import Project
@@ -84,11 +83,7 @@ def main(argv=None) -> int:
     from racklay.release import resolve_weights
 
     proj = Project(args.project)
-    names = [n for n in proj.images() if (proj.read_annotation(n) or {}).get("status") in ("done", "approved")]
-    if args.split != "all":
-        split_of = DS.read_split_file(Path(args.project) / "SOURCES.tsv")
-        names = [n for n in names if split_of.get(n) == args.split]
-    names = names[: args.limit]
+    names = labelled_photos(proj, args.split, args.limit)
     weights = resolve_weights(args.weights)
     tool = Tool(proj, Predictor(weights, precision="auto"))
     steps = args.split_step or [0.0, ReasoningConfig().split_step_m]

@@ -300,26 +300,20 @@ def synth_main(args) -> int:
 
 
 def photos_main(args) -> int:
-    """Validate on a labelled photo project: truth = the labelled boxes, layouts = their rasterisation."""
+    """Validate on a labelled photo project: truth = the labelled boxes, layouts = their rasterisation,
+    predictions as the annotation tool makes them (the photo as taken)."""
     from annotate import dataset as DS
-    from annotate import geometry as G
-    from annotate import schema as S
+    from annotate.editor import Tool
     from annotate.store import Project
+    from bench.common import labelled_photos
 
     proj = Project(args.photos)
-    names = [n for n in proj.images() if (proj.read_annotation(n) or {}).get("status") in ("done", "approved")]
-    if args.split != "all":
-        src = Path(args.photos) / "SOURCES.tsv"
-        if not src.is_file():
-            sys.exit(f"{src}: missing, so no split to select --split {args.split} by (use --split all)")
-        split_of = DS.read_split_file(src)
-        names = [n for n in names if split_of.get(n) == args.split]
-    names = names[: args.limit]
-    predictor = None
+    names = labelled_photos(proj, args.split, args.limit)
+    tool = None
     if args.weights:
         from racklay.predict import Predictor
 
-        predictor = Predictor(args.weights, precision="auto")
+        tool = Tool(proj, Predictor(args.weights, precision="auto"))
     st = proj.settings
     grid = L.Grid(st["D"], st["extent"])
     rows: dict = {}
@@ -328,15 +322,10 @@ def photos_main(args) -> int:
         ann = proj.load(name)
         top, front, scene = DS.annotation_layouts(proj, ann)
         truth = [ShelfTruth(sh, scene.layout_boxes(i)) for i, sh in enumerate(scene.shelves())]
-        pred = None
-        if predictor:
-            from racklay.data import read_image
-
-            pred = predictor.predict(G.restore_aspect(read_image(Path(args.photos) / name), S.pixel_aspect(st)))
-        add_rows(rows, args.configs, truth, top, front, grid, pred, name)
+        add_rows(rows, args.configs, truth, top, front, grid, tool.prediction(name) if tool else None, name)
     results = {k: summarise(v) for k, v in rows.items()}
     print(f"{args.photos} split {args.split}: {len(names)} labelled photos, layouts at D={grid.size}"
-          f"{', predictions by ' + args.weights if predictor else ''}; {time.perf_counter() - t0:.0f} s\n")
+          f"{', predictions by ' + args.weights if tool else ''}; {time.perf_counter() - t0:.0f} s\n")
     print(table(results))
     if args.json:
         from racklay.atomic import atomic_write_json
