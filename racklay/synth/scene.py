@@ -54,6 +54,7 @@ BOLTLESS_ANGLE = 0.04     # boltless shelving: flange width of the angle posts, 
 BOLTLESS_PLATE = 0.003    # boltless shelving: steel thickness of posts and beams, metres
 BOLTLESS_LIP = 0.008      # boltless shelving: how far a level's beams rise above its deck top, metres
 BOLTLESS_RIB = 0.02       # boltless shelving: depth of the stiffening ribs under a steel-panel deck, metres
+BOLTLESS_BOARD = 0.016    # boltless shelving: thickness of a chipboard deck, metres
 #: boltless shelving finishes (blue, grey, orange, white, black, green) and how often each is drawn
 BOLTLESS_FINISHES = (((0.12, 0.22, 0.62), 0.35), ((0.6, 0.62, 0.64), 0.25), ((0.92, 0.45, 0.1), 0.15),
                      ((0.9, 0.9, 0.88), 0.1), ((0.12, 0.12, 0.13), 0.1), ((0.2, 0.45, 0.3), 0.05))
@@ -569,7 +570,7 @@ class _Builder:
                     self.add((x0, y0 + f * depth, z_top - t - BOLTLESS_RIB / 2), (length, 0.01, BOLTLESS_RIB), "paint",
                              SEM["rack"], tint=tint)
             else:
-                bt = 0.016
+                bt = BOLTLESS_BOARD
                 self.add((x0, y0, z_top - bt / 2), (length, depth - 2 * t, bt), "board", SEM["shelf"],
                          tint=None if self.board_tint is None else _tint(self.rng, 0.05, self.board_tint))
         for si, (z_top, _h, max_top) in enumerate(boards):
@@ -667,7 +668,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
         steel_deck = bool(rng.uniform() < 0.5)
         z = float(rng.uniform(0.04, 0.15))
         # loads stay under the next level's beams and deck (and its ribs); the top level is open
-        under = max(beam_h - BOLTLESS_LIP, 0.016 + (BOLTLESS_PLATE + BOLTLESS_RIB if steel_deck else 0.0))
+        under = max(beam_h - BOLTLESS_LIP, BOLTLESS_PLATE + BOLTLESS_RIB if steel_deck else BOLTLESS_BOARD)
         for i in range(n):
             h = h_nom * (1 + float(rng.uniform(-r.shelf_height_jitter, r.shelf_height_jitter)))
             boards.append((z, h, h - under - 0.02 if i < n - 1 else h - 0.05))
