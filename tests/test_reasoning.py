@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from racklay import layout as L
+from racklay.data import RackLayRoot
 from racklay.export3d import COLORS, glb_bytes, glb_mesh_arrays, ply_text, rack_parts, read_glb, render_figure
 from racklay.reasoning import ReasoningConfig, analyze_layouts, analyze_shelf
 
@@ -367,7 +368,6 @@ def test_ply_and_render(tmp_path):
 
 # --- validation against the toy dataset's 3D truth ----------------------------------------------
 def test_toy_ground_truth_counts_and_free_volume(tmp_path):
-    from racklay.data import RackLayRoot
     from racklay.toy import build_toy_dataset
 
     ds = build_toy_dataset(tmp_path / "toy", n=4, seed=3, D=512)
@@ -435,6 +435,24 @@ def test_cli_analyze_layouts_and_malformed_file(tmp_path, capsys):
     main(["analyze", "--layouts", str(ds.root), "--out", str(out3), "--no-render", "--format", "none"])
     assert f"{lone}: Rack has " in capsys.readouterr().out
     assert (out3 / f"{lone}.json").exists()
+
+
+def test_cli_analyze_split_step_flag(tmp_path, capsys):
+    """`--split-step` reaches the analysis: a wall of two touching stacks of different heights is
+    two stacks by default and one with the cut off."""
+    from racklay.cli import main
+
+    lay = L.rasterize_shelf(SHELF, [L.Box(-0.3, 0.0, 0.6, 0.5, 0.25), L.Box(0.3, 0.0, 0.6, 0.5, 0.5)], G)
+    top, front = L.stack_shelves([lay], 4, G)
+    root = RackLayRoot(tmp_path / "wall")
+    root.write_sample("000000", image=np.zeros((64, 96, 3), np.uint8), top=top, front=front, meta={})
+    counts = []
+    for extra in ([], ["--split-step", "0"]):
+        assert main(["analyze", "--layouts", str(root.root), "--out", str(tmp_path / f"o{len(extra)}"),
+                     "--no-render", "--format", "none", *extra]) == 0
+        counts.append(json.loads((tmp_path / f"o{len(extra)}" / "000000.json").read_text())["n_box_stacks"])
+        capsys.readouterr()
+    assert counts == [2, 1]
 
 
 def test_cli_usage_errors(tmp_path, capsys):
