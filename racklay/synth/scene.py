@@ -423,6 +423,16 @@ class _Builder:
         if mine:
             shelf_infos[si].items = idx
 
+    def shelf_items(self, boards, length, depth, x0, y0, shelf_infos=None) -> None:
+        """Cartons and crates straight on every level of a shelving-like bay (shelving, wire and
+        boltless units): each level's density and stack height drawn, then `fill_shelf`."""
+        r = self.r
+        for si, (z_top, _h, max_top) in enumerate(boards):
+            density = _u(self.rng, r.box_density)
+            stack_max = _ui(self.rng, r.max_stack)
+            self.place_items(fill_shelf(self.rng, r, length, depth, max_top, density, stack_max),
+                             si, z_top, x0, y0, shelf_infos)
+
     def uprights(self, x0, y0, length, depth, top_z, tint, which=(True, True), frame=False):
         """The uprights of a bay centred at (x0, y0), front and back, on the sides `which` says
         (left, right; a side shared with the neighbouring bay is drawn once). `frame`: pallet
@@ -453,13 +463,8 @@ class _Builder:
             for yy in (-1, 1):
                 self.add((x0, y0 + yy * (depth / 2 - 0.025), z_top - t - beam_h / 2), (length, 0.05, beam_h),
                          "beam", SEM["rack"], tint=beam_tint)
-        if not filled:
-            return
-        for si, (z_top, h, max_top) in enumerate(boards):
-            density = _u(self.rng, r.box_density)
-            stack_max = _ui(self.rng, r.max_stack)
-            self.place_items(fill_shelf(self.rng, r, length, depth, max_top, density, stack_max),
-                             si, z_top, x0, y0, shelf_infos)
+        if filled:
+            self.shelf_items(boards, length, depth, x0, y0, shelf_infos)
 
     def pallet_rack(self, x0, y0, length, depth, boards, beam_h, top_z, steel_tint, beam_tint, deck,
                     shelf_infos=None, uprights=(True, True)):
@@ -518,7 +523,7 @@ class _Builder:
         decks are drawn wire by wire (wires front to back every `pitch`, tops at the board top,
         two support wires along it, a frame band WIRE_TRUSS tall at the front and back); the
         neighbours' as one mesh-textured slab. Wires are shelf, posts and frames rack structure."""
-        r, detailed = self.r, shelf_infos is not None
+        detailed = shelf_infos is not None
         top = boards[-1][0] + 0.04
         for sx in (-1, 1):
             for sy in (-1, 1):
@@ -537,9 +542,7 @@ class _Builder:
                          (0.004, depth - 0.016, 0.004), "chrome", SEM["shelf"], tint=tint)
             for f in (-0.25, 0.25):
                 self.add((x0, y0 + f * depth, z_top - 0.006), (length, 0.004, 0.004), "chrome", SEM["shelf"], tint=tint)
-        for si, (z_top, _h, max_top) in enumerate(boards):
-            self.place_items(fill_shelf(self.rng, r, length, depth, max_top, _u(self.rng, r.box_density),
-                                        _ui(self.rng, r.max_stack)), si, z_top, x0, y0, shelf_infos)
+        self.shelf_items(boards, length, depth, x0, y0, shelf_infos)
 
     def boltless_unit(self, x0, y0, length, depth, boards, beam_h, top_z, tint, steel_deck, shelf_infos=None,
                       uprights=(True, True)):
@@ -548,7 +551,7 @@ class _Builder:
         once); at every level a beam on each side framing the deck, its top BOLTLESS_LIP above the
         deck top; the deck chipboard or, where `steel_deck`, a steel panel with ribs under it.
         Decks are shelf, posts and beams rack structure; cartons and crates on the decks."""
-        r, a, t = self.r, BOLTLESS_ANGLE, BOLTLESS_PLATE
+        a, t = BOLTLESS_ANGLE, BOLTLESS_PLATE
         for side, want in zip((-1, 1), uprights):
             if not want:
                 continue
@@ -573,9 +576,7 @@ class _Builder:
                 bt = BOLTLESS_BOARD
                 self.add((x0, y0, z_top - bt / 2), (length, depth - 2 * t, bt), "board", SEM["shelf"],
                          tint=None if self.board_tint is None else _tint(self.rng, 0.05, self.board_tint))
-        for si, (z_top, _h, max_top) in enumerate(boards):
-            self.place_items(fill_shelf(self.rng, r, length, depth, max_top, _u(self.rng, r.box_density),
-                                        _ui(self.rng, r.max_stack)), si, z_top, x0, y0, shelf_infos)
+        self.shelf_items(boards, length, depth, x0, y0, shelf_infos)
 
     def pallet_unit(self, kind: str, b: L.Box, z_board: float, x_off: float, y_off: float, shelf: int,
                     detailed: bool) -> int:
