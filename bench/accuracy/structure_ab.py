@@ -100,11 +100,10 @@ def fmt(s: dict) -> str:
     return " / ".join(f"{s[v]['shelf']:.1f}, {s[v]['box']:.1f}" for v in ("top", "front") if v in s)
 
 
-def score_run(pred, run: Path, ckpt: Path, args, photos) -> dict:
+def score_run(pred, run: Path, args, photos) -> dict:
     """One run's numbers (the keys of the JSON's arm rows)."""
     from racklay.evaluate import evaluate
     from racklay.metrics import shelves_found
-    from racklay.predict import Predictor
 
     row = {"decoder": pred.cfg.decoder}
     res = evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False)
@@ -120,12 +119,15 @@ def score_run(pred, run: Path, ckpt: Path, args, photos) -> dict:
         row["photos_shape"] = scores(evaluate(pred, photos, split="test", native=True, progress=False,
                                               scale_from_truth=True))
     if pred.cfg.decoder == "struct" and pred.cfg.struct_gap:
-        raw = Predictor(str(ckpt), precision="auto", cut_gaps=False)
-        res = evaluate(raw, args.data, split=args.split, limit=args.limit, progress=False)
-        row["no_gap_cut"] = {"metric": scores(res), "separation": separation(res)}
-        if photos is not None:
-            res = evaluate(raw, photos, split="test", native=True, progress=False)
-            row["no_gap_cut"].update(photos_metric=scores(res), photos_separation=separation(res, "images"))
+        pred.model.set_gap_cut(False)     # the same model, its boxes drawn without the gap cut
+        try:
+            res = evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False)
+            row["no_gap_cut"] = {"metric": scores(res), "separation": separation(res)}
+            if photos is not None:
+                res = evaluate(pred, photos, split="test", native=True, progress=False)
+                row["no_gap_cut"].update(photos_metric=scores(res), photos_separation=separation(res, "images"))
+        finally:
+            pred.model.set_gap_cut(True)
     return row
 
 
@@ -176,7 +178,7 @@ def main() -> int:
             ckpt = run if run.is_file() else run / args.weights
             pred = Predictor(str(ckpt), precision="auto")
             print(f"{name}: {ckpt} ({pred.cfg.decoder} decoder, {pred.precision})", file=sys.stderr, flush=True)
-            rows.append(score_run(pred, run, ckpt, args, photos))
+            rows.append(score_run(pred, run, args, photos))
         out[name] = mean_rows(rows)
         if len(rows) > 1:
             out[name]["runs"] = [{"run": r, "metric": row["metric"]} for r, row in zip(runs.split(","), rows)]
