@@ -86,7 +86,7 @@ def test_cli_check_data_passes_and_proxy_real(tmp_path, capsys):
     assert meta["domain"] == "proxy-real" and meta["recipe"] == "proxy_real"
 
 
-@pytest.mark.parametrize("style", ["pallet", "cube", "wire", "boltless"])
+@pytest.mark.parametrize("style", ["pallet", "cube", "wire", "boltless", "slotted"])
 def test_rack_style_dataset_passes_check_data(tmp_path, style):
     out = tmp_path / style
     rc = racklay_main(["synth", "--recipe", style, "--n", "3", "--out", str(out), "--seed", "2",

@@ -413,6 +413,73 @@ def test_boltless_decks_are_framed_by_beams_and_carry_their_loads():
     assert items > 50 and 0 < steel < sum(len(sample_scene(r, 8, i).shelves) for i in range(12)), (items, steel)
 
 
+def test_slotted_angle_decks_hang_their_lips_below_and_carry_their_loads():
+    """Slotted-angle shelving (recipe `slotted`): a slotted angle post (two flanges) at each corner
+    of the considered bay; every level a deck (shelf) whose top is the board top, with lips or
+    frame flanges (rack) hanging below it at the front and back and nothing rising above it;
+    every load stands on its deck (or on another), inside it, and below the next deck's lips."""
+    from racklay.synth.scene import BOLTLESS_ANGLE, SEM
+
+    r = load_recipe("slotted", {"box_density": [1.0, 1.0]})
+    items = steel = 0
+    for index in range(12):
+        scene = sample_scene(r, 8, index)
+        assert scene.rack_style == "slotted"
+        half, hd = scene.rack_length / 2, scene.rack_depth / 2
+        flanges = [o for o in scene.objects if o.material == "slotted" and half <= abs(o.center[0]) <= half + BOLTLESS_ANGLE
+                   and abs(o.center[1]) < hd]
+        assert len(flanges) == 8 and all(o.semantic == SEM["rack"] for o in flanges)
+        for si, sh in enumerate(scene.shelves):
+            decks = [o for o in scene.objects if o.semantic == SEM["shelf"] and abs(o.center[0]) < 1e-9
+                     and abs(o.center[1]) < 1e-9 and abs(o.center[2] + o.size[2] / 2 - sh.board_top) < 1e-9]
+            assert len(decks) == 1 and decks[0].size[:2] == pytest.approx((scene.rack_length, scene.rack_depth))
+            steel += decks[0].material == "paint"
+            under = [o for o in scene.objects if o.semantic == SEM["rack"] and o.size[0] == pytest.approx(scene.rack_length)
+                     and abs(o.center[0]) < 1e-9 and abs(abs(o.center[1]) + o.size[1] / 2 - hd) < 1e-9
+                     and abs(o.center[2] + o.size[2] / 2 - (sh.board_top - decks[0].size[2])) < 1e-9]
+            assert len(under) == 2, "a lip (or frame flange) under the deck's front and back edges"
+            assert not any(o.semantic == SEM["rack"] and abs(o.center[0]) < half and abs(o.center[1]) < hd
+                           and sh.board_top < o.center[2] - o.size[2] / 2 < sh.board_top + 0.05 for o in scene.objects)
+            if si + 1 < len(scene.shelves):
+                nxt = scene.shelves[si + 1].board_top
+                assert sh.board_top + sh.max_item_top <= nxt - decks[0].size[2] - under[0].size[2]
+            for i in sh.items:
+                b = scene.objects[i].layout_box
+                items += 1
+                assert b.z0 >= 0 and b.z0 + b.sz <= sh.max_item_top + 1e-9
+                assert -half - 1e-9 <= b.x_range()[0] and b.x_range()[1] <= half + 1e-9
+                assert -hd - 1e-9 <= b.y_range()[0] and b.y_range()[1] <= hd + 1e-9
+    assert items > 50 and 0 < steel < sum(len(sample_scene(r, 8, i).shelves) for i in range(12)), (items, steel)
+
+
+def test_location_labels_sit_on_the_front_beams_and_stay_out_of_the_layouts():
+    """`beam_labels`: a scene that has them carries labels on the front face of every front beam
+    (or lip) of the considered bay (pallet racking, shelving, boltless, slotted angle), within its length and
+    height; they are rack structure, never annotated objects, and change no layout."""
+    from racklay.synth.scene import SEM
+
+    for name in ("pallet", "release", "boltless", "slotted"):
+        r = load_recipe(name, {"beam_labels": 1.0})
+        for index in range(3):
+            scene = sample_scene(r, 9, index)
+            half, hd = scene.rack_length / 2, scene.rack_depth / 2
+            labels = [o for o in scene.objects if o.material == "beam_label"]
+            assert labels and all(o.semantic == SEM["rack"] and o.category < 0 and o.layout_box is None for o in labels)
+            beams = [o for o in scene.objects if o.material in ("beam", "paint") and o.semantic == SEM["rack"]
+                     and abs(o.center[0]) < 1e-9
+                     and o.size[0] == pytest.approx(scene.rack_length) and abs(o.center[1] - o.size[1] / 2 + hd) < 1e-9]
+            assert len(beams) == sum(sh.board_top > 0 for sh in scene.shelves), f"{name} {index}: one front beam a level"
+            for b in beams:
+                on = [o for o in labels if abs(o.center[2] - b.center[2]) < 1e-9 and abs(o.center[0]) < half
+                      and abs(o.center[1] + hd) < 0.01]
+                assert len(on) == max(1, int(scene.rack_length)), "about one label per metre of beam"
+                for o in on:
+                    assert -hd - 0.005 < o.center[1] - o.size[1] / 2 and o.center[1] + o.size[1] / 2 <= -hd + 1e-9
+                    assert abs(o.center[0]) + o.size[0] / 2 <= half and o.size[2] < b.size[2]
+        plain = load_recipe(name, {"beam_labels": 0.0})
+        assert not any(o.material == "beam_label" for i in range(3) for o in sample_scene(plain, 9, i).objects)
+
+
 def test_load_unit_annotation_owns_the_pixels_of_its_parts():
     scene = next(s for s in (sample_scene(load_recipe("pallet"), 5, i) for i in range(20))
                  if s.shelves[s.visible[0]].items)

@@ -55,6 +55,10 @@ BOLTLESS_PLATE = 0.003    # boltless shelving: steel thickness of posts and beam
 BOLTLESS_LIP = 0.008      # boltless shelving: how far a level's beams rise above its deck top, metres
 BOLTLESS_RIB = 0.02       # boltless shelving: depth of the stiffening ribs under a steel-panel deck, metres
 BOLTLESS_BOARD = 0.016    # boltless shelving: thickness of a chipboard deck, metres
+SLOTTED_PLATE = 0.0015    # slotted-angle shelving: steel-panel thickness, metres
+#: slotted-angle shelving finishes (grey, light grey, green, blue, cream) and how often each is drawn
+SLOTTED_FINISHES = (((0.5, 0.53, 0.56), 0.45), ((0.76, 0.77, 0.78), 0.2), ((0.3, 0.45, 0.36), 0.15),
+                    ((0.2, 0.32, 0.6), 0.1), ((0.88, 0.86, 0.78), 0.1))
 #: boltless shelving finishes (blue, grey, orange, white, black, green) and how often each is drawn
 BOLTLESS_FINISHES = (((0.12, 0.22, 0.62), 0.35), ((0.6, 0.62, 0.64), 0.25), ((0.92, 0.45, 0.1), 0.15),
                      ((0.9, 0.9, 0.88), 0.1), ((0.12, 0.12, 0.13), 0.1), ((0.2, 0.45, 0.3), 0.05))
@@ -148,7 +152,7 @@ class Scene:
     domain: str = "synthetic"
     shadows: bool = True          # the key light casts shadows
     light_falloff: float = 6.0    # metres at which a light's intensity has halved
-    rack_style: str = "shelving"  # "shelving" | "pallet" | "cube" | "wire" (Recipe.rack_style)
+    rack_style: str = "shelving"  # "shelving" | "pallet" | "cube" | "wire" | "boltless" | "slotted" (Recipe.rack_style)
 
     def layout_inputs(self) -> list[tuple[L.Shelf, list[L.Box]]]:
         """(Shelf, boxes in the shelf frame) of each visible shelf, lowest first."""
@@ -401,6 +405,7 @@ class _Builder:
     def __init__(self, rng, r: Recipe):
         self.rng, self.r, self.objects = rng, r, []
         self.board_tint = None   # a scene colour for every board (palette_random), else per-board jitter
+        self.label_size = None   # (width, height) of the location labels on front beams (beam_labels), else none
 
     def add(self, center, size, material, semantic, yaw=0.0, tint=None, shape="box", **kw) -> int:
         tint = tint if tint is not None else _tint(self.rng, self.r.tint_jitter)
@@ -433,6 +438,19 @@ class _Builder:
             self.place_items(fill_shelf(self.rng, r, length, depth, max_top, density, stack_max),
                              si, z_top, x0, y0, shelf_infos)
 
+    def location_labels(self, x0, y_front, length, z_beam, beam_h) -> None:
+        """Location labels on a front beam whose front face is at `y_front`, centred at height
+        `z_beam`: about one per metre of beam, evenly spaced with a little jitter, when the
+        scene has them (`label_size`). Rack structure, like the beam."""
+        if self.label_size is None:
+            return
+        w, h = self.label_size
+        h = min(h, 0.8 * beam_h)
+        n = max(1, int(length / 1.0))
+        for k in range(n):
+            cx = x0 - length / 2 + (k + 0.5) * length / n + float(self.rng.uniform(-0.05, 0.05))
+            self.add((cx, y_front - 0.0015, z_beam), (w, 0.002, h), "beam_label", SEM["rack"], tint=(1.0, 1.0, 1.0))
+
     def uprights(self, x0, y0, length, depth, top_z, tint, which=(True, True), frame=False):
         """The uprights of a bay centred at (x0, y0), front and back, on the sides `which` says
         (left, right; a side shared with the neighbouring bay is drawn once). `frame`: pallet
@@ -463,6 +481,7 @@ class _Builder:
             for yy in (-1, 1):
                 self.add((x0, y0 + yy * (depth / 2 - 0.025), z_top - t - beam_h / 2), (length, 0.05, beam_h),
                          "beam", SEM["rack"], tint=beam_tint)
+            self.location_labels(x0, y0 - depth / 2, length, z_top - t - beam_h / 2, beam_h)
         if filled:
             self.shelf_items(boards, length, depth, x0, y0, shelf_infos)
 
@@ -480,6 +499,7 @@ class _Builder:
             for yy in (-1, 1):
                 self.add((x0, y0 + yy * (depth / 2 - 0.03), z_top - beam_h / 2), (length, 0.06, beam_h),
                          "beam", SEM["rack"], tint=beam_tint)
+            self.location_labels(x0, y0 - depth / 2, length, z_top - beam_h / 2, beam_h)
             if deck:   # sits in the beams' step, 2 mm below their tops, which carry the pallets
                 self.add((x0, y0, z_top - 0.007), (length, depth - 0.02, 0.01), "deck", SEM["shelf"], tint=(1, 1, 1))
         shelf_of = (lambda si: si) if shelf_infos is not None else (lambda si: -1)
@@ -552,18 +572,12 @@ class _Builder:
         deck top; the deck chipboard or, where `steel_deck`, a steel panel with ribs under it.
         Decks are shelf, posts and beams rack structure; cartons and crates on the decks."""
         a, t = BOLTLESS_ANGLE, BOLTLESS_PLATE
-        for side, want in zip((-1, 1), uprights):
-            if not want:
-                continue
-            for yy in (-1, 1):
-                self.add((x0 + side * (length / 2 + a / 2), y0 + yy * (depth / 2 - t / 2), top_z / 2), (a, t, top_z),
-                         "steel", SEM["rack"], tint=tint)
-                self.add((x0 + side * (length / 2 + a - t / 2), y0 + yy * (depth / 2 - a / 2), top_z / 2),
-                         (t, a, top_z), "steel", SEM["rack"], tint=tint)
+        self.angle_posts(x0, y0, length, depth, top_z, tint, uprights, "steel")
         for z_top, _h, _mt in boards:
             zb = z_top + BOLTLESS_LIP - beam_h / 2
             for yy in (-1, 1):
                 self.add((x0, y0 + yy * (depth / 2 - t / 2), zb), (length, t, beam_h), "beam", SEM["rack"], tint=tint)
+            self.location_labels(x0, y0 - depth / 2, length, zb, beam_h)
             for side in (-1, 1):
                 self.add((x0 + side * (length / 2 + t / 2), y0, zb), (t, depth - 2 * a, beam_h), "beam", SEM["rack"],
                          tint=tint)
@@ -576,6 +590,47 @@ class _Builder:
                 bt = BOLTLESS_BOARD
                 self.add((x0, y0, z_top - bt / 2), (length, depth - 2 * t, bt), "board", SEM["shelf"],
                          tint=None if self.board_tint is None else _tint(self.rng, 0.05, self.board_tint))
+        self.shelf_items(boards, length, depth, x0, y0, shelf_infos)
+
+    def angle_posts(self, x0, y0, length, depth, top_z, tint, uprights, material) -> None:
+        """An angle post (two flanges BOLTLESS_ANGLE wide, BOLTLESS_PLATE thick) at each corner of
+        a shelving bay centred at (x0, y0), just outside its length, on the sides `uprights` says
+        (a post shared with the neighbouring bay is drawn once)."""
+        a, t = BOLTLESS_ANGLE, BOLTLESS_PLATE
+        for side, want in zip((-1, 1), uprights):
+            if not want:
+                continue
+            for yy in (-1, 1):
+                self.add((x0 + side * (length / 2 + a / 2), y0 + yy * (depth / 2 - t / 2), top_z / 2), (a, t, top_z),
+                         material, SEM["rack"], tint=tint)
+                self.add((x0 + side * (length / 2 + a - t / 2), y0 + yy * (depth / 2 - a / 2), top_z / 2),
+                         (t, a, top_z), material, SEM["rack"], tint=tint)
+
+    def slotted_unit(self, x0, y0, length, depth, boards, lip, top_z, tint, steel_deck, shelf_infos=None,
+                     uprights=(True, True)):
+        """A slotted-angle shelving bay centred at (x0, y0): an angle post punched with slots and
+        holes at each corner (shared with the neighbouring bay), and at every level either a
+        steel panel whose edges fold down `lip` on all four sides (`steel_deck`) or a chipboard
+        deck on a frame of angles whose upright flanges (`lip` tall) show under its front and
+        back. Panels and decks are shelf; lips, frames and posts rack structure. No beam rises
+        above a deck (unlike boltless shelving). Cartons and crates on the decks."""
+        t = BOLTLESS_PLATE
+        self.angle_posts(x0, y0, length, depth, top_z, tint, uprights, "slotted")
+        for z_top, _h, _mt in boards:
+            top = SLOTTED_PLATE if steel_deck else BOLTLESS_BOARD
+            if steel_deck:
+                self.add((x0, y0, z_top - top / 2), (length, depth, top), "paint", SEM["shelf"], tint=tint)
+            else:
+                self.add((x0, y0, z_top - top / 2), (length, depth, top), "board", SEM["shelf"],
+                         tint=None if self.board_tint is None else _tint(self.rng, 0.05, self.board_tint))
+            zl = z_top - top - lip / 2
+            for yy in (-1, 1):   # front and back lips (or frame flanges), flush with the deck's edges
+                self.add((x0, y0 + yy * (depth / 2 - t / 2), zl), (length, t, lip), "paint", SEM["rack"], tint=tint)
+            if steel_deck:
+                for side in (-1, 1):
+                    self.add((x0 + side * (length / 2 - t / 2), y0, zl), (t, depth - 2 * t, lip), "paint", SEM["rack"],
+                             tint=tint)
+            self.location_labels(x0, y0 - depth / 2, length, zl, lip)
         self.shelf_items(boards, length, depth, x0, y0, shelf_infos)
 
     def pallet_unit(self, kind: str, b: L.Box, z_board: float, x_off: float, y_off: float, shelf: int,
@@ -674,6 +729,18 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             h = h_nom * (1 + float(rng.uniform(-r.shelf_height_jitter, r.shelf_height_jitter)))
             boards.append((z, h, h - under - 0.02 if i < n - 1 else h - 0.05))
             z += h
+    elif style == "slotted":    # the shelving keys size it; panels or chipboard on angle frames
+        length, depth = _u(rng, r.rack_length), _u(rng, _depth_range(r, style))
+        n = _ui(rng, r.n_shelves)
+        h_nom = _u(rng, r.shelf_height)
+        beam_h = float(rng.uniform(0.025, 0.045))    # the lip under each deck
+        steel_deck = bool(rng.uniform() < 0.6)
+        z = float(rng.uniform(0.03, 0.12))
+        under = beam_h + (SLOTTED_PLATE if steel_deck else BOLTLESS_BOARD)
+        for i in range(n):
+            h = h_nom * (1 + float(rng.uniform(-r.shelf_height_jitter, r.shelf_height_jitter)))
+            boards.append((z, h, h - under - 0.02 if i < n - 1 else h - 0.05))
+            z += h
     else:
         length, depth = _u(rng, r.rack_length), _u(rng, _depth_range(r, style))
         n = _ui(rng, r.n_shelves)
@@ -697,6 +764,9 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     elif style == "boltless":   # one colour for posts, beams and steel decks
         finish = rng.choice(range(len(BOLTLESS_FINISHES)), p=[w for _, w in BOLTLESS_FINISHES])
         steel_tint = _tint(rng, 0.06, BOLTLESS_FINISHES[finish][0])
+    elif style == "slotted":
+        finish = rng.choice(range(len(SLOTTED_FINISHES)), p=[w for _, w in SLOTTED_FINISHES])
+        steel_tint = _tint(rng, 0.06, SLOTTED_FINISHES[finish][0])
     board_tint = wall_base = None
     # drawn only when the knob is on, so recipes without it keep their scenes draw for draw
     if r.palette_random > 0 and rng.uniform() < r.palette_random:
@@ -704,14 +774,19 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
         beam_tint = steel_tint if rng.uniform() < 0.5 else _random_colour(rng)   # one-colour shelving
         B.board_tint = board_tint
 
+    # location labels on the front beams; drawn only when the knob is on (other recipes keep their scenes)
+    if r.beam_labels > 0 and style in ("shelving", "pallet", "boltless", "slotted") and rng.uniform() < r.beam_labels:
+        B.label_size = (float(rng.uniform(0.08, 0.2)), float(rng.uniform(0.03, 0.08)))
+
     background = rng.choice(list(r.background), p=list(r.background.values()))
     corridor = _u(rng, r.corridor_width)
     ceiling = _u(rng, r.ceiling_height)
 
     # occupancy map at bay granularity: rows (y) x bays (x); the considered bay is at row 0, col K
     K = r.bays_per_side if background == "busy" else 0
-    # bay pitch: wire units stand apart on their own posts; boltless bays share their angle posts
-    pitch_x = length + {"wire": 2 * WIRE_POST + 0.005, "boltless": BOLTLESS_ANGLE}.get(style, r.upright_width)
+    # bay pitch: wire units stand apart on their own posts; boltless and slotted-angle bays share their angle posts
+    pitch_x = length + {"wire": 2 * WIRE_POST + 0.005, "boltless": BOLTLESS_ANGLE,
+                        "slotted": BOLTLESS_ANGLE}.get(style, r.upright_width)
     rows_y = [0.0]
     depths = [depth]
     occ = []
@@ -751,6 +826,9 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             elif style == "boltless":
                 B.boltless_unit(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, steel_deck,
                                 shelf_infos=shelves if is_target else None, uprights=(not left_shared, True))
+            elif style == "slotted":
+                B.slotted_unit(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, steel_deck,
+                               shelf_infos=shelves if is_target else None, uprights=(not left_shared, True))
             elif style == "pallet":
                 B.pallet_rack(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, beam_tint, deck,
                               shelf_infos=shelves if is_target else None, uprights=(not left_shared, True))

@@ -200,6 +200,19 @@ def steel(rng, family, slots=True):
     return _to_u8(img)
 
 
+def slotted_angle(rng):
+    """Slotted-angle steel: columns of long slots and round holes, one column per flange face at
+    the material's tiling (a 4 cm flange shows half the layer's width)."""
+    import cv2
+
+    img = _rgb((0.92, 0.92, 0.92)) * (0.93 + 0.07 * _noise(rng, octaves=(16, 32, 64))[..., None])
+    for cx in (TEX // 4, 3 * TEX // 4):
+        for y in range(0, TEX, 128):
+            img[y + 14:y + 74, cx - 10:cx + 10] *= 0.12                       # a slot
+            _ink(img, (0.1, 0.1, 0.1), lambda m: cv2.circle(m, (cx, y + 100), 10, 255, -1, cv2.LINE_AA))   # a hole
+    return _to_u8(img)
+
+
 def chipboard(rng, family):
     if family == "warehouse":
         n = _noise(rng, octaves=(32, 64, 128), falloff=0.9)
@@ -226,6 +239,34 @@ def wire_deck(rng):
     for k in range(0, TEX, 48):
         img[:, k:k + 3] = (0.62, 0.63, 0.66)
     return _to_u8(img)
+
+
+#: paper and band colours of rack location labels: white, yellow, white with a blue band
+_BEAM_LABELS = (((0.95, 0.95, 0.92), None), ((0.97, 0.84, 0.16), None), ((0.95, 0.95, 0.92), (0.15, 0.3, 0.7)))
+
+
+def beam_label(rng, paper, band=None):
+    """A rack location label as stuck on a beam's front: a big location code over a barcode,
+    drawn at the label's own aspect (about 2.5 : 1) and squeezed into the square layer that the
+    label's front face stretches back."""
+    import cv2
+
+    w, h = 640, 256
+    img = _rgb(paper, (h, w)) * (0.95 + 0.05 * cv2.resize(_noise(rng), (w, h))[..., None])
+    top = 0
+    if band is not None:
+        img[:48] = band
+        top = 48
+    code = f"{_text(rng, 1)}{int(rng.integers(1, 40)):02d}-{int(rng.integers(1, 60)):02d}-{int(rng.integers(1, 6))}"
+    _ink(img, (0.05, 0.05, 0.05), lambda m: cv2.putText(m, code, (24, top + 100), cv2.FONT_HERSHEY_SIMPLEX, 2.6,
+                                                           255, 7, cv2.LINE_AA))
+    x = 40
+    while x < w - 40:   # barcode
+        t = int(rng.integers(3, 10))
+        if rng.random() < 0.55:
+            img[top + 130:h - 24, x:x + t] = 0.05
+        x += t
+    return _to_u8(cv2.resize(img, (TEX, TEX), interpolation=cv2.INTER_AREA))
 
 
 def stretch_wrap(rng):
@@ -313,5 +354,11 @@ def build_bank(family: str = "warehouse", seed: int = 0, texture_dir: str = "") 
     # wire shelving: chrome or epoxy-coated wire (its colour is the object's tint)
     ch = bank.add(steel(rng, family, slots=False))
     bank.materials["chrome"] = Material([ch], [ch], uv_tile=0.5, specular=0.7, shininess=64)
+    # rack location labels (recipe key beam_labels)
+    bl = [bank.add(beam_label(rng, paper, band)) for paper, band in _BEAM_LABELS]
+    bank.materials["beam_label"] = Material(bl, bl, specular=0.15, shininess=16)
+    # slotted-angle shelving posts
+    sa = bank.add(slotted_angle(rng))
+    bank.materials["slotted"] = Material([sa], [sa], uv_tile=0.08, specular=0.3, shininess=24)
     _BANK_CACHE[key] = bank
     return bank
