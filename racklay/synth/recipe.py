@@ -65,7 +65,7 @@ class Recipe:
     pallet_rack_depth: list = _f([0.8, 1.2], "frange", 0.5, 2.0, "pallet racking: frame depth, metres")
     floor_level: float = _f(0.5, "float", 0.0, 1.0, "pallet racking: probability that the floor under the first beam is a storage level (shelf channel 0, its board is the floor)")
     wire_deck: float = _f(0.3, "float", 0.0, 1.0, "pallet racking: probability of wire-mesh decks on the beams (else open beams)")
-    beam_labels: float = _f(0.0, "float", 0.0, 1.0, "probability that a scene's racks carry location labels on their front beams (pallet racking, shelving and boltless beams: a white or yellow label with a location code and a barcode, about one per metre of beam)")
+    beam_labels: float = _f(0.0, "float", 0.0, 1.0, "probability that a scene's racks carry location labels on their front beams (pallet racking, shelving, boltless and slotted beams or lips: a white, yellow or blue-banded label with a location code and a barcode, about one per metre of beam)")
     pallet_load: dict = _f({"cartons": 0.5, "wrapped": 0.35, "crates": 0.15}, "weights:cartons|wrapped|crates", doc="pallet racking: what stands on a pallet")
     pallet_gap: list = _f([0.06, 0.15], "frange", 0.0, 1.0, "pallet racking: clearance between neighbouring pallets, metres (one draw per level)")
     pallet_packing: float = _f(0.0, "float", 0.0, 1.0, "pallet racking: probability that a level's pallets stand packed at pallet_gap from each other (as in a bay sized for them) rather than spread evenly along the beams")
