@@ -20,7 +20,9 @@ per quantity (recipe histograms, photo values as ticks; red = outside every reci
 
 Numbers only; nothing is asserted. The camera of a near-frontal photo is not determined by its
 rack (a typical phone focal length is then assumed): such photos are left out of the focal and
-distance rows and counted in the header.
+distance rows and counted in the header. A labelled box that the photo's edge cuts shows only
+part of its width (height), so its width and its run (its height) are not counted either
+(`cut_by_frame`); the recipes' objects are measured whole.
 """
 from __future__ import annotations
 
@@ -52,16 +54,35 @@ QUANTITIES = {   # key: (label, unit)
 RUN_GAP = 0.02
 
 
-def run_widths(intervals) -> list[float]:
-    """Widths of the runs that [x0, x1) intervals along one shelf form when those less than
-    RUN_GAP apart (or overlapping, e.g. stacked) are merged."""
+def run_spans(intervals) -> list[tuple[float, float]]:
+    """The (x0, x1) runs that [x0, x1) intervals along one shelf form when those less than
+    RUN_GAP apart (or overlapping, e.g. stacked) are merged, left to right."""
     runs: list[list[float]] = []
     for x0, x1 in sorted(intervals):
         if runs and x0 - runs[-1][1] < RUN_GAP:
             runs[-1][1] = max(runs[-1][1], x1)
         else:
             runs.append([x0, x1])
-    return [x1 - x0 for x0, x1 in runs]
+    return [(a, b) for a, b in runs]
+
+
+def run_widths(intervals) -> list[float]:
+    """Widths of the runs of `run_spans`."""
+    return [x1 - x0 for x0, x1 in run_spans(intervals)]
+
+
+#: a labelled box whose front face comes this close (pixels) to the photo's left / right (top /
+#: bottom) edge is cut by the frame: the photo shows only part of its width (height)
+FRAME_MARGIN_PX = 3.0
+
+
+def cut_by_frame(plane, box, image_size) -> tuple[bool, bool]:
+    """(width cut, height cut) of a labelled box by the photo's frame."""
+    w, h = image_size
+    px = plane.to_image([[box.u0, box.v0], [box.u1, box.v0], [box.u1, box.v1], [box.u0, box.v1]])
+    m = FRAME_MARGIN_PX
+    return (bool((px[:, 0] <= m).any() or (px[:, 0] >= w - m).any()),
+            bool((px[:, 1] <= m).any() or (px[:, 1] >= h - m).any()))
 
 
 def photo_quantities(project: Path) -> tuple[dict, list[str]]:
@@ -72,6 +93,7 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
     settings = load_settings(project / "project.json")
     aspect = pixel_aspect(settings)
     out, notes = {}, []
+    cut_total = cut_photos = 0
     for path in sorted((project / "annotations").glob("*.json")):
         ann = load_annotation(path)
         name = ann["image"]
@@ -85,12 +107,23 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
         q["rack_depth"] = [sc.depth]
         q["shelves"] = [len(sc.shelf_v)]
         q["level_height"] = list(np.diff(sc.shelf_v))
+        cut = {b.id: cut_by_frame(sc.plane, b, ann["image_size"]) for b in sc.boxes}
         for b in sc.boxes:
-            q["box_width"].append(b.u1 - b.u0)
-            q["box_height"].append(b.v1 - b.v0)
+            # a box the photo's edge cuts shows only part of its width (height): not its size
+            if not cut[b.id][0]:
+                q["box_width"].append(b.u1 - b.u0)
+            if not cut[b.id][1]:
+                q["box_height"].append(b.v1 - b.v0)
             q["box_depth"].append(b.depth)
+        n_cut = sum(c[0] for c in cut.values())
         for k in {b.shelf for b in sc.boxes if b.shelf is not None}:
-            q["run_width"] += run_widths([(b.u0, b.u1) for b in sc.boxes if b.shelf == k])
+            on = [b for b in sc.boxes if b.shelf == k]
+            spans = [(b.u0, b.u1) for b in on]
+            cut_spans = [(b.u0, b.u1) for b in on if cut[b.id][0]]
+            q["run_width"] += [x1 - x0 for x0, x1 in run_spans(spans)
+                               if not any(x0 - 1e-9 <= c0 and c1 <= x1 + 1e-9 for c0, c1 in cut_spans)]
+        cut_total += n_cut
+        cut_photos += n_cut > 0
         cam = G.camera_from_plane(sc.plane, ann["image_size"], aspect)
         if cam.focal_from_photo:
             c = cam.center                # rack frame: x along, y into the rack, z up from its bottom
@@ -100,6 +133,9 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
         else:
             notes.append(f"{name}: near-frontal, camera not determined (no distance / height / focal)")
         out[name] = q
+    if cut_total:
+        notes.append(f"{cut_total} boxes on {cut_photos} photos are cut by the photo's left or right edge (their "
+                     f"widths and runs not counted) or top / bottom edge (their heights not counted)")
     return out, notes
 
 
