@@ -348,6 +348,18 @@ def test_cube_units_keep_each_load_inside_its_cell():
     assert items > 100 and neighbours > 30, (items, neighbours)
 
 
+def _loads_stand_on_their_deck(scene, sh) -> int:
+    """Every load of shelf `sh` of the considered bay stands on its deck or on another load, below
+    the shelf's highest item top and inside the deck's length and depth; returns how many."""
+    half, hd = scene.rack_length / 2, scene.rack_depth / 2
+    for i in sh.items:
+        b = scene.objects[i].layout_box
+        assert b.z0 >= 0 and b.z0 + b.sz <= sh.max_item_top + 1e-9
+        assert -half - 1e-9 <= b.x_range()[0] and b.x_range()[1] <= half + 1e-9
+        assert -hd - 1e-9 <= b.y_range()[0] and b.y_range()[1] <= hd + 1e-9
+    return len(sh.items)
+
+
 def test_wire_shelving_loads_stand_on_their_deck_between_the_posts():
     """Wire shelving (recipe `wire`): four round posts outside the decks' corners; every deck is a
     shelf whose wires' tops are the board top; every load stands on its deck (or on another),
@@ -369,12 +381,7 @@ def test_wire_shelving_loads_stand_on_their_deck_between_the_posts():
             assert len(wires) > 10, "the considered unit's decks are drawn wire by wire"
             if si < len(scene.shelves) - 1:
                 assert sh.max_item_top <= sh.clear_height - WIRE_TRUSS
-            for i in sh.items:
-                b = scene.objects[i].layout_box
-                items += 1
-                assert b.z0 >= 0 and b.z0 + b.sz <= sh.max_item_top + 1e-9     # on the deck or stacked
-                assert -half - 1e-9 <= b.x_range()[0] and b.x_range()[1] <= half + 1e-9
-                assert -scene.rack_depth / 2 - 1e-9 <= b.y_range()[0] and b.y_range()[1] <= scene.rack_depth / 2 + 1e-9
+            items += _loads_stand_on_their_deck(scene, sh)
     assert items > 50, items
 
 
@@ -404,12 +411,7 @@ def test_boltless_decks_are_framed_by_beams_and_carry_their_loads():
             assert len(beams) == 4, "front, back and two side beams frame every deck"
             nxt = scene.shelves[si + 1].board_top if si + 1 < len(scene.shelves) else np.inf
             assert sh.board_top + sh.max_item_top <= nxt + BOLTLESS_LIP - beams[0].size[2]
-            for i in sh.items:
-                b = scene.objects[i].layout_box
-                items += 1
-                assert b.z0 >= 0 and b.z0 + b.sz <= sh.max_item_top + 1e-9
-                assert -half - 1e-9 <= b.x_range()[0] and b.x_range()[1] <= half + 1e-9
-                assert -hd - 1e-9 <= b.y_range()[0] and b.y_range()[1] <= hd + 1e-9
+            items += _loads_stand_on_their_deck(scene, sh)
     assert items > 50 and 0 < steel < sum(len(sample_scene(r, 8, i).shelves) for i in range(12)), (items, steel)
 
 
@@ -443,12 +445,7 @@ def test_slotted_angle_decks_hang_their_lips_below_and_carry_their_loads():
             if si + 1 < len(scene.shelves):
                 nxt = scene.shelves[si + 1].board_top
                 assert sh.board_top + sh.max_item_top <= nxt - decks[0].size[2] - under[0].size[2]
-            for i in sh.items:
-                b = scene.objects[i].layout_box
-                items += 1
-                assert b.z0 >= 0 and b.z0 + b.sz <= sh.max_item_top + 1e-9
-                assert -half - 1e-9 <= b.x_range()[0] and b.x_range()[1] <= half + 1e-9
-                assert -hd - 1e-9 <= b.y_range()[0] and b.y_range()[1] <= hd + 1e-9
+            items += _loads_stand_on_their_deck(scene, sh)
     assert items > 50 and 0 < steel < sum(len(sample_scene(r, 8, i).shelves) for i in range(12)), (items, steel)
 
 
