@@ -11,6 +11,10 @@ readable only beyond ~10 box points on the photos, docs/accuracy.md) it prints, 
 held-out split of `--data` (WareSynth `complex` for the reproduction row):
 - dataset-level shelf / box IoU (top / front) and the paper-protocol mIoU, metric and with
   `--scale-from-truth` (each predicted shelf scaled to its true length: shape alone);
+- box AP (top / front): how well the arm's box probability ranks box pixels above the rest,
+  whatever the threshold. On real photos a renders-only arm's box probabilities sit near 0.5, so
+  its argmax box IoU can fall from ~45 to ~17 between two render draws of one recipe while its
+  AP moves a few points (docs/results/2026-11-27-thirteenth-session.md): compare arms by both;
 - boxes as boxes: the front-view shelf channels whose truth has two or more separate runs of box
   columns along x, how many of them the arm also separates, how many with a gap where the truth
   has one ("placed": within 5 % of the shelf's length), and how many it separates at all;
@@ -92,12 +96,18 @@ def scores(res: dict) -> dict:
         if v in res:
             d = res[v]["dataset"]
             out[v] = {"shelf": 100 * d["shelf"]["IoU"], "box": 100 * d["box"]["IoU"],
+                      "box_AP": 100 * d["box"].get("AP", float("nan")),
                       "rack_mIoU": 100 * res[v]["paper"]["rack"]["mIoU"], "box_mIoU": 100 * res[v]["paper"]["box"]["mIoU"]}
     return out
 
 
 def fmt(s: dict) -> str:
     return " / ".join(f"{s[v]['shelf']:.1f}, {s[v]['box']:.1f}" for v in ("top", "front") if v in s)
+
+
+def fmt_ap(s: dict) -> str:
+    """Box AP (top / front): how well P(box) ranks box pixels above the rest, whatever the threshold."""
+    return " / ".join(f"{s[v].get('box_AP', float('nan')):.1f}" for v in ("top", "front") if v in s)
 
 
 def score_run(pred, run: Path, args, photos) -> dict:
@@ -185,15 +195,15 @@ def main() -> int:
 
     n = f"first {args.limit} of " if args.limit else ""
     print(f"\n{n}{args.data} [{args.split}]: dataset-level shelf, box IoU (top / front); paper-protocol mIoU")
-    print("| arm | metric IoU | shape IoU (scale from truth) | paper mIoU rack/box top, front | "
+    print("| arm | metric IoU | box AP | shape IoU (scale from truth) | paper mIoU rack/box top, front | "
           "channels separated (truth >= 2 box runs: both / truth; placed; predicted >= 2) | CPU-min | best val | CPU-min per val point |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, r in out.items():
         m = r["metric"]
         paper = " / ".join(f"{m[v]['rack_mIoU']:.1f}, {m[v]['box_mIoU']:.1f}" for v in ("top", "front") if v in m)
         cost = ("- | - | -" if r["cpu_minutes"] is None else f"{r['cpu_minutes']:.0f} | {r['best_val']:.1f} | "
                 f"{r['cpu_minutes'] / max(r['best_val'], 1e-9):.2f}")
-        print(f"| {name} | {fmt(m)} | {fmt(r['shape'])} | {paper} | {sep_cell(r['separation'])} | {cost} |")
+        print(f"| {name} | {fmt(m)} | {fmt_ap(m)} | {fmt(r['shape'])} | {paper} | {sep_cell(r['separation'])} | {cost} |")
     print(f"(placed: the arm's gaps where the truth's are, within {L.GAP_TOLERANCE:.0%} of the shelf's length; "
           f"one cut in the middle of every shelf would place {centre_cut(args.data, args.split, args.limit, pred.layout_size)})")
     print("\ntargets (reproduction row, a model trained on complex): paper-protocol mIoU >= the paper's "
@@ -213,23 +223,24 @@ def main() -> int:
         print(f"- {name}: " + "; ".join(cells))
     if photos is not None:
         print(f"\nlabelled photos ({args.photos}; arms trained on renders only): shelf, box IoU (top / front)")
-        print("| arm | metric | scale from truth (targets: shelf >= 70, box >= 50) | "
+        print("| arm | metric | box AP | scale from truth (targets: shelf >= 70, box >= 50) | "
               "photos with separate boxes (label and prediction / label; placed; prediction) | "
               "photos with >= 2 labelled shelves, all found / all; photos with fewer, more shelves than labelled |")
-        print("|---|---|---|---|---|")
+        print("|---|---|---|---|---|---|")
         for name, r in out.items():
             c = r["photos_shelves"]
             shelves = f"{c['multi_found']:g} / {c['multi']:g}; {c['fewer']:g}, {c['more']:g}" if c else "-"
-            print(f"| {name} | {fmt(r['photos_metric'])} | {fmt(r['photos_shape'])} | "
+            print(f"| {name} | {fmt(r['photos_metric'])} | {fmt_ap(r['photos_metric'])} | {fmt(r['photos_shape'])} | "
                   f"{sep_cell(r['photos_separation'])} | {shelves} |")
         print(f"(one cut in the middle of every shelf would place {centre_cut(photos, 'test', None, None, True)})")
     multi = {name: r["runs"] for name, r in out.items() if "runs" in r}
     if multi:
-        print(f"\narms of several runs (the tables show their means): each run's box IoU on {args.data.name} [{args.split}]")
+        print(f"\narms of several runs (the tables show their means): each run's box IoU (box AP) on "
+              f"{args.data.name} [{args.split}]")
         for name, runs in multi.items():
             print(f"- {name}: " + "; ".join(
                 f"{r['run']} " + " / ".join(f"{r['metric'][v]['box']:.1f}" for v in ("top", "front") if v in r["metric"])
-                for r in runs))
+                + f" ({fmt_ap(r['metric'])})" for r in runs))
     cut_off = {name: r["no_gap_cut"] for name, r in out.items() if "no_gap_cut" in r}
     if cut_off:
         print("\nwith the gap cut off (boxes from the box output alone): shelf, box IoU (top / front); separated as above")
