@@ -449,6 +449,53 @@ def test_slotted_angle_decks_hang_their_lips_below_and_carry_their_loads():
     assert items > 50 and 0 < steel < sum(len(sample_scene(r, 8, i).shelves) for i in range(12)), (items, steel)
 
 
+def test_flush_shelving_items_form_walls_and_overhanging_loads_stay_in_their_bay():
+    """`flush_fraction` 1: every item on a shelving board stands flush against its neighbour (a wall
+    of cartons: one run in the layouts, as the labelled stock-room photos show); the default keeps
+    `min_gap` or more between them. `pallet_overhang`: loads wider than their pallet, the pallet
+    drawn under them at its own width, never past the beams' ends nor into a neighbour."""
+    from racklay.synth.scene import PALLET_FOOTPRINTS, SEM
+
+    def gaps(recipe):
+        out = []
+        for index in range(10):
+            scene = sample_scene(recipe, 4, index)
+            for sh in scene.shelves:
+                xs = sorted(scene.objects[i].layout_box.x_range() for i in sh.items
+                            if scene.objects[i].layout_box.z0 == 0)           # what stands on the board
+                out += [b0 - a1 for (_, a1), (b0, _) in zip(xs, xs[1:])]
+        return out
+
+    dense = {"box_density": [1.0, 1.0], "yaw_max_deg": 0.0, "back_row": 0.0}
+    walls = gaps(load_recipe("complex", {**dense, "flush_fraction": 1.0}))
+    spaced = gaps(load_recipe("complex", dense))
+    assert len(walls) > 20 and max(abs(g) for g in walls) < 1e-9, walls
+    assert min(spaced) >= 0.03 - 1e-9
+
+    over = load_recipe("pallet", {"pallet_overhang": [0.15, 0.15], "box_density": [1.0, 1.0], "wire_deck": 0.0,
+                                  "pallet_packing": 1.0, "pallet_gap": [0.0, 0.4]})
+    plain = load_recipe("pallet", {"box_density": [1.0, 1.0], "wire_deck": 0.0, "pallet_packing": 1.0,
+                                   "pallet_gap": [0.0, 0.4]})
+    widths, wider = [], 0
+    pallet_widths = {w for fp in PALLET_FOOTPRINTS for w in fp}
+    for index in range(12):
+        scene = sample_scene(over, 3, index)
+        for sh in scene.shelves:
+            xs = sorted(scene.objects[i].layout_box.x_range() for i in sh.items)
+            assert all(-scene.rack_length / 2 - 1e-9 <= a and b <= scene.rack_length / 2 + 1e-9 for a, b in xs)
+            assert all(a1 <= b0 + 1e-9 for (_, a1), (b0, _) in zip(xs, xs[1:]))           # no overlap
+            for i in sh.items:
+                unit = scene.objects[i]
+                pallet = [o for o in scene.objects if o.part_of == i and o.semantic == SEM["pallet"]][0]
+                widths.append(unit.layout_box.sx)
+                wider += unit.layout_box.sx > pallet.size[0] + 1e-6
+                assert min(abs(pallet.size[0] - w) for w in pallet_widths) < 0.03, pallet.size  # a real pallet
+    assert wider > 10 and max(widths) > max(pallet_widths) + 0.1, (wider, max(widths))
+    plain_widths = [sample_scene(plain, 3, i).objects[j].layout_box.sx for i in range(12)
+                    for sh in sample_scene(plain, 3, i).shelves for j in sh.items]
+    assert max(plain_widths) <= max(pallet_widths) + 1e-9
+
+
 def test_location_labels_sit_on_the_front_beams_and_stay_out_of_the_layouts():
     """`beam_labels`: a scene that has them carries labels on the front face of every front beam
     (or lip) of the considered bay (pallet racking, shelving, boltless, slotted angle), within its length and

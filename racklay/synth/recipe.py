@@ -68,6 +68,7 @@ class Recipe:
     beam_labels: float = _f(0.0, "float", 0.0, 1.0, "probability that a scene's racks carry location labels on their front beams (pallet racking, shelving, boltless and slotted beams or lips: a white, yellow or blue-banded label with a location code and a barcode, about one per metre of beam)")
     pallet_load: dict = _f({"cartons": 0.5, "wrapped": 0.35, "crates": 0.15}, "weights:cartons|wrapped|crates", doc="pallet racking: what stands on a pallet")
     pallet_gap: list = _f([0.06, 0.15], "frange", 0.0, 1.0, "pallet racking: clearance between neighbouring pallets, metres (one draw per level)")
+    pallet_overhang: list = _f([0.0, 0.0], "frange", 0.0, 0.4, "pallet racking: a load may be wider than its pallet by up to this much on each side along the beams, metres (one draw per load; never past a neighbour or the beams' ends)")
     pallet_packing: float = _f(0.0, "float", 0.0, 1.0, "pallet racking: probability that a level's pallets stand packed at pallet_gap from each other (as in a bay sized for them) rather than spread evenly along the beams")
     # --- cube units (drawn only where rack_style gives them a weight) ---
     cube_columns: list = _f([2, 5], "irange", 1, 8, "cube units: cells side by side")
@@ -90,6 +91,7 @@ class Recipe:
     clutter: list = _f([2, 10], "irange", 0, 60, "clutter items (pallets, forklift-like blocks, extinguishers)")
     # --- boxes ----------------------------------------------------------------------------
     box_density: list = _f([0.0, 1.0], "frange", 0.0, 1.0, "per-shelf occupancy density ~ U(lo, hi)")
+    flush_fraction: float = _f(0.0, "float", 0.0, 1.0, "shelving: probability that an item stands flush against its neighbour along the shelf (no gap: walls of cartons, one run in the layouts) instead of min_gap or more from it")
     min_gap: float = _f(0.03, "float", 0.0, 0.5, "minimum gap between boxes, metres")
     yaw_max_deg: float = _f(10.0, "float", 0.0, 45.0, "box yaw about the vertical ~ U(-r, r) degrees")
     max_stack: list = _f([1, 3], "irange", 1, 8, "boxes stack up to a random height in this range")

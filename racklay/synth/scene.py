@@ -299,7 +299,10 @@ def fill_shelf(rng, r: Recipe, length: float, depth: float, max_top: float, dens
                     back = L.Box(cx=cx, cy=cyb, sx=bx, sy=by, sz=bz, z0=0.0, yaw=byaw)
                     items.append((cat2, back))
                     _stack(rng, r, items, cat2, back, slot, (y_lo, depth / 2 - margin), max_top, stack_max)
-        x = slot[1] + r.min_gap + float(rng.uniform(0, 0.08))
+        # the next slot: flush against this one (a wall of cartons) or min_gap and more from it; the
+        # flush draw is made only by recipes that use it, so the others keep their scenes
+        flush = r.flush_fraction > 0 and rng.uniform() < r.flush_fraction
+        x = slot[1] if flush else slot[1] + r.min_gap + float(rng.uniform(0, 0.08))
     return items
 
 
@@ -328,12 +331,14 @@ def _stack(rng, r, items, cat, base: L.Box, slot, yband, max_top, stack_max):
         below = b
 
 
-def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: float, density: float) -> list[tuple[str, L.Box]]:
+def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: float,
+                      density: float) -> list[tuple[str, L.Box, tuple[float, float] | None]]:
     """Load units on one pallet-rack level (shelf frame): pallets side by side along the beams,
-    each slot taken with probability `density`. Returns (load kind, unit Box) pairs; a unit is the
-    pallet and its load as one box standing on the level (z0 = 0), never wider than the pallet,
+    each slot taken with probability `density`. Returns (load kind, unit Box, the pallet's x-range
+    where the load overhangs it, else None) triples; a unit is the pallet and its load as one box
+    standing on the level (z0 = 0), as wide as the pallet unless `pallet_overhang` widens the load,
     kept on the level (x and y) and below `max_top`."""
-    units: list[tuple[str, L.Box]] = []
+    units: list = []
     if max_top < PALLET_HEIGHT + 0.2:
         return units
     along, deep = PALLET_FOOTPRINTS[int(rng.integers(len(PALLET_FOOTPRINTS)))]
@@ -362,8 +367,26 @@ def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: floa
             cx = -length / 2 + pitch * (k + 0.5) + float(rng.uniform(-0.25, 0.25)) * (pitch - along)
         cy = -depth / 2 + 0.01 + deep / 2 + float(rng.uniform(0, max(0.0, depth - 0.02 - deep)))
         sz = PALLET_HEIGHT + float(rng.uniform(0.35, 1.0)) * (max_top - PALLET_HEIGHT)
-        units.append((kind, L.Box(cx=cx, cy=cy, sx=along, sy=deep, sz=sz, z0=0.0, yaw=0.0)))
+        units.append((kind, L.Box(cx=cx, cy=cy, sx=along, sy=deep, sz=sz, z0=0.0, yaw=0.0), None))
+    if r.pallet_overhang[1] > 0:      # drawn only by recipes that use it: the others keep their scenes
+        units = _overhang(rng, r, units, length)
     return units
+
+
+def _overhang(rng, r: Recipe, units: list, length: float) -> list:
+    """Loads wider than their pallet (cartons or a wrapped load overhanging it along the beams):
+    each unit widened by up to `pallet_overhang` on each side, never past the beams' ends or a
+    neighbour's (possibly widened) edge; the unit keeps its pallet's x-range (drawn under it)."""
+    out = []
+    for i, (kind, b, _) in enumerate(units):
+        lo_lim = out[-1][1].cx + out[-1][1].sx / 2 if out else -length / 2
+        hi_lim = units[i + 1][1].cx - units[i + 1][1].sx / 2 if i + 1 < len(units) else length / 2
+        x0, x1 = b.cx - b.sx / 2, b.cx + b.sx / 2
+        x0 = max(lo_lim, x0 - _u(rng, r.pallet_overhang))
+        x1 = min(hi_lim, x1 + _u(rng, r.pallet_overhang))
+        out.append((kind, L.Box(cx=(x0 + x1) / 2, cy=b.cy, sx=x1 - x0, sy=b.sy, sz=b.sz, z0=b.z0, yaw=b.yaw),
+                    (b.cx - b.sx / 2, b.cx + b.sx / 2)))
+    return out
 
 
 def fill_cube_row(rng, r: Recipe, columns: int, cell: float, panel: float, depth: float, max_top: float,
@@ -511,8 +534,8 @@ class _Builder:
                                  si, z_top, x0, y0, shelf_infos)
                 continue
             units = fill_pallet_level(self.rng, r, length, depth, max_top, density)
-            idx = [self.pallet_unit(kind, b, z_top, x0, y0, shelf_of(si), detailed=shelf_infos is not None)
-                   for kind, b in units]
+            idx = [self.pallet_unit(kind, b, z_top, x0, y0, shelf_of(si), detailed=shelf_infos is not None,
+                                    pallet=pallet) for kind, b, pallet in units]
             if shelf_infos is not None:
                 shelf_infos[si].items = idx
 
@@ -634,17 +657,19 @@ class _Builder:
         self.shelf_items(boards, length, depth, x0, y0, shelf_infos)
 
     def pallet_unit(self, kind: str, b: L.Box, z_board: float, x_off: float, y_off: float, shelf: int,
-                    detailed: bool) -> int:
+                    detailed: bool, pallet: tuple[float, float] | None = None) -> int:
         """One load unit: an undrawn object holding the unit's box (what the ground truth
-        sees), a pallet and its load drawn as parts of it. A carton or crate load is drawn as
-        single cartons/crates, fewer of them in background bays (not `detailed`)."""
+        sees), a pallet (its x-range `pallet`, default the unit's) and its load drawn as parts of
+        it. A carton or crate load is drawn as single cartons/crates, fewer of them in background
+        bays (not `detailed`)."""
         rng = self.rng
         cx, cy = b.cx + x_off, b.cy + y_off
         unit = self.add((cx, cy, z_board + b.sz / 2), (b.sx, b.sy, b.sz), "pallet",
                         SEM["crate"] if kind == "crates" else SEM["box"],
                         shape="none", category=PALLET_UNITS[kind], shelf=shelf,
                         layout_box=b if shelf >= 0 else None)
-        self.add((cx, cy, z_board + PALLET_HEIGHT / 2), (b.sx, b.sy, PALLET_HEIGHT), "pallet", SEM["pallet"],
+        pcx, psx = (cx, b.sx) if pallet is None else ((pallet[0] + pallet[1]) / 2 + x_off, pallet[1] - pallet[0])
+        self.add((pcx, cy, z_board + PALLET_HEIGHT / 2), (psx, b.sy, PALLET_HEIGHT), "pallet", SEM["pallet"],
                  part_of=unit)
         h = b.sz - PALLET_HEIGHT
         inset = float(rng.uniform(0.0, 0.05))
