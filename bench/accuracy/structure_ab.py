@@ -1,7 +1,7 @@
 """Decoder A/B at equal CPU time: the structured model issue's numbers for each arm.
 
   .venv/bin/python -m bench.accuracy.structure_ab --arm light=/work/runs/ab-light --arm struct=/work/runs/ab-struct \\
-      --data /work/data/complex [--split test] [--limit N] [--photos datasets/real-photos]
+      --data /work/data/complex [--split test] [--limit N] [--photos datasets/real-photos] [--calibrate-on DATA:SPLIT]
 
 For every arm (a `racklay train` run folder: its best.safetensors, config.yaml and metrics.csv; or
 a checkpoint file such as a release, which has no training cost to report; or several of them,
@@ -15,6 +15,10 @@ held-out split of `--data` (WareSynth `complex` for the reproduction row):
   whatever the threshold. On real photos a renders-only arm's box probabilities sit near 0.5, so
   its argmax box IoU can fall from ~45 to ~17 between two render draws of one recipe while its
   AP moves a few points (docs/results/2026-11-27-thirteenth-session.md): compare arms by both;
+- with `--calibrate-on DATA:SPLIT` (e.g. the exported photos' `train` split: sites the held-out
+  split does not show), each run's box IoU once more with decision biases fitted there (`racklay
+  calibrate`): the score a renders-only recipe gives once its threshold is set on photos of
+  other sites, which is what its photo step or a user's calibration would do;
 - boxes as boxes: the front-view shelf channels whose truth has two or more separate runs of box
   columns along x, how many of them the arm also separates, how many with a gap where the truth
   has one ("placed": within 5 % of the shelf's length), and how many it separates at all;
@@ -121,6 +125,20 @@ def score_run(pred, run: Path, args, photos) -> dict:
     row["shape"] = scores(evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False,
                                    scale_from_truth=True))
     row["cpu_minutes"], row["best_val"] = run_cost(run) if run.is_dir() else (None, None)
+    if args.calibrate_on:
+        # the decision biases fitted on labelled photos of other sites, then the held-out split
+        from dataclasses import replace
+
+        from racklay.calibrate import calibrated_config, fit_decision_bias
+
+        root, _, cal_split = args.calibrate_on.rpartition(":")
+        own = pred.cfg
+        pred.cfg = calibrated_config(replace(own, decision_bias=None),
+                                     fit_decision_bias(pred, root, split=cal_split, progress=False))
+        try:
+            row["calibrated"] = scores(evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False))
+        finally:
+            pred.cfg = own
     if photos is not None:
         res = evaluate(pred, photos, split="test", native=True, progress=False)
         row["photos_metric"], row["photos_separation"] = scores(res), separation(res, "images")
@@ -165,6 +183,10 @@ def main() -> int:
     ap.add_argument("--limit", type=int, default=None, help="only the first N images of the split")
     ap.add_argument("--photos", default=None, type=Path, help="annotate project of labelled photos to score too")
     ap.add_argument("--weights", default="best.safetensors", help="checkpoint inside each run (default best)")
+    ap.add_argument("--calibrate-on", default=None, metavar="DATA:SPLIT",
+                    help="also score each run with its decision biases fitted (`racklay calibrate`) on this split of "
+                         "a RackLay dataset, e.g. the exported photos of other sites (/tmp/real:train), never the "
+                         "split scored")
     ap.add_argument("--json", default=None, help="also write the numbers here")
     args = ap.parse_args()
 
@@ -191,7 +213,8 @@ def main() -> int:
             rows.append(score_run(pred, run, args, photos))
         out[name] = mean_rows(rows)
         if len(rows) > 1:
-            out[name]["runs"] = [{"run": r, "metric": row["metric"]} for r, row in zip(runs.split(","), rows)]
+            out[name]["runs"] = [{"run": r, "metric": row["metric"], "calibrated": row.get("calibrated")}
+                                 for r, row in zip(runs.split(","), rows)]
 
     n = f"first {args.limit} of " if args.limit else ""
     print(f"\n{n}{args.data} [{args.split}]: dataset-level shelf, box IoU (top / front); paper-protocol mIoU")
@@ -233,6 +256,13 @@ def main() -> int:
             print(f"| {name} | {fmt(r['photos_metric'])} | {fmt_ap(r['photos_metric'])} | {fmt(r['photos_shape'])} | "
                   f"{sep_cell(r['photos_separation'])} | {shelves} |")
         print(f"(one cut in the middle of every shelf would place {centre_cut(photos, 'test', None, None, True)})")
+    if args.calibrate_on:
+        print(f"\ncalibrated: each run's decision biases fitted on {args.calibrate_on} (racklay calibrate), then "
+              f"{args.data.name} [{args.split}]: shelf, box IoU (top / front)")
+        print("| arm | calibrated | as trained |")
+        print("|---|---|---|")
+        for name, r in out.items():
+            print(f"| {name} | {fmt(r['calibrated'])} | {fmt(r['metric'])} |")
     multi = {name: r["runs"] for name, r in out.items() if "runs" in r}
     if multi:
         print(f"\narms of several runs (the tables show their means): each run's box IoU (box AP) on "
@@ -240,7 +270,9 @@ def main() -> int:
         for name, runs in multi.items():
             print(f"- {name}: " + "; ".join(
                 f"{r['run']} " + " / ".join(f"{r['metric'][v]['box']:.1f}" for v in ("top", "front") if v in r["metric"])
-                + f" ({fmt_ap(r['metric'])})" for r in runs))
+                + f" ({fmt_ap(r['metric'])})"
+                + (", calibrated " + " / ".join(f"{r['calibrated'][v]['box']:.1f}" for v in ("top", "front"))
+                   if r.get("calibrated") else "") for r in runs))
     cut_off = {name: r["no_gap_cut"] for name, r in out.items() if "no_gap_cut" in r}
     if cut_off:
         print("\nwith the gap cut off (boxes from the box output alone): shelf, box IoU (top / front); separated as above")
