@@ -9,6 +9,7 @@ from racklay.cli import build_parser, run
 COMMANDS: list[str] = [
     "annotate.commands.serve",
     "annotate.commands.export",
+    "annotate.commands.textures",
     "annotate.commands.import_dataset",
     "annotate.commands.passwd",
 ]

@@ -328,6 +328,21 @@ def offset_from_click(cam: Camera, board_v: float, pt) -> float | None:
     return float(c[1] + lam * d[1])
 
 
+#: a labelled box whose front face comes this close (pixels) to the photo's left / right (top /
+#: bottom) edge is cut by the frame: the photo shows only part of its width (height)
+FRAME_MARGIN_PX = 3.0
+
+
+def cut_by_frame(plane: RackPlane, box: MetricBox, image_size) -> tuple[bool, bool]:
+    """(width cut, height cut): whether the photo's frame cuts a labelled box's front face at its
+    left or right edge (top or bottom edge), so that its visible width (height) is not its size."""
+    w, h = image_size
+    px = plane.to_image([[box.u0, box.v0], [box.u1, box.v0], [box.u1, box.v1], [box.u0, box.v1]])
+    m = FRAME_MARGIN_PX
+    return (bool((px[:, 0] <= m).any() or (px[:, 0] >= w - m).any()),
+            bool((px[:, 1] <= m).any() or (px[:, 1] >= h - m).any()))
+
+
 def restore_aspect(image: np.ndarray, pixel_aspect: float) -> np.ndarray:
     """A photo stored with non-square pixels resized to its aspect as taken (width x
     `pixel_aspect`, height kept); itself when the pixels are square."""

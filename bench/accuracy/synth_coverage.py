@@ -22,7 +22,7 @@ Numbers only; nothing is asserted. The camera of a near-frontal photo is not det
 rack (a typical phone focal length is then assumed): such photos are left out of the focal and
 distance rows and counted in the header. A labelled box that the photo's edge cuts shows only
 part of its width (height), so its width and its run (its height) are not counted either
-(`cut_by_frame`); the recipes' objects are measured whole.
+(`annotate.geometry.cut_by_frame`); the recipes' objects are measured whole.
 """
 from __future__ import annotations
 
@@ -71,20 +71,6 @@ def run_widths(intervals) -> list[float]:
     return [x1 - x0 for x0, x1 in run_spans(intervals)]
 
 
-#: a labelled box whose front face comes this close (pixels) to the photo's left / right (top /
-#: bottom) edge is cut by the frame: the photo shows only part of its width (height)
-FRAME_MARGIN_PX = 3.0
-
-
-def cut_by_frame(plane, box, image_size) -> tuple[bool, bool]:
-    """(width cut, height cut) of a labelled box by the photo's frame."""
-    w, h = image_size
-    px = plane.to_image([[box.u0, box.v0], [box.u1, box.v0], [box.u1, box.v1], [box.u0, box.v1]])
-    m = FRAME_MARGIN_PX
-    return (bool((px[:, 0] <= m).any() or (px[:, 0] >= w - m).any()),
-            bool((px[:, 1] <= m).any() or (px[:, 1] >= h - m).any()))
-
-
 def photo_quantities(project: Path) -> tuple[dict, list[str]]:
     """{photo name: {quantity: [values]}} from the project's annotations, and notes."""
     from annotate import geometry as G
@@ -107,7 +93,7 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
         q["rack_depth"] = [sc.depth]
         q["shelves"] = [len(sc.shelf_v)]
         q["level_height"] = list(np.diff(sc.shelf_v))
-        cut = {b.id: cut_by_frame(sc.plane, b, ann["image_size"]) for b in sc.boxes}
+        cut = {b.id: G.cut_by_frame(sc.plane, b, ann["image_size"]) for b in sc.boxes}
         for b in sc.boxes:
             # a box the photo's edge cuts shows only part of its width (height): not its size
             if not cut[b.id][0]:
