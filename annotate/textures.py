@@ -3,7 +3,7 @@
 Renders whose cartons wear the faces of real loads look more like a site's photos: a renders-only
 model trained on `mixed` with the faces of 36 labelled photos of other sites as carton textures
 scored 49.7 / 47.9 box IoU on the real test site against 40.6 / 43.6 without (two render draws
-each, docs/results/2026-11-27-thirteenth-session.md). Each labelled box's front face is
+each; level once both are calibrated on photos, docs/results/2026-11-27-thirteenth-session.md). Each labelled box's front face is
 rectified through the rack plane (annotate.geometry), cut into tiles about TILE_M metres a side
 (a pallet load is many cartons; one synthetic carton face should show about one), brought to one
 median brightness (the renderer lights the texture; the photo's own lighting would be applied
