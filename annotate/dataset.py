@@ -14,6 +14,7 @@ import math
 import os
 import shutil
 import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -125,6 +126,29 @@ def _dir_mode() -> int:
     return 0o777 & ~mask
 
 
+@contextmanager
+def staged_folder(out: Path):
+    """A hidden temporary folder beside `out` (with a plain mkdir's mode) to write into; renamed
+    to `out` (absent or an empty folder) when the block ends, removed if it fails, so `out` is
+    never half-written."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+    try:
+        os.chmod(tmp, _dir_mode())
+        yield tmp
+        os.rename(tmp, out)  # atomic; replaces `out` only if it is an empty folder
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def check_statuses(only_status) -> None:
+    """Every status asked for is one the annotation format knows (an --only-status error)."""
+    bad = [s for s in only_status if s not in S.STATUSES]
+    if bad:
+        raise ValueError(f"--only-status: unknown status {bad[0]!r} (statuses: {', '.join(S.STATUSES)})")
+
+
 def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict:
     aspect = S.pixel_aspect(project.settings)
     return {"source": "annotate", "source_image": name, "annotation_version": ann["version"],
@@ -162,9 +186,7 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
         raise ValueError(f"{out}: is a file, expected a folder")
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out}: output folder is not empty; choose a new folder")
-    bad = [s for s in only_status if s not in S.STATUSES]
-    if bad:
-        raise ValueError(f"--only-status: unknown status {bad[0]!r} (statuses: {', '.join(S.STATUSES)})")
+    check_statuses(only_status)
     if fractions is not None:
         check_fractions(fractions)
     if split_of is not None:
@@ -224,10 +246,7 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
     else:
         splits = split_ids(sids, counts, fractions, seed)
     # everything checked: build the dataset beside `out`, then rename it into place
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
-    try:
-        os.chmod(tmp, _dir_mode())
+    with staged_folder(out) as tmp:
         ds = RackLayRoot(tmp)
         it = zip(sids, chosen)
         if progress:
@@ -242,10 +261,6 @@ def export_project(project: Project, out: str | os.PathLike, counts=None, fracti
                             meta=_sample_meta(project, name, ann, scene))
         for split, ids in splits.items():
             ds.write_split(split, ids)
-        os.rename(tmp, out)  # atomic; replaces `out` only if it is an empty folder
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     # said, never silent: what was left out and why (annotations whose photo left the project
     # cannot be exported, but they are listed)
     return {"out": str(out), "images": len(chosen), "splits": {k: len(v) for k, v in splits.items()},

@@ -16,14 +16,12 @@ photo, or reaching outside it, are left out (counted in the summary). The folder
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from annotate import geometry as G
-from annotate import schema as S
+from annotate.dataset import check_statuses, staged_folder
 from annotate.store import Project
 
 #: a tile's side on the rack plane, metres (about one carton)
@@ -72,8 +70,9 @@ def export_textures(project: Project, out: str | os.PathLike, split_of: dict[str
                     progress: bool = False) -> dict:
     """Write the tiles of every labelled box of the finished photos (those of `split` in
     `split_of` when given) as JPEG textures into the new or empty folder `out`, named
-    PHOTO-STEM_bBOXID_IJ.jpg. Returns a summary: photos, textures, and the boxes left out (cut by
-    the frame, too small). An annotation that gives no scene is an error naming its file."""
+    PHOTO-STEM_bBOXID_KK.jpg (KK: the tile). Returns a summary: photos, textures, and what was
+    left out (boxes too small; tiles too small or reaching outside the photo). An annotation that
+    gives no scene is an error naming its file."""
     import cv2
 
     out = Path(out)
@@ -83,9 +82,7 @@ def export_textures(project: Project, out: str | os.PathLike, split_of: dict[str
         raise ValueError(f"--tile: must be positive metres, got {tile}")
     if split is not None and split_of is None:
         raise ValueError("--split needs --split-file (which photo is in which split)")
-    bad = [s for s in only_status if s not in S.STATUSES]
-    if bad:
-        raise ValueError(f"--only-status: unknown status {bad[0]!r} (statuses: {', '.join(S.STATUSES)})")
+    check_statuses(only_status)
     names = []
     for name in project.images():
         ann = project.read_annotation(name)
@@ -98,10 +95,8 @@ def export_textures(project: Project, out: str | os.PathLike, split_of: dict[str
         raise ValueError(f"{project.root}: no photo with status {', '.join(only_status)}"
                          + (f" in split {split!r}" if split else ""))
     left = {"boxes too small": 0, "tiles too small or outside the photo": 0}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
     n = 0
-    try:
+    with staged_folder(out) as tmp:
         it = names
         if progress:
             from tqdm import tqdm
@@ -128,10 +123,4 @@ def export_textures(project: Project, out: str | os.PathLike, split_of: dict[str
         if n == 0:
             raise ValueError(f"{project.root}: no box gave a texture ("
                              + ", ".join(f"{v} {k}" for k, v in left.items()) + ")")
-        if out.exists():
-            out.rmdir()               # empty (checked above): the finished folder takes its place
-        os.rename(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return {"out": str(out), "photos": len(names), "textures": n, "left_out": left}
