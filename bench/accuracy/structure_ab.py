@@ -189,6 +189,8 @@ def main() -> int:
                          "split scored")
     ap.add_argument("--json", default=None, help="also write the numbers here")
     args = ap.parse_args()
+    if args.calibrate_on and not all(args.calibrate_on.rpartition(":")[::2]):
+        ap.error(f"--calibrate-on {args.calibrate_on}: expected DATA:SPLIT, e.g. /tmp/real:train")
 
     from racklay import layout as L
     from racklay.predict import Predictor

@@ -121,7 +121,7 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
         out[name] = q
     if cut_total:
         notes.append(f"{cut_total} boxes on {cut_photos} photos are cut by the photo's left or right edge (their "
-                     f"widths and runs not counted) or top / bottom edge (their heights not counted)")
+                     f"widths and runs not counted); boxes the top or bottom edge cuts have their heights left out")
     return out, notes
 
 
