@@ -578,3 +578,19 @@ def test_a_level_cut_by_the_frame_top_counts_when_its_board_shows_and_the_recipe
     assert visible_shelves(cam, 2.0, 0.8, shelves, 0.5, 12.0, board_fraction=1.0) == [1]
     assert visible_shelves(cam, 2.0, 0.8, shelves, 0.5, 12.0, board_fraction=0.15) == [1, 2]
     assert visible_shelves(cam, 2.0, 0.8, shelves, 0.5, 12.0, board_fraction=0.4) == [1]
+
+
+def test_zoomed_cameras_take_their_focal_length_from_long_focal_px():
+    """`long_lens_fraction`: that share of cameras draws its focal length from `long_focal_px`
+    (phone zoom), the rest from `focal_px`; at 0 (the default) `long_focal_px` changes nothing."""
+    def focals(over):
+        r = load_recipe("proxy_real", {**SMALL, "camera_distance": [0.5, 20.0], "background": {"wall": 1.0}, **over})  # room to zoom
+        return [float(sample_scene(r, 5, i).camera.K[0, 0]) for i in range(24)]
+
+    plain = focals({})
+    assert focals({"long_focal_px": [900.0, 1000.0]}) == plain          # zoom off: same cameras
+    zoomed = focals({"long_lens_fraction": 1.0, "long_focal_px": [900.0, 1000.0]})
+    assert all(900.0 <= f <= 1000.0 for f in zoomed), zoomed
+    assert all(170.0 <= f <= 260.0 for f in plain), plain
+    half = focals({"long_lens_fraction": 0.5, "long_focal_px": [900.0, 1000.0]})
+    assert 4 <= sum(f >= 900.0 for f in half) <= 20, half

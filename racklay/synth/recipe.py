@@ -100,6 +100,8 @@ class Recipe:
     back_row: float = _f(0.5, "float", 0.0, 1.0, "probability of a second box row behind a shallow box")
     # --- camera ---------------------------------------------------------------------------
     focal_px: list = _f([330.0, 520.0], "frange", 50.0, 5000.0, "focal length in pixels (fx = fy)")
+    long_lens_fraction: float = _f(0.0, "float", 0.0, 1.0, "probability that a camera zooms in: its focal length comes from long_focal_px instead of focal_px (phone zoom, crops of larger frames)")
+    long_focal_px: list = _f([560.0, 2000.0], "frange", 50.0, 5000.0, "focal length in pixels of a zoomed camera (long_lens_fraction)")
     camera_distance: list = _f([0.9, 4.0], "frange", 0.2, 30.0, "horizontal distance from the rack front, metres")
     camera_height: list = _f([0.2, 4.5], "frange", 0.0, 30.0, "camera height above the floor, metres")
     camera_x: float = _f(0.2, "float", 0.0, 1.0, "camera x offset ~ U(-a, a) x rack length")

@@ -1006,7 +1006,8 @@ def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries):
     n = len(shelves)
     last = None
     for _ in range(tries):
-        f = _u(rng, r.focal_px)
+        # the extra draw only where zoom is on: recipes without it keep their random streams
+        f = _u(rng, r.long_focal_px if r.long_lens_fraction and rng.random() < r.long_lens_fraction else r.focal_px)
         k = int(rng.integers(1, min(r.R, n) + 1))
         s = int(rng.integers(0, n - k + 1))
         lo = shelves[s].board_top
