@@ -12,7 +12,7 @@
 # rule and long lenses):
 #   A_SETS="pallet_packing=0.8 pallet_gap=[0.03,0.15]" \
 #   B_SETS="pallet_packing=0.8 pallet_gap=[0.03,0.15] visible_fraction_board=0.2 focal_px=[200,2000] camera_distance=[0.35,15]" \
-#   N=6000 DEADLINE=540 OUT=$OUT bench/accuracy/recipe_ab_gpu.sh
+#   N=6000 DEADLINE=530 OUT=$OUT bench/accuracy/recipe_ab_gpu.sh   (68 s of rendering, 7 min of training per arm)
 # A dry run on a CPU: DEVICE=cpu N=24 DEADLINE=150 SYNTH_WORKERS=1 WORKERS=0 BATCH=4 THREADS=1 bench/accuracy/recipe_ab_gpu.sh
 set -uo pipefail
 RECIPE=${RECIPE:-mixed}
