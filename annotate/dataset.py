@@ -26,7 +26,7 @@ from racklay.data import DataError, RackLayRoot, make_splits
 
 from . import geometry as G
 from . import schema as S
-from .store import Project, StoreError, photo_info
+from .store import DONE_STATUSES, Project, StoreError, photo_info
 
 
 def parse_counts(text: str, what: str = "--split") -> dict[str, float]:
@@ -142,6 +142,12 @@ def staged_folder(out: Path):
         raise
 
 
+def parse_statuses(text: str) -> tuple[str, ...]:
+    """--only-status's comma-separated list, 'done, approved' -> ('done', 'approved') (an argparse
+    `type`; `check_statuses` checks the names where they are used)."""
+    return tuple(s.strip() for s in text.split(",") if s.strip())
+
+
 def check_statuses(only_status) -> None:
     """Every status asked for is one the annotation format knows (an --only-status error)."""
     bad = [s for s in only_status if s not in S.STATUSES]
@@ -165,7 +171,7 @@ def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict
 
 
 def export_project(project: Project, out: str | os.PathLike, counts=None, fractions=None, seed: int = 0,
-                   only_status=("done", "approved"), progress: bool = False, skip_invalid: bool = False,
+                   only_status=DONE_STATUSES, progress: bool = False, skip_invalid: bool = False,
                    split_of: dict[str, str] | None = None) -> dict:
     """Write every annotation whose status is in `only_status` as a RackLay sample. Returns a
     summary dict. Refuses a non-empty output folder. `split_of` (photo name -> split, see

@@ -22,7 +22,7 @@ import numpy as np
 
 from annotate import geometry as G
 from annotate.dataset import check_statuses, staged_folder
-from annotate.store import Project
+from annotate.store import DONE_STATUSES, Project
 
 #: a tile's side on the rack plane, metres (about one carton)
 TILE_M = 0.45
@@ -66,7 +66,7 @@ def face_texture(image: np.ndarray, plane: G.RackPlane, rect, size: int = TEXTUR
 
 
 def export_textures(project: Project, out: str | os.PathLike, split_of: dict[str, str] | None = None,
-                    split: str | None = None, only_status=("done", "approved"), tile: float = TILE_M,
+                    split: str | None = None, only_status=DONE_STATUSES, tile: float = TILE_M,
                     progress: bool = False) -> dict:
     """Write the tiles of every labelled box of the finished photos (those of `split` in
     `split_of` when given) as JPEG textures into the new or empty folder `out`, named

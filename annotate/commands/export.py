@@ -5,6 +5,9 @@ import sys
 
 
 def register(sub) -> None:
+    from annotate.dataset import parse_statuses
+    from annotate.store import DONE_STATUSES
+
     p = sub.add_parser(
         "export", help="write the annotations as a RackLay-format dataset",
         description="Compute every finished annotation's per-shelf top and front layouts and write a "
@@ -28,8 +31,8 @@ def register(sub) -> None:
                         "columns (e.g. the project's SOURCES.tsv, split by site so that no site is in "
                         "two splits); every exported photo must be listed")
     p.add_argument("--seed", type=int, default=0, help="seed of the split shuffle (default 0)")
-    p.add_argument("--only-status", default="done,approved",
-                   help="export images with these statuses (default done,approved)")
+    p.add_argument("--only-status", type=parse_statuses, default=DONE_STATUSES,
+                   help=f"export images with these statuses (default {','.join(DONE_STATUSES)})")
     p.add_argument("--skip-invalid", action="store_true",
                    help="leave out (and list) annotations that do not fit their photo or give no layouts, "
                         "instead of stopping at the first")
@@ -43,10 +46,9 @@ def run(args) -> int:
     counts = parse_counts(args.split, "--split") if args.split else None
     fractions = parse_counts(args.split_fractions, "--split-fractions") if args.split_fractions else None
     split_of = read_split_file(args.split_file) if args.split_file else None
-    statuses = tuple(s.strip() for s in args.only_status.split(",") if s.strip())
     project = Project(args.project, create=False)
     res = export_project(project, args.out, counts=counts, fractions=fractions, seed=args.seed,
-                         only_status=statuses, progress=sys.stderr.isatty(), skip_invalid=args.skip_invalid,
+                         only_status=args.only_status, progress=sys.stderr.isatty(), skip_invalid=args.skip_invalid,
                          split_of=split_of)
     for path, why in res["skipped"]:
         print(f"annotate export: skipped: {why}", file=sys.stderr)

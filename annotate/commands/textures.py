@@ -5,6 +5,8 @@ import sys
 
 
 def register(sub) -> None:
+    from annotate.dataset import parse_statuses
+    from annotate.store import DONE_STATUSES
     from annotate.textures import TEXTURE_PX, TILE_M
 
     p = sub.add_parser(
@@ -23,8 +25,8 @@ def register(sub) -> None:
     p.add_argument("--split", default=None, help="only the photos of this split of --split-file (e.g. train)")
     p.add_argument("--tile", type=float, default=TILE_M,
                    help=f"tile side on the rack plane, metres (default {TILE_M}: about one carton)")
-    p.add_argument("--only-status", default="done,approved",
-                   help="use photos with these statuses (default done,approved)")
+    p.add_argument("--only-status", type=parse_statuses, default=DONE_STATUSES,
+                   help=f"use photos with these statuses (default {','.join(DONE_STATUSES)})")
     p.set_defaults(func=run)
 
 
@@ -34,9 +36,8 @@ def run(args) -> int:
     from annotate.textures import export_textures
 
     split_of = read_split_file(args.split_file) if args.split_file else None
-    statuses = tuple(s.strip() for s in args.only_status.split(",") if s.strip())
     res = export_textures(Project(args.project, create=False), args.out, split_of=split_of, split=args.split,
-                          only_status=statuses, tile=args.tile, progress=sys.stderr.isatty())
+                          only_status=args.only_status, tile=args.tile, progress=sys.stderr.isatty())
     left = "; ".join(f"{v} {k}" for k, v in res["left_out"].items() if v)
     print(f"wrote {res['textures']} texture(s) from {res['photos']} photo(s) to {res['out']}"
           + (f" (left out: {left})" if left else ""))
