@@ -132,7 +132,7 @@ def _rescaled(classes: dict, probs: dict, truth: dict, views, grid: L.Grid, shel
 
 
 def eval_report(result: dict, weights, data, split, cfg=None, native: bool = False, scale: str = "model",
-                gap_cut: bool = True) -> dict:
+                gap_cut: bool = True, flip_average: bool = False) -> dict:
     """The JSON `racklay eval --json` writes: run description + the metrics dict."""
     views = [v for v in L.VIEWS if v in result]
     return {
@@ -141,6 +141,7 @@ def eval_report(result: dict, weights, data, split, cfg=None, native: bool = Fal
         "resolution": "dataset" if native else "model",
         "scale": scale,
         "gap_cut": gap_cut,
+        "flip_average": flip_average,
         "model": cfg.to_dict() if cfg is not None else None,
         "metrics": result,
     }

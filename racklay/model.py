@@ -587,6 +587,17 @@ class RackLayNet(nn.Module):
                     dec.col_map.weight.zero_()
                     dec.col_map.bias.zero_()
 
+    #: predict each image together with its mirror image and average the two (`set_flip_average`)
+    flip_average = False
+
+    def set_flip_average(self, on: bool) -> None:
+        """Test-time flip averaging (HorizonNet-style): each image is predicted together with its
+        left-right mirror image (one batch of 2N) and the two predictions are averaged, the
+        mirror's mapped back (x -> -x). A struct model averages structures (`flip_average_structure`:
+        rectangles stay rectangles); a dense model averages class probabilities. About 1.3x the
+        model's time at batch 1 (docs/eval-predict.md has the measured gain and cost)."""
+        self.flip_average = bool(on)
+
     def set_gap_cut(self, on: bool) -> None:
         """Draw boxes cut at the gap output's gaps (on, as trained) or from the box output alone
         (off: what the gap output adds or costs on a dataset, `racklay eval --no-gap-cut`)."""
@@ -603,10 +614,16 @@ class RackLayNet(nn.Module):
         if (shelf_length is not None or with_structure) and self.cfg.decoder != "struct":
             raise ValueError(f"shelf_length / with_structure need a struct model, this one has the "
                              f"{self.cfg.decoder} decoder (racklay.predict.with_shelf_length scales any model's layouts)")
+        n = x.shape[0]
+        if self.flip_average:
+            x = torch.cat([x, x.flip(-1)], 0)
         feats = self.encoder(x)
         if self.cfg.decoder == "struct":
-            structs = tie_views({v: dec.structure(feats) for v, dec in self.decoders.items()},
-                                cut_gaps=all(dec.cut_gaps for dec in self.decoders.values()))
+            cut_gaps = all(dec.cut_gaps for dec in self.decoders.values())
+            structs = {v: dec.structure(feats) for v, dec in self.decoders.items()}
+            if self.flip_average:
+                structs = {v: flip_average_structure(st, n, cut_gaps) for v, st in structs.items()}
+            structs = tie_views(structs, cut_gaps=cut_gaps)
             if shelf_length is not None:
                 structs = {v: rescale_structure(st, shelf_length) for v, st in structs.items()}
             out = {v: dec.draw(structs[v]) for v, dec in self.decoders.items()}
@@ -614,8 +631,28 @@ class RackLayNet(nn.Module):
         out = {}
         for v, dec in self.decoders.items():
             y = dec(feats)
-            out[v] = y.reshape(y.shape[0], self.cfg.R, NUM_CLASSES, y.shape[-2], y.shape[-1])
+            y = y.reshape(y.shape[0], self.cfg.R, NUM_CLASSES, y.shape[-2], y.shape[-1])
+            if self.flip_average:     # log of the mean class probability, the mirror's columns mapped back
+                y = torch.stack([y[:n].log_softmax(2), y[n:].flip(-1).log_softmax(2)]).logsumexp(0) - math.log(2)
+            out[v] = y
         return out
+
+
+def flip_average_structure(st: dict, n: int, cut_gaps: bool = True) -> dict:
+    """The structures of a batch of 2n images whose last n are the first n mirrored left-right
+    (`RackLayNet.set_flip_average`) -> the n averaged structures. A mirror image shows the shelf
+    from x -> -x, so its per-position fields (N, R, T) are reversed along the shelf; then presence,
+    box and gap logits and the shape fractions are averaged, length and extent geometrically, and
+    the gap cut is redone on the averaged fields."""
+    out = {}
+    for k, t in st.items():
+        a, b = t[:n], t[n:]
+        if t.dim() == 3:                                      # per position along the shelf
+            b = b.flip(-1)
+        out[k] = torch.exp((a.log() + b.log()) / 2) if k in ("length", "extent") else (a + b) / 2
+    if "gap" in out:
+        out["box"] = cut_at_gaps(out["box_raw"], out["gap"]) if cut_gaps else out["box_raw"]
+    return out
 
 
 def tie_views(structs: dict, cut_gaps: bool = True) -> dict:

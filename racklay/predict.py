@@ -52,6 +52,15 @@ def add_shelf_length_arg(p) -> None:
                         "own estimate)")
 
 
+def add_flip_average_arg(p) -> None:
+    """--flip-average for commands that run a model (torch backend)."""
+    p.add_argument("--flip-average", action="store_true",
+                   help="torch backend: predict each image together with its left-right mirror image and "
+                        "average the two (a struct model averages its shelves and boxes, so rectangles stay "
+                        "rectangles): 1-2 box-IoU points better for about 1.3x the model's time "
+                        "(docs/eval-predict.md)")
+
+
 def softmax_classes(logits: np.ndarray, axis: int = -3) -> np.ndarray:
     """Numerically stable softmax over the class axis of (..., 3, S, S) logits (float32)."""
     z = np.asarray(logits, dtype=np.float32)
@@ -100,10 +109,12 @@ class Predictor:
     docs/benchmarks.md).
     cut_gaps: False draws a struct model's boxes from its box output alone, without the gap
     output's cuts (torch backend; `RackLayNet.set_gap_cut`).
+    flip_average: predict each photo together with its mirror image and average the two (torch
+    backend; `RackLayNet.set_flip_average`).
     """
 
     def __init__(self, weights, backend: str = "torch", threads: int | None = None, precision: str = "fp32",
-                 cut_gaps: bool = True):
+                 cut_gaps: bool = True, flip_average: bool = False):
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         self.weights = Path(weights)
@@ -115,6 +126,8 @@ class Predictor:
             raise ValueError("precision bf16 is for the torch backend; onnxruntime runs fp32")
         if backend == "onnx" and not cut_gaps:
             raise ValueError("drawing without the gap cut is for the torch backend; an ONNX graph has the cut built in")
+        if backend == "onnx" and flip_average:
+            raise ValueError("flip averaging is for the torch backend; an ONNX graph predicts the photo alone")
         self.backend = backend
         self.threads = threads
         self.model = None
@@ -131,6 +144,7 @@ class Predictor:
                     model.set_gap_cut(False)
                 except ValueError as e:
                     raise ValueError(f"{self.weights}: {e}") from None
+            model.set_flip_average(flip_average)
             if backend == "onnx":
                 data = export_onnx_bytes(model.eval(), self.cfg)
                 self.session, _ = onnx_session(data, threads=threads, source=str(self.weights))
@@ -361,6 +375,8 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
     extra = {"weights": str(predictor.weights) if predictor.weights else None, "backend": predictor.backend}
     if shelf_length is not None:
         extra["shelf_length_m"] = float(shelf_length)
+    if predictor.model is not None and predictor.model.flip_average:
+        extra["flip_average"] = True
     made_out = not Path(out).exists()
     for path, sid in zip(files, ids):
         try:

@@ -355,3 +355,30 @@ def test_a_full_disk_stops_predict_naming_the_file(toy, ckpt, tmp_path, capsys, 
     assert rc == 2 and len(calls) == 1
     line = [x for x in err.splitlines() if "error" in x]
     assert len(line) == 1 and str(out) in line[0] and "no space left on device" in line[0], err
+
+
+def test_flip_averaged_predict_and_eval_say_so(ckpt, toy, tmp_path, capsys):
+    """`--flip-average` in predict and eval: a mirrored photo is predicted as the mirror of the
+    photo's prediction, the run is recorded (predict's meta, eval's JSON and title), and the onnx
+    backend refuses it in one line."""
+    import cv2
+
+    root = RackLayRoot(toy)
+    img = root.image_path(root.ids()[0])
+    flipped = tmp_path / "mirror.png"
+    cv2.imwrite(str(flipped), cv2.imread(str(img))[:, ::-1])
+    o = tmp_path / "p"
+    assert racklay_main(["predict", str(img), str(flipped), "--weights", str(ckpt), "--out", str(o),
+                         "--no-figure", "--no-png", "--fp32", "--flip-average"]) == 0
+    out = RackLayRoot(o)
+    for v in ("top", "front"):
+        a, b = np.load(out.layout_path(v, img.stem)), np.load(out.layout_path(v, "mirror"))
+        assert (a == b[..., ::-1]).mean() > 0.999
+    assert out.read_meta(img.stem)["flip_average"] is True
+    assert "flip-averaged" in capsys.readouterr().out
+    js = tmp_path / "e.json"
+    assert racklay_main(["eval", "--weights", str(ckpt), "--data", str(toy), "--flip-average", "--json", str(js)]) == 0
+    assert json.loads(js.read_text())["flip_average"] is True and "flip-averaged" in capsys.readouterr().out
+    assert racklay_main(["predict", str(img), "--weights", str(ckpt), "--out", str(tmp_path / "q"),
+                         "--backend", "onnx", "--flip-average"]) == 2
+    assert "flip averaging is for the torch backend" in capsys.readouterr().err

@@ -396,3 +396,40 @@ def test_imagenet_loader_rejects_wrong_files(tmp_path):
     torch.save([1, 2], a_list)
     with pytest.raises(ValueError, match="list.pth.*state dict"):
         load_imagenet_weights(enc, a_list)
+
+
+@pytest.mark.parametrize("decoder", ["struct", "light"])
+def test_flip_averaging_predicts_a_mirror_image_as_the_mirror_of_the_prediction(decoder):
+    """`set_flip_average(True)` averages each image's prediction with its mirror image's: the
+    result is exactly mirror-symmetric (the mirrored photo gives the mirrored layouts, x -> -x),
+    which neither prediction alone is; a struct model still draws rectangles from averaged
+    structures (the flip-averaged structure's per-position fields of a mirrored photo are the
+    reversed ones), and off again gives the plain prediction back."""
+    cfg = ModelConfig(R=2, image_size=(64, 128), layout_size=LAY, decoder=decoder, encoder="resnet18",
+                      struct_gap=decoder == "struct")
+    net = RackLayNet(cfg).eval()
+    torch.manual_seed(1)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))           # break the init's near-symmetry
+    x = torch.randn(2, 3, 64, 128, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        plain, mirrored = net(x), net(x.flip(-1))
+        assert any((plain[v] - mirrored[v].flip(-1)).abs().max() > 1e-3 for v in plain)
+        net.set_flip_average(True)
+        if decoder == "struct":
+            (a, sa), (b, sb) = net(x, with_structure=True), net(x.flip(-1), with_structure=True)
+            for v in ("top", "front"):
+                assert torch.allclose(sa[v]["box"], sb[v]["box"].flip(-1), atol=1e-5)
+                assert torch.allclose(sa[v]["length"], sb[v]["length"], rtol=1e-5)
+        else:
+            a, b = net(x), net(x.flip(-1))
+        for v in ("top", "front"):
+            assert a[v].shape == plain[v].shape
+            assert torch.allclose(a[v], b[v].flip(-1), atol=1e-4)
+            assert torch.allclose(a[v].exp().sum(2), torch.ones(()), atol=1e-4)   # log-probabilities
+        net.set_flip_average(False)
+        assert all(torch.equal(net(x)[v], plain[v]) for v in plain)
+    from racklay.predict import Predictor
+    with pytest.raises(ValueError, match="flip averaging is for the torch backend"):
+        Predictor("model.onnx", flip_average=True)

@@ -127,6 +127,8 @@ def main() -> int:
     ap.add_argument("--real-photos", default=REPO / "datasets" / "real-photos", type=Path,
                     help="annotate project with the labelled real photos ('' to skip)")
     ap.add_argument("--limit", type=int, default=None, help="score only the first N test images of each set")
+    ap.add_argument("--flip-average", action="store_true",
+                    help="predict with test-time flip averaging (`racklay eval --flip-average`)")
     ap.add_argument("--json", default=None, help="also write the numbers here")
     args = ap.parse_args()
 
@@ -137,8 +139,8 @@ def main() -> int:
     ensure(args.complex, ["--recipe", "complex", "--n", "2000", "--seed", "2027", "--set", "splits={test: 1.0}", *NO_EXTRAS])
     ensure(args.proxy_real, ["--recipe", "proxy_real", "--n", "542", "--seed", "1", "--set", "layout_size=256"])
     weights = resolve_weights(args.weights)
-    pred = Predictor(str(weights), precision="auto")
-    print(f"model {weights} ({pred.precision}), input {pred.image_size[1]}x{pred.image_size[0]}, "
+    pred = Predictor(str(weights), precision="auto", flip_average=args.flip_average)
+    print(f"model {weights} ({pred.precision}{', flip-averaged' if args.flip_average else ''}), input {pred.image_size[1]}x{pred.image_size[0]}, "
           f"layouts {pred.layout_size}", flush=True)
     out = {}
     tmp = tempfile.TemporaryDirectory(prefix="racklay-real-")

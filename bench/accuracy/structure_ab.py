@@ -187,6 +187,8 @@ def main() -> int:
                     help="also score each run with its decision biases fitted (`racklay calibrate`) on this split of "
                          "a RackLay dataset, e.g. the exported photos of other sites (/tmp/real:train), never the "
                          "split scored")
+    ap.add_argument("--flip-average", action="store_true",
+                    help="predict with test-time flip averaging (`racklay eval --flip-average`)")
     ap.add_argument("--json", default=None, help="also write the numbers here")
     args = ap.parse_args()
     if args.calibrate_on and not all(args.calibrate_on.rpartition(":")[::2]):
@@ -210,7 +212,7 @@ def main() -> int:
         for run in runs.split(","):
             run = Path(run)
             ckpt = run if run.is_file() else run / args.weights
-            pred = Predictor(str(ckpt), precision="auto")
+            pred = Predictor(str(ckpt), precision="auto", flip_average=args.flip_average)
             print(f"{name}: {ckpt} ({pred.cfg.decoder} decoder, {pred.precision})", file=sys.stderr, flush=True)
             rows.append(score_run(pred, run, args, photos))
         out[name] = mean_rows(rows)

@@ -3,6 +3,7 @@ the authors' `paper` decoder) at the shipped input and layout size and the same 
 (the model issue's target: the reference >= 3x slower than the shipped struct model).
 
     nice -n 5 .venv/bin/python -m bench.speed.release_speed [--weights FILE] [--precision auto|fp32|bf16] [--onnx] [--batch N]
+        [--flip-average]
 
 Both models run both views, in the memory format given (default channels_last, as `racklay
 predict` runs a model; `--memory-format contiguous` gives the default PyTorch layout); the
@@ -42,6 +43,9 @@ def main(argv=None) -> int:
     ap.add_argument("--onnx", action="store_true",
                     help="also run both models through onnxruntime (fp32, graphs as `racklay export` writes them), "
                          "in the same interleaved rounds")
+    ap.add_argument("--flip-average", action="store_true",
+                    help="also time the shipped model with test-time flip averaging (`racklay predict "
+                         "--flip-average`: the photo and its mirror image in one batch): what its accuracy costs")
     add_batch_arg(ap, ": one photo at a time, as the target is stated; larger batches spread the per-layer "
                       "overhead that dominates the struct decoder at batch 1")
     add_common_args(ap, rounds=3, calls=5, warmup=2)
@@ -65,6 +69,10 @@ def main(argv=None) -> int:
         as_light = RackLayNet(replace(cfg, decoder="light")).eval()
         as_light.load_state_dict(shipped.state_dict())
         models["shipped weights, light decoder"] = as_light
+    if args.flip_average:
+        flipped = load_model(resolve_weights(args.weights))[0].eval()
+        flipped.set_flip_average(True)
+        models["shipped, flip-averaged"] = flipped
     ort_runners = {}
     if args.onnx:   # what `racklay predict --backend onnx` runs
         from racklay.onnx import export_onnx_bytes, onnx_session

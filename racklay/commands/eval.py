@@ -5,7 +5,7 @@ from racklay.config import at_least, positive_float
 
 
 def register(sub) -> None:
-    from racklay.predict import add_precision_args
+    from racklay.predict import add_flip_average_arg, add_precision_args
     from racklay.release import add_weights_arg
 
     p = sub.add_parser(
@@ -37,6 +37,7 @@ def register(sub) -> None:
                         "the gap output's cuts (what the cuts add or cost on this data; torch backend)")
     p.add_argument("--workers", type=at_least(0), default=0, help="DataLoader worker processes (default 0)")
     add_precision_args(p)
+    add_flip_average_arg(p)
     p.add_argument("--threads", type=at_least(1), default=None, help="intra-op threads (default: library default)")
     p.add_argument("--save-predictions", default=None, metavar="DIR",
                    help="also write the predicted layouts as a RackLay dataset in DIR")
@@ -58,19 +59,21 @@ def run(args) -> int:
         from racklay.data import check_prediction_out
         check_prediction_out(args.save_predictions, data=args.data)
     pred = Predictor(args.weights, backend=args.backend, threads=args.threads,
-                     precision=args.precision, cut_gaps=not args.no_gap_cut)
+                     precision=args.precision, cut_gaps=not args.no_gap_cut,
+                     flip_average=args.flip_average)
     result = evaluate(pred, args.data, split=args.split, batch_size=args.batch_size, workers=args.workers,
                       limit=args.limit, native=args.native, pred_out=args.save_predictions,
                       shelf_length=args.shelf_length, scale_from_truth=args.scale_from_truth)
     scale = ("from truth" if args.scale_from_truth else
              f"shelf length {args.shelf_length:g} m" if args.shelf_length else "model")
     report = eval_report(result, args.weights, args.data, args.split, cfg=pred.cfg, native=args.native,
-                         scale=scale, gap_cut=not args.no_gap_cut)
+                         scale=scale, gap_cut=not args.no_gap_cut, flip_average=args.flip_average)
     where = "dataset resolution" if args.native else f"{pred.layout_size}x{pred.layout_size}"
     print(format_tables(result, title=f"{Path(args.weights).name} on {args.data} [{args.split}], "
                                       f"{report['images']} images, layouts at {where}"
                                       + ("" if scale == "model" else f", scale {scale}")
-                                      + (", gap cut off" if args.no_gap_cut else "")))
+                                      + (", gap cut off" if args.no_gap_cut else "")
+                                      + (", flip-averaged" if args.flip_average else "")))
     if args.save_predictions:
         print(f"predicted layouts written to {args.save_predictions}")
     if args.json:

@@ -5,7 +5,7 @@ from racklay.config import at_least
 
 
 def register(sub) -> None:
-    from racklay.predict import add_precision_args, add_shelf_length_arg
+    from racklay.predict import add_flip_average_arg, add_precision_args, add_shelf_length_arg
     from racklay.release import add_weights_arg
 
     p = sub.add_parser(
@@ -28,6 +28,7 @@ def register(sub) -> None:
                         "e.g. 512 to score against the original RackLay data (default: the model's size)")
     add_shelf_length_arg(p)
     add_precision_args(p)
+    add_flip_average_arg(p)
     p.add_argument("--threads", type=at_least(1), default=None, help="intra-op threads (default: library default)")
     p.add_argument("--no-figure", action="store_true", help="skip the paper-style figures")
     p.add_argument("--no-png", action="store_true", help="skip the per-shelf colour PNGs")
@@ -57,11 +58,12 @@ def run(args) -> int:
     if args.layout_size is not None and args.layout_size < 1:
         raise CLIError(f"--layout-size must be >= 1, got {args.layout_size}")
     pred = Predictor(args.weights, backend=args.backend, threads=args.threads,
-                     precision=args.precision)
+                     precision=args.precision, flip_average=args.flip_average)
     rep = predict_folder(pred, args.inputs, args.out, figure=not args.no_figure, png=not args.no_png,
                          crop=not args.full, layout_size=args.layout_size, shelf_length=args.shelf_length)
     D = args.layout_size or pred.layout_size
     scale = f", shelves scaled to {args.shelf_length:g} m" if args.shelf_length else ""
+    scale += ", flip-averaged" if args.flip_average else ""
     print(f"{rep.summary()} -> {args.out} (backend {pred.backend}, "
           f"{pred.image_size[1]}x{pred.image_size[0]} input, {D}x{D} layouts{scale})")
     return 0 if rep.ok else 1
