@@ -379,6 +379,8 @@ def test_flip_averaged_predict_and_eval_say_so(ckpt, toy, tmp_path, capsys):
     js = tmp_path / "e.json"
     assert racklay_main(["eval", "--weights", str(ckpt), "--data", str(toy), "--flip-average", "--json", str(js)]) == 0
     assert json.loads(js.read_text())["flip_average"] is True and "flip-averaged" in capsys.readouterr().out
+    assert racklay_main(["analyze", str(img), "--weights", str(ckpt), "--out", str(tmp_path / "a"),
+                         "--no-render", "--flip-average"]) == 0
     assert racklay_main(["predict", str(img), "--weights", str(ckpt), "--out", str(tmp_path / "q"),
                          "--backend", "onnx", "--flip-average"]) == 2
     assert "flip averaging is for the torch backend" in capsys.readouterr().err

@@ -71,6 +71,8 @@ def main(argv=None) -> int:
                          "the default)")
     ap.add_argument("--iou", type=float, default=0.5, help="a proposal this close to a label stack is accepted")
     ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--flip-average", action="store_true",
+                    help="the model predicts with test-time flip averaging (`annotate serve --flip-average`)")
     args = ap.parse_args(argv)
 
     from dataclasses import replace
@@ -85,7 +87,7 @@ def main(argv=None) -> int:
     proj = Project(args.project)
     names = labelled_photos(proj, args.split, args.limit)
     weights = resolve_weights(args.weights)
-    tool = Tool(proj, Predictor(weights, precision="auto"))
+    tool = Tool(proj, Predictor(weights, precision="auto", flip_average=args.flip_average))
     steps = args.split_step or [0.0, ReasoningConfig().split_step_m]
     rows = {s: {"truth": 0, "props": 0, "ious": [], "left": 0} for s in steps}
     for name in names:

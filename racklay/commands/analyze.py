@@ -13,7 +13,7 @@ KNOBS = ("open_m", "min_box_area_m2", "split_step_m", "min_stack_m")
 
 
 def register(sub) -> None:
-    from racklay.predict import add_shelf_length_arg
+    from racklay.predict import add_flip_average_arg, add_shelf_length_arg
     from racklay.reasoning import ReasoningConfig
     from racklay.release import add_weights_arg
 
@@ -36,6 +36,7 @@ def register(sub) -> None:
     p.add_argument("--backend", choices=("torch", "onnx"), default=None,
                    help="inference backend (default: onnx for .onnx files, else torch)")
     add_shelf_length_arg(p)
+    add_flip_average_arg(p)
     p.add_argument("--layouts", metavar="ROOT", help="analyse the ground-truth layouts of this RackLay dataset")
     p.add_argument("--split", default=None,
                    help="only this split (e.g. test) of the --layouts dataset or of dataset inputs; default all")
@@ -127,7 +128,7 @@ def _samples_from_photos(args):
     if not files:
         raise FileNotFoundError(f"no images found in {', '.join(args.inputs)}")
     backend = args.backend or ("onnx" if str(args.weights).endswith(".onnx") else "torch")
-    predictor = Predictor(args.weights, backend=backend)
+    predictor = Predictor(args.weights, backend=backend, flip_average=args.flip_average)
     cfg = _config(args)
 
     def one(path):
@@ -148,6 +149,8 @@ def run(args) -> int:
         raise CLIError("give either --layouts ROOT or IMAGE_OR_FOLDER with --weights, not both")
     if args.layouts and args.shelf_length:
         raise CLIError("--shelf-length scales a model's predictions; --layouts are ground truth, already metric")
+    if args.layouts and args.flip_average:
+        raise CLIError("--flip-average is how a model predicts; --layouts are ground truth")
     if not args.layouts:
         if not args.inputs:
             raise CLIError("nothing to analyse: give IMAGE_OR_FOLDER with --weights, or --layouts ROOT")
