@@ -72,7 +72,8 @@ def main(argv=None) -> int:
     ap.add_argument("--iou", type=float, default=0.5, help="a proposal this close to a label stack is accepted")
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--flip-average", action="store_true",
-                    help="the model predicts with test-time flip averaging (`annotate serve --flip-average`)")
+                    help="the model predicts with test-time flip averaging (`racklay predict --flip-average`; "
+                         "whether the annotator's proposals would gain from it)")
     args = ap.parse_args(argv)
 
     from dataclasses import replace
