@@ -644,12 +644,18 @@ def flip_average_structure(st: dict, n: int, cut_gaps: bool = True) -> dict:
     from x -> -x, so its per-position fields (N, R, T) are reversed along the shelf; then presence,
     box and gap logits and the shape fractions are averaged, length and extent geometrically, and
     the gap cut is redone on the averaged fields."""
-    out = {}
-    for k, t in st.items():
-        a, b = t[:n], t[n:]
-        if t.dim() == 3:                                      # per position along the shelf
-            b = b.flip(-1)
-        out[k] = torch.exp((a.log() + b.log()) / 2) if k in ("length", "extent") else (a + b) / 2
+    a = {k: t[:n] for k, t in st.items()}
+    b = {k: t[n:].flip(-1) if t.dim() == 3 else t[n:] for k, t in st.items()}   # (N, R, T): along the shelf
+    return average_structures(a, b, tuple(st), cut_gaps)
+
+
+def average_structures(a: dict, b: dict, keys, cut_gaps: bool = True) -> dict:
+    """The mean of two estimates of the same structure fields `keys`: lengths and extents
+    geometrically, everything else (presence, box and gap logits, shape fractions) arithmetically;
+    with a gap output the box logit is the cut of the averaged raw box and gap logits
+    (`cut_at_gaps`), not the average of two cuts."""
+    out = {k: torch.exp((a[k].log() + b[k].log()) / 2) if k in ("length", "extent") else (a[k] + b[k]) / 2
+           for k in keys}
     if "gap" in out:
         out["box"] = cut_at_gaps(out["box_raw"], out["gap"]) if cut_gaps else out["box_raw"]
     return out
@@ -666,12 +672,8 @@ def tie_views(structs: dict, cut_gaps: bool = True) -> dict:
     if set(structs) != {"top", "front"}:
         return structs
     a, b = structs["top"], structs["front"]
-    shared = {"presence": (a["presence"] + b["presence"]) / 2,
-              "length": torch.exp((a["length"].log() + b["length"].log()) / 2),
-              "box": (a["box"] + b["box"]) / 2}
-    if "gap" in a:     # the gap output: both estimates averaged, then the cut (StructDecoder)
-        shared["gap"], shared["box_raw"] = (a["gap"] + b["gap"]) / 2, (a["box_raw"] + b["box_raw"]) / 2
-        shared["box"] = cut_at_gaps(shared["box_raw"], shared["gap"]) if cut_gaps else shared["box_raw"]
+    keys = ("presence", "length", "box") + (("gap", "box_raw") if "gap" in a else ())   # gap: averaged, then the cut
+    shared = average_structures(a, b, keys, cut_gaps)
     return {v: {**st, **shared} for v, st in structs.items()}
 
 
