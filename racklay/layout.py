@@ -28,6 +28,12 @@ What is a shelf, what is a box (pallet racking included):
   everything on it (cartons, a stretch-wrapped load, crates), from the pallet's underside on the
   beams to the load's top. The pallet is never a box of its own and never part of the shelf.
 
+How much of a bay: a labelled photo draws the bay as far as the photo shows it (where the
+frame's left or right edge cuts the bay, the shelf ends there; where its top edge cuts a level,
+the level's opening and its boxes end there: docs/annotate.md). WareSynth draws the same with
+`layout_extent: frame` (`rasterize_shelf(window=...)`, the scene's `layout_heights`); with
+`bay`, the paper's convention and `complex`'s, it draws the whole bay however much is in view.
+
 Rack plane (the annotation tool's, annotate.geometry): u along the rack's front face from its
 left edge (0 .. W), v up from its bottom. A shelf spans the rack's width, so x = u - W/2 and
 u = x + W/2 (`u_to_x`, `x_to_u`: the one place this shift is written). Depth is measured the same
@@ -51,7 +57,7 @@ every T_i and F_i (x -> -x; reverse the columns). Rows are unchanged. `hflip_lay
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Iterable, NamedTuple, Sequence
 
 import numpy as np
@@ -267,7 +273,8 @@ class ShelfLayout:
 
 
 def rasterize_shelf(shelf: Shelf, boxes: Iterable[Box], grid: Grid = Grid(),
-                    front_pad: float = FRONT_CLEARANCE_PAD_M) -> ShelfLayout:
+                    front_pad: float = FRONT_CLEARANCE_PAD_M,
+                    window: tuple[float, float] | None = None) -> ShelfLayout:
     """Draw one shelf and its boxes into class-id top and front layouts.
 
     Top view: the shelf rectangle (length x depth, centred) as SHELF, each box's rotated
@@ -275,7 +282,23 @@ def rasterize_shelf(shelf: Shelf, boxes: Iterable[Box], grid: Grid = Grid(),
     from the board upward as SHELF, each box's elevation (x-range of its rotated footprint x
     [z0, z0 + sz]) as BOX. Boxes behind each other merge in the front view, stacked boxes merge
     in the top view, as in WareSynth.
+
+    window=(x0, x1): only the part of the shelf with x0 <= x < x1 (shelf frame) is drawn, moved
+    so that the part is centred: the shelf as far as a photo shows it, a shelf of length x1 - x0
+    whose boxes the window's ends cut (the labelling guide's rule for a bay the frame cuts,
+    docs/annotate.md). The window is clipped to the shelf.
     """
+    if window is not None:
+        x0, x1 = max(float(window[0]), -shelf.length / 2), min(float(window[1]), shelf.length / 2)
+        if not x1 > x0:
+            raise ValueError(f"window {window} does not overlap the shelf (length {shelf.length} m)")
+        c, half = (x0 + x1) / 2, (x1 - x0) / 2
+        part = rasterize_shelf(Shelf(x1 - x0, shelf.depth, shelf.clear_height),
+                               [replace(b, cx=b.cx - c) for b in boxes], grid, front_pad)
+        outside = ~_span_mask(grid.centers(), -half, half)
+        part.top[:, outside] = BACKGROUND
+        part.front[:, outside] = BACKGROUND
+        return part
     D = grid.size
     top = np.zeros((D, D), dtype=np.uint8)
     front = np.zeros((D, D), dtype=np.uint8)

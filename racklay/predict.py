@@ -46,10 +46,11 @@ def add_shelf_length_arg(p) -> None:
     from .config import positive_float
 
     p.add_argument("--shelf-length", type=positive_float, default=None, metavar="M",
-                   help="the shelves' known length in metres (beam length, bay width): fixes the metric "
-                        "scale, which one photo cannot; every predicted shelf is scaled about its origin "
-                        "to this length in all its dimensions, its shape unchanged (default: the model's "
-                        "own estimate)")
+                   help="the shelves' known length in metres (beam length, bay width; where the photo "
+                        "cuts the bay, the length of the part it shows, which is what the layouts draw): "
+                        "fixes the metric scale, which one photo cannot; every predicted shelf is scaled "
+                        "about its origin to this length in all its dimensions, its shape unchanged "
+                        "(default: the model's own estimate)")
 
 
 def add_flip_average_arg(p) -> None:

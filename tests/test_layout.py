@@ -108,6 +108,32 @@ def test_oriented_box_area_and_symmetry():
     assert abs(tc.min() - fc.min()) <= 1 and abs(tc.max() - fc.max()) <= 1
 
 
+def test_a_window_draws_the_part_of_the_shelf_a_photo_shows_recentred():
+    """window=(x0, x1): the shelf as far as the frame shows it (the labelling guide's rule), a
+    shelf x1 - x0 long, centred, whose boxes the window's ends cut; the whole shelf's window is
+    the shelf itself."""
+    g = L.Grid(64, 8.0)  # 12.5 cm pixels
+    shelf = L.Shelf(length=4.0, depth=1.0, clear_height=1.0)
+    boxes = [L.Box(cx=-1.5, cy=0.0, sx=0.5, sy=0.5, sz=0.5),        # cut off
+             L.Box(cx=0.0, cy=0.0, sx=1.0, sy=0.5, sz=0.75),        # cut by the window's left end
+             L.Box(cx=1.25, cy=0.0, sx=0.5, sy=0.5, sz=0.5, yaw=0.3)]
+    whole = L.rasterize_shelf(shelf, boxes, g)
+    same = L.rasterize_shelf(shelf, boxes, g, window=(-3.0, 3.0))
+    np.testing.assert_array_equal(same.top, whole.top)
+    np.testing.assert_array_equal(same.front, whole.front)
+
+    part = L.rasterize_shelf(shelf, boxes, g, window=(0.25, 2.0))     # 1.75 m, centre x = 1.125
+    assert L.shelf_lengths(part.front[None], g)[0] == pytest.approx(1.75, abs=g.res)
+    cols = np.nonzero((part.front > 0).any(axis=0))[0]
+    assert (cols.min(), cols.max()) == (25, 38)                       # -0.875 .. 0.875 m, centred
+    # every kept column is the whole shelf's column 1.125 m (9 pixels) to the right
+    np.testing.assert_array_equal(part.front[:, 25:39], whole.front[:, 34:48])
+    np.testing.assert_array_equal(part.top[:, 25:39], whole.top[:, 34:48])
+    assert not part.top[:, :25].any() and not part.top[:, 39:].any()
+    with pytest.raises(ValueError, match="does not overlap"):
+        L.rasterize_shelf(shelf, boxes, g, window=(2.5, 3.0))
+
+
 def test_box_outside_grid_is_clipped_not_an_error():
     g = L.Grid(64, 8.0)
     m = L.oriented_rect_mask(g, 10.0, 0.0, 1.0, 1.0, 0.3)

@@ -594,3 +594,59 @@ def test_zoomed_cameras_take_their_focal_length_from_long_focal_px():
     assert all(170.0 <= f <= 260.0 for f in plain), plain
     half = focals({"long_lens_fraction": 0.5, "long_focal_px": [900.0, 1000.0]})
     assert 4 <= sum(f >= 900.0 for f in half) <= 20, half
+
+
+def test_frame_extent_draws_the_bay_as_far_as_the_image_shows_it():
+    """`layout_extent: frame`: where the image's left or right edge cuts the bay, the layouts draw
+    the part of it in the image, as a labeller draws a photo (corners at the photo's edge); a bay
+    the image shows whole, and every scene of a recipe without the key, keep the whole bay."""
+    from racklay.synth.scene import Camera, frame_height, frame_window, rotation_world_to_cam
+
+    W, H, f = 470, 280, 400.0
+    R = rotation_world_to_cam(0.0, 0.0, 0.0)
+
+    def cam(x, dist, k1=0.0):
+        C = np.array([x, -0.4 - dist, 1.0])     # in front of a 0.8 m deep rack, eye at 1 m
+        return Camera(K=np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]]), R=R, t=-R @ C, width=W, height=H, k1=k1)
+
+    half = W / 2 / f * 1.5                        # 0.88 m of the rack front either side at 1.5 m
+    x0, x1 = frame_window(cam(0.0, 1.5), 4.0, 0.8, 1.0)
+    assert x0 == pytest.approx(-half, abs=0.006) and x1 == pytest.approx(half, abs=0.006)
+    x0, x1 = frame_window(cam(1.5, 1.5), 4.0, 0.8, 1.0)            # the bay's right end in the image
+    assert x0 == pytest.approx(1.5 - half, abs=0.006) and x1 == 2.0
+    assert frame_window(cam(0.0, 6.0), 4.0, 0.8, 1.0) is None      # the whole bay in the image
+    # the frame's top edge at z = 1 + 140 / 400 * 1.5 = 1.525 m cuts a level from 1.2 m to 2.2 m
+    assert frame_height(cam(0.0, 1.5), 0.0, 0.8, 1.2, 1.0) == pytest.approx(0.325, abs=0.003)
+    assert frame_height(cam(0.0, 1.5), 0.0, 0.8, 0.6, 0.5) is None                # all of it shown
+    # barrel distortion shows a little more, and never the far parts it folds back into the image
+    x0, x1 = frame_window(cam(0.0, 0.6, k1=-0.12), 40.0, 0.8, 1.0)
+    assert 0.6 * W / 2 / f < x1 < 1.3 * 0.6 * W / 2 / f and x0 == pytest.approx(-x1, abs=0.06)
+
+    r = load_recipe("mixed", {**SMALL, "layout_extent": "frame"})
+    g = L.Grid(256, r.extent_m)
+    cut = heights = 0
+    for i in range(12):
+        s = sample_scene(r, 3, i)
+        plain = sample_scene(load_recipe("mixed", SMALL), 3, i)
+        assert plain.layout_window is None and plain.camera.t.tolist() == s.camera.t.tolist()
+        top, front = scene_layouts(s, g, r.R)
+        whole = scene_layouts(plain, g, r.R)[1]
+        lengths = L.shelf_lengths(front, g)
+        for k in range(len(s.visible)):
+            drawn = (front[k] > 0).any(axis=1).sum() * g.res        # the level's free space, pad included
+            shown = s.layout_heights[k] if s.layout_heights else None
+            if shown is None:
+                assert drawn == pytest.approx((whole[k] > 0).any(axis=1).sum() * g.res)
+            else:
+                heights += 1
+                clear = s.shelves[s.visible[k]].clear_height
+                assert 0 < shown < clear and drawn == pytest.approx(shown + L.FRONT_CLEARANCE_PAD_M, abs=g.res)
+        if s.layout_window is None:
+            np.testing.assert_array_equal(lengths, L.shelf_lengths(whole, g))
+            continue
+        cut += 1
+        x0, x1 = s.layout_window
+        assert -s.rack_length / 2 <= x0 < x1 <= s.rack_length / 2 and x1 - x0 < s.rack_length
+        for k in range(len(s.visible)):
+            assert lengths[k] == pytest.approx(x1 - x0, abs=2 * g.res)
+    assert cut >= 4 and heights >= 3

@@ -59,6 +59,11 @@ def truth_from_meta(meta: dict | None, source: str) -> list[ShelfTruth]:
         objects with "channel", "size" [sx, sy, sz], "yaw" and "shelf_frame" {cx, cy, z0};
       * racklay.toy: shelves = [{length, depth, clear_height, boxes: [{cx, cy, sx, sy, sz, z0, yaw}]}].
     """
+    rack = meta.get("rack") if isinstance(meta, dict) else None
+    if isinstance(rack, dict) and (rack.get("layout_window") or rack.get("layout_heights")):
+        raise DataError(f"{source}: its layouts draw only the part of the bay the image shows (recipe "
+                        f"layout_extent: frame) and the meta's 3D truth is the whole bay: validate on a "
+                        f"set rendered with layout_extent: bay")
     try:
         if meta and "objects" in meta and "rack" in meta and "shelf_heights" in meta:
             rack = meta["rack"]

@@ -9,7 +9,13 @@ sampled from each recipe (`racklay.synth.scene.sample_scene`, no rendering):
     top one), box width / height / depth, box run width (boxes on one shelf that touch or
     overlap along it, less than RUN_GAP apart, merged: what the front layout draws as one run and
     what a labeller draws as one box for a wall of cartons), camera distance to the rack front,
-    camera height, focal length per pixel of image width.
+    camera height, focal length per pixel of image width; and the framing, which every photo
+    determines (near-frontal ones too): the width in the image of the part of the bay that the
+    layouts draw (at the height of the middle of its levels) over the image width (a labelled
+    photo draws the bay as far as the photo shows it, so at most 1; a recipe with `layout_extent:
+    bay` draws the whole bay, also where it overflows the frame), the height of its levels (lowest
+    board to the top of the highest level, at the drawn part's middle) over the image height, and
+    how far the drawn part's centre lies from the image's centre.
 
 It prints, per recipe and quantity, the recipe's 5-95 % and min-max range, how many photo values
 fall inside [min, max] (the recipe's support) and which photos fall outside, and draws one panel
@@ -46,6 +52,9 @@ QUANTITIES = {   # key: (label, unit)
     "cam_distance": ("camera distance", "m"),
     "cam_height": ("camera height", "m"),
     "focal": ("focal / image width", ""),
+    "bay_span": ("bay width / image width", ""),
+    "band_span": ("levels' height / image height", ""),
+    "bay_offset": ("bay centre from image centre / image width", ""),
 }
 
 
@@ -69,6 +78,16 @@ def run_spans(intervals) -> list[tuple[float, float]]:
 def run_widths(intervals) -> list[float]:
     """Widths of the runs of `run_spans`."""
     return [x1 - x0 for x0, x1 in run_spans(intervals)]
+
+
+def framing_quantities(to_image, x0: float, x1: float, lo: float, hi: float, w: int, h: int) -> dict:
+    """bay_span, band_span and bay_offset (see the module's doc) of the part x0..x1 of a bay that
+    the layouts draw, from a map of rack-front points (x along the bay, z up; metres) to pixels,
+    its levels' bottom and top heights and the image size."""
+    mid, xm = (lo + hi) / 2, (x0 + x1) / 2
+    (xl, _), (xr, _), (_, yb), (_, yt) = to_image([[x0, mid], [x1, mid], [xm, lo], [xm, hi]])
+    return {"bay_span": [abs(xr - xl) / w], "band_span": [abs(yb - yt) / h],
+            "bay_offset": [((xl + xr) / 2 - w / 2) / w]}
 
 
 def photo_quantities(project: Path) -> tuple[dict, list[str]]:
@@ -108,6 +127,9 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
             cut_spans = [(b.u0, b.u1) for b in on if cut[b.id][0]]
             q["run_width"] += [x1 - x0 for x0, x1 in run_spans(spans)
                                if not any(x0 - 1e-9 <= c0 and c1 <= x1 + 1e-9 for c0, c1 in cut_spans)]
+        lo, hi = sc.shelf_v[0], sc.shelf_v[-1] + sc.clear[-1]
+        w, h = ann["image_size"]
+        q.update(framing_quantities(sc.plane.to_image, 0.0, sc.width, lo, hi, w, h))
         cut_total += n_cut
         cut_photos += n_cut > 0
         cam = G.camera_from_plane(sc.plane, ann["image_size"], aspect)
@@ -147,6 +169,16 @@ def recipe_quantities(name: str, n: int, seed: int, sets=()) -> dict:
                 q["box_depth"].append(b.sy)
                 spans.append(b.x_range())                # its footprint along x (yaw included)
             q["run_width"] += run_widths(spans)
+        lo = s.shelves[s.visible[0]].board_top
+        top = s.shelves[s.visible[-1]]
+
+        def to_image(pts, cam=s.camera, y=-s.rack_depth / 2):
+            return cam.project([[x, y, z] for x, z in pts])
+
+        x0, x1 = s.layout_window or (-s.rack_length / 2, s.rack_length / 2)
+        for k, v in framing_quantities(to_image, x0, x1, lo, top.board_top + top.clear_height,
+                                       s.camera.width, s.camera.height).items():
+            q[k] += v
         c = s.camera.center
         q["cam_distance"].append(float(-s.rack_depth / 2 - c[1]))
         q["cam_height"].append(float(c[2]))

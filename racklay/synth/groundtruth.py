@@ -13,8 +13,10 @@ from .scene import CATEGORY_NAMES, SEMANTIC_CLASSES, Scene, cuboid_corners
 
 
 def scene_layouts(scene: Scene, grid: L.Grid, R: int) -> tuple[np.ndarray, np.ndarray]:
-    """(top, front) class-id stacks R x D x D: channel c = visible shelf c (lowest first)."""
-    per = [L.rasterize_shelf(shelf, boxes, grid) for shelf, boxes in scene.layout_inputs()]
+    """(top, front) class-id stacks R x D x D: channel c = visible shelf c (lowest first), each
+    the whole bay or, with a layout window (Recipe.layout_extent 'frame'), the part of it shown."""
+    per = [L.rasterize_shelf(shelf, boxes, grid, window=scene.layout_window)
+           for shelf, boxes in scene.layout_inputs()]
     return L.stack_shelves(per, R, grid)
 
 
@@ -154,7 +156,12 @@ def scene_meta(scene: Scene, recipe, grid: L.Grid, objects: list[dict]) -> dict:
                  "n_shelves": len(shelves),
                  "board_tops": _r([s.board_top for s in shelves], 6),
                  "clear_heights": _r([s.clear_height for s in shelves], 6),
-                 "visible_shelves": list(scene.visible)},
+                 "visible_shelves": list(scene.visible),
+                 # the part of the bay the layouts draw (world x, metres; null: all of it), re-centred,
+                 # and per layout channel the height of its opening drawn (null: all of it)
+                 "layout_window": None if scene.layout_window is None else _r(scene.layout_window, 6),
+                 "layout_heights": None if scene.layout_heights is None else
+                 [None if h is None else round(h, 6) for h in scene.layout_heights]},
         # per layout channel (lowest visible shelf first): inter-shelf height, like WareSynth's height*.npy
         "shelf_heights": _r([shelves[i].clear_height for i in scene.visible], 6),
         "shelf_board_tops": _r([shelves[i].board_top for i in scene.visible], 6),

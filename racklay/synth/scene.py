@@ -13,13 +13,13 @@ Camera frame: OpenCV (x right, y down, z forward). X_cam = R @ X_world + t, pixe
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .. import layout as L
 from ..camera import PinholeCamera
-from .effects import k1_limit
+from .effects import distort_points, k1_limit
 from .recipe import Recipe
 
 # --- semantic classes ---------------------------------------------------------------------
@@ -153,14 +153,23 @@ class Scene:
     shadows: bool = True          # the key light casts shadows
     light_falloff: float = 6.0    # metres at which a light's intensity has halved
     rack_style: str = "shelving"  # "shelving" | "pallet" | "cube" | "wire" | "boltless" | "slotted" (Recipe.rack_style)
+    layout_window: tuple | None = None  # (x0, x1): the part of the bay the layouts draw (Recipe.layout_extent)
+    layout_heights: list | None = None  # per visible shelf: the height of its opening drawn, None: all (ditto)
 
     def layout_inputs(self) -> list[tuple[L.Shelf, list[L.Box]]]:
-        """(Shelf, boxes in the shelf frame) of each visible shelf, lowest first."""
+        """(Shelf, boxes in the shelf frame) of each visible shelf, lowest first, as far up as the
+        layouts draw it (`layout_heights`: a level the frame's top cuts ends there, its boxes cut
+        at that height); along x the whole bay (the layouts draw `layout_window` of it)."""
         out = []
-        for si in self.visible:
+        for k, si in enumerate(self.visible):
             sh = self.shelves[si]
             boxes = [self.objects[i].layout_box for i in sh.items]
-            out.append((L.Shelf(self.rack_length, self.rack_depth, sh.clear_height), boxes))
+            clear = sh.clear_height
+            shown = self.layout_heights[k] if self.layout_heights else None
+            if shown is not None:
+                clear = shown
+                boxes = [replace(b, sz=min(b.sz, shown - b.z0)) for b in boxes if b.z0 < shown]
+            out.append((L.Shelf(self.rack_length, self.rack_depth, clear), boxes))
         return out
 
 
@@ -946,11 +955,59 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     # a wide lens gets at most the barrel distortion that keeps its corners (effects.k1_limit)
     effects["distortion_k1"] = max(effects["distortion_k1"], k1_limit(cam.K, cam.width, cam.height))
     cam.k1 = effects["distortion_k1"]
+    window = heights = None
+    if r.layout_extent == "frame":
+        lo = shelves[visible[0]].board_top
+        hi = shelves[visible[-1]].board_top + shelves[visible[-1]].clear_height
+        window = frame_window(cam, length, depth, (lo + hi) / 2)
+        x = 0.0 if window is None else (window[0] + window[1]) / 2
+        heights = [frame_height(cam, x, depth, shelves[k].board_top, shelves[k].clear_height) for k in visible]
+        heights = heights if any(h is not None for h in heights) else None
     occ_rows = ["".join("#" if v else "." for v in row) for row in occ]
     return Scene(index=index, seed=seed, recipe=r.name, objects=B.objects, shelves=shelves, rack_length=length,
                  rack_depth=depth, visible=visible, camera=cam, lights=lights, ambient=ambient,
                  ambient_color=(1.0, 1.0, 1.0), main_light=0, background=background, occupancy=occ_rows,
-                 effects=effects, domain=r.domain, shadows=r.shadows, rack_style=style)
+                 effects=effects, domain=r.domain, shadows=r.shadows, rack_style=style, layout_window=window,
+                 layout_heights=heights)
+
+
+def _in_image(cam: Camera, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whether the image's columns and rows show world points (N, 3), lens distortion included.
+    Barrel distortion folds points far outside the image back into it: only the part of the
+    lens where the distorted radius still grows with the true one, r (1 + k1 r²), counts."""
+    uv, zc = cam.project_z(pts)
+    r2 = ((uv[:, 0] - cam.K[0, 2]) / cam.K[0, 0]) ** 2 + ((uv[:, 1] - cam.K[1, 2]) / cam.K[1, 1]) ** 2
+    uv = distort_points(cam.K, cam.k1, uv)
+    ok = (zc > 0.05) & (1 + 3 * cam.k1 * r2 > 0)
+    return ok & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width), ok & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+
+
+def frame_window(cam: Camera, length: float, depth: float, z: float, samples: int = 801) -> tuple | None:
+    """(x0, x1): the part of the rack's front edge at height z (world x from -length/2 to
+    length/2, y = -depth/2) that the image's columns show, sampled every length / (samples - 1);
+    None when they show all of it (or none: the whole bay is kept)."""
+    xs = np.linspace(-length / 2, length / 2, samples)
+    seen = _in_image(cam, np.c_[xs, np.full_like(xs, -depth / 2), np.full_like(xs, z)])[0]
+    if seen.all() or not seen.any():
+        return None
+    step = length / (samples - 1)
+    x = xs[seen]
+    # each end half a sample beyond the last point seen (the true edge lies within it)
+    return (max(float(x[0]) - step / 2, -length / 2), min(float(x[-1]) + step / 2, length / 2))
+
+
+def frame_height(cam: Camera, x: float, depth: float, board: float, clear: float,
+                 samples: int = 401) -> float | None:
+    """How much of a level's opening (from its board top, `clear` metres up) the image shows
+    above its board on the rack's front plane at x, when the frame's top edge cuts it; None when
+    the image shows it up to the top (or shows none of it)."""
+    zs = board + np.linspace(0.0, clear, samples)
+    cols, rows = _in_image(cam, np.c_[np.full_like(zs, x), np.full_like(zs, -depth / 2), zs])
+    seen = cols & rows
+    if seen[-1] or not seen.any():
+        return None
+    top = int(np.nonzero(seen)[0].max())
+    return min(float(zs[top] - board) + clear / (samples - 1) / 2, clear)
 
 
 def rotation_world_to_cam(yaw: float, pitch: float, roll: float) -> np.ndarray:
