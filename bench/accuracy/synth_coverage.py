@@ -19,7 +19,8 @@ sampled from each recipe (`racklay.synth.scene.sample_scene`, no rendering):
 
 It prints, per recipe and quantity, the recipe's 5-95 % and min-max range, how many photo values
 fall inside [min, max] (the recipe's support) and which photos fall outside, and draws one panel
-per quantity (recipe histograms, photo values as ticks; red = outside every recipe given).
+per quantity (recipe histograms over every photo value and the recipes' middle 99 %, their far
+tails piled into the end bins; photo values as ticks; red = outside every recipe given).
 
     .venv/bin/python -m bench.accuracy.synth_coverage --recipe complex --recipe pallet [--n 2000] [--set KEY=VALUE]
         [--project datasets/real-photos] [--out docs/img/synth_coverage.png]
@@ -176,8 +177,9 @@ def recipe_quantities(name: str, n: int, seed: int, sets=()) -> dict:
             return cam.project([[x, y, z] for x, z in pts])
 
         x0, x1 = s.layout_window or (-s.rack_length / 2, s.rack_length / 2)
-        for k, v in framing_quantities(to_image, x0, x1, lo, top.board_top + top.clear_height,
-                                       s.camera.width, s.camera.height).items():
+        drawn = (s.layout_heights or [None])[-1]              # the top level as far as the layouts draw it
+        hi = top.board_top + (top.clear_height if drawn is None else drawn)
+        for k, v in framing_quantities(to_image, x0, x1, lo, hi, s.camera.width, s.camera.height).items():
             q[k] += v
         c = s.camera.center
         q["cam_distance"].append(float(-s.rack_depth / 2 - c[1]))
@@ -261,11 +263,15 @@ def main(argv=None) -> int:
             ax.set_visible(False)
         for ax, key in zip(axes.ravel(), keys):
             label, unit = QUANTITIES[key]
-            allv = np.concatenate([np.asarray(rq[n][key], float) for n in recipes] +
-                                  [np.asarray(q[key], float) for q in photos.values()])
-            bins = np.linspace(allv.min(), allv.max() + 1e-6, 30) if key != "shelves" else np.arange(0.5, 6.5)
-            for name in recipes:
-                ax.hist(rq[name][key], bins=bins, density=True, alpha=0.45, label=name)
+            # the range: every photo value and the recipes' middle 99 % (their far tails, e.g. a bay
+            # 200 image widths wide seen from 35 cm, piled into the end bins)
+            pv = np.concatenate([np.asarray(q[key], float) for q in photos.values()] + [np.zeros(0)])
+            rv = [np.asarray(rq[n][key], float) for n in recipes]
+            lo = min([*pv, *(np.percentile(v, 0.5) for v in rv)])
+            hi = max([*pv, *(np.percentile(v, 99.5) for v in rv)])
+            bins = np.linspace(lo, hi + 1e-6, 30) if key != "shelves" else np.arange(0.5, 6.5)
+            for name, v in zip(recipes, rv):
+                ax.hist(np.clip(v, bins[0], bins[-1]), bins=bins, density=True, alpha=0.45, label=name)
             for photo, q in photos.items():
                 for x in q[key]:
                     out = x in uncovered[key][photo]
