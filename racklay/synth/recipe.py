@@ -111,7 +111,7 @@ class Recipe:
     roll_jitter_deg: float = _f(1.0, "float", 0.0, 15.0, "camera roll jitter ~ U(-a, a)")
     visible_fraction: float = _f(0.5, "float", 0.05, 1.0, "a shelf is visible when this fraction of its front opening's height is in the image")
     visible_fraction_board: float = _f(1.0, "float", 0.05, 1.0, "a shelf whose board's front edge is in the image is visible when this fraction of its front opening's height is (a level whose top the frame cuts, as labellers count one; 1.0: visible_fraction decides alone)")
-    layout_extent: str = _f("bay", "choice:bay|frame", doc="what the layouts draw of a bay the image's left or right edge cuts: 'bay' the whole bay (the paper's data, `complex`), 'frame' the bay as far as the image shows it, cut where the image's edges meet its front at the height of the middle of its visible levels, as the labelling guide draws photos (docs/annotate.md)")
+    layout_extent: str = _f("bay", "choice:bay|frame", doc="what the layouts draw of a bay the image cuts: 'bay' the whole bay (the paper's data, `complex`), 'frame' the bay as far as the image shows it, as the labelling guide draws photos (docs/annotate.md): cut where the image's left and right edges meet its front at the height of the middle of its visible levels, and a level whose opening the image's top edge cuts ended there")
     detection_range_m: float = _f(12.0, "float", 0.5, 100.0, "range of detection d: farther shelves are not visible")
     # --- lighting -------------------------------------------------------------------------
     ambient: list = _f([0.2, 0.35], "frange", 0.0, 2.0, "ambient light level")
