@@ -559,17 +559,28 @@ def test_packed_pallet_levels_stand_their_loads_a_gap_apart():
     assert np.median(spread_gaps) > 0.15, np.median(spread_gaps)
 
 
+FRONTAL_W, FRONTAL_H, FRONTAL_F = 470, 280, 400.0
+
+
+def frontal_camera(x: float, dist: float, k1: float = 0.0):
+    """A level camera looking straight at a 0.8 m deep rack's front from `dist` metres, eye at
+    1 m, at x along the rack; 470 x 280 pixels, focal length 400 px."""
+    from racklay.synth.scene import Camera, rotation_world_to_cam
+
+    W, H, f = FRONTAL_W, FRONTAL_H, FRONTAL_F
+    C = np.array([x, -0.4 - dist, 1.0])
+    R = rotation_world_to_cam(0.0, 0.0, 0.0)
+    return Camera(K=np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]]), R=R, t=-R @ C, width=W, height=H, k1=k1)
+
+
 def test_a_level_cut_by_the_frame_top_counts_when_its_board_shows_and_the_recipe_says_so():
     """`visible_fraction_board`: a level whose board is in the photo and whose opening the frame's
     top edge cuts counts as visible, as labellers count it (docs/annotate.md); a level whose
     board is below the frame does not, however much of its opening shows; 1.0 (the default)
     leaves the opening rule alone."""
-    from racklay.synth.scene import Camera, ShelfInfo, rotation_world_to_cam, visible_shelves
+    from racklay.synth.scene import ShelfInfo, visible_shelves
 
-    W, H, f = 470, 280, 400.0
-    C = np.array([0.0, -0.4 - 2.0, 1.0])                     # 2 m in front of a 0.8 m deep rack, eye at 1 m
-    R = rotation_world_to_cam(0.0, 0.0, 0.0)
-    cam = Camera(K=np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]]), R=R, t=-R @ C, width=W, height=H)
+    cam = frontal_camera(0.0, 2.0)                           # 2 m in front of a 0.8 m deep rack, eye at 1 m
     # the frame spans z = 1 -+ 140 / 400 * 2 m = 0.30 ... 1.70 m on the rack's front plane
     shelves = [ShelfInfo(0.0, 0.5, 0.45),    # board below the frame, 40 % of its opening in it
                ShelfInfo(0.5, 0.8, 0.75),    # entirely in the frame
@@ -600,14 +611,9 @@ def test_frame_extent_draws_the_bay_as_far_as_the_image_shows_it():
     """`layout_extent: frame`: where the image's left or right edge cuts the bay, the layouts draw
     the part of it in the image, as a labeller draws a photo (corners at the photo's edge); a bay
     the image shows whole, and every scene of a recipe without the key, keep the whole bay."""
-    from racklay.synth.scene import Camera, frame_height, frame_window, rotation_world_to_cam
+    from racklay.synth.scene import frame_height, frame_window
 
-    W, H, f = 470, 280, 400.0
-    R = rotation_world_to_cam(0.0, 0.0, 0.0)
-
-    def cam(x, dist, k1=0.0):
-        C = np.array([x, -0.4 - dist, 1.0])     # in front of a 0.8 m deep rack, eye at 1 m
-        return Camera(K=np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]]), R=R, t=-R @ C, width=W, height=H, k1=k1)
+    W, f, cam = FRONTAL_W, FRONTAL_F, frontal_camera
 
     half = W / 2 / f * 1.5                        # 0.88 m of the rack front either side at 1.5 m
     x0, x1 = frame_window(cam(0.0, 1.5), 4.0, 0.8, 1.0)
