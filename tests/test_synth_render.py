@@ -132,3 +132,57 @@ def test_wide_lens_distortion_is_bounded_and_inverted_exactly():
     mild = load_recipe("proxy_real", ["image_width=200", "image_height=120", "focal_px=[80,80]",
                                       "distortion_k1=[-0.02,-0.02]", "layout_size=64"])
     assert sample_scene(mild, 0, 0).camera.k1 == -0.02
+
+
+def _depth_and_normals(z: np.ndarray) -> np.ndarray:
+    """Camera-frame normals (uint8, as the G-buffer stores them) of fronto-parallel surfaces."""
+    n = np.zeros(z.shape + (3,), np.uint8)
+    n[..., :2], n[..., 2] = 128, 0       # (0, 0, -1): facing the camera
+    n[z == 0] = 0
+    return n
+
+
+def test_ambient_occlusion_darkens_recesses_not_open_faces():
+    """A wall 3 m away, two loads 1.2 m in front of it with a 12 cm slot between them: the wall
+    seen through the slot is occluded, open wall far from the loads and the loads' own faces are
+    not (no self-occlusion of a plane), and nothing is drawn where the image shows nothing."""
+    from racklay.synth.render import ambient_occlusion, occlude
+
+    H, W, f = 120, 200, 150.0
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    z = np.full((H, W), 3.0, np.float32)
+    slot = int(round(0.12 * f / 1.8))                           # 12 cm at 1.8 m in pixels
+    z[20:100, 40:100 - slot // 2] = 1.8
+    z[20:100, 100 + slot // 2:160] = 1.8
+    z[:, 195:] = 0                                               # nothing there
+    ao = ambient_occlusion(z, _depth_and_normals(z), K)
+    assert ao.shape == (H, W) and ao.dtype == np.float32 and 0 <= ao.min() and ao.max() <= 1
+    in_slot = ao[40:80, 99:101].mean()
+    open_wall, load_face = ao[40:80, 5:15].mean(), ao[40:80, 60:70].mean()
+    assert open_wall > 0.95 and load_face > 0.95
+    assert in_slot < open_wall - 0.3
+    assert np.all(ao[:, 196:] == 1)
+    rgb = np.full((H, W, 3), 200, np.uint8)
+    assert np.array_equal(occlude(rgb, ao, 0.0), rgb)
+    dark = occlude(rgb, ao, 2.0)
+    assert dark[60, 100, 0] < occlude(rgb, ao, 1.0)[60, 100, 0] < 200 and dark[60, 10, 0] >= 190
+
+
+def test_ambient_occlusion_changes_only_the_rgb_and_is_off_by_default(tmp_path):
+    """The recipe key darkens the image and nothing else (maps, layouts and meta geometry equal);
+    drawn last, it leaves every other draw of the scene as it was; the meta records it."""
+    off = Generator(load_recipe("pallet", SMALL), 0, tmp_path / "a")
+    on = Generator(load_recipe("pallet", SMALL + ["ambient_occlusion=[2,2]"]), 0, tmp_path / "b")
+    try:
+        s0, rgb0, maps0, top0, front0, meta0, *_ = off.make(1)
+        s1, rgb1, maps1, top1, front1, meta1, *_ = on.make(1)
+    finally:
+        off.close()
+        on.close()
+    assert s0.occlusion == 0 and s1.occlusion == 2.0 and meta1["ambient_occlusion"] == 2.0
+    for key in maps0:
+        assert np.array_equal(maps0[key], maps1[key])
+    assert np.array_equal(top0, top1) and np.array_equal(front0, front1)
+    assert s0.camera.K.tolist() == s1.camera.K.tolist() and len(s0.objects) == len(s1.objects)
+    ratio = (rgb1.astype(float).sum(-1) + 1) / (rgb0.astype(float).sum(-1) + 1)
+    assert np.median(ratio) < 1 and np.mean(ratio < 0.5) > 0.01      # darker, recesses much darker

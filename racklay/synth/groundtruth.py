@@ -168,6 +168,7 @@ def scene_meta(scene: Scene, recipe, grid: L.Grid, objects: list[dict]) -> dict:
         "background": scene.background, "occupancy_map": scene.occupancy,
         "lights": [{"position": _r(l.position, 4), "color": _r(l.color, 4), "intensity": round(l.intensity, 4)}
                    for l in scene.lights], "ambient": round(scene.ambient, 4),
+                   "ambient_occlusion": round(scene.occlusion, 4),
         "effects": {k: (round(v, 5) if isinstance(v, float) else v) for k, v in scene.effects.items()},
         "semantic_classes": list(SEMANTIC_CLASSES),
         "objects": objects,

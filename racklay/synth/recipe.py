@@ -120,6 +120,7 @@ class Recipe:
     light_warmth: list = _f([-0.1, 0.1], "frange", -1.0, 1.0, "colour temperature shift (+ warm, - cool)")
     ceiling_height: list = _f([7.0, 10.0], "frange", 3.0, 30.0, "warehouse ceiling height, metres")
     shadows: bool = _f(True, "bool", doc="shadow map for the main light")
+    ambient_occlusion: list = _f([0.0, 0.0], "frange", 0.0, 8.0, "strength of screen-space ambient occlusion (0 off; each pixel times ao ** strength, ao in [0, 1] from the depth buffer): how much light recesses lose (the slots between loads, under boards, inside a rack) that the ambient and fill lights otherwise reach as well as open faces")
     # --- look -----------------------------------------------------------------------------
     texture_family: str = _f("warehouse", "choice:warehouse|proxy", doc="procedural texture family")
     texture_dir: str = _f("", "path", doc="folder of your own images used as extra carton textures")

@@ -151,6 +151,7 @@ class Scene:
     effects: dict
     domain: str = "synthetic"
     shadows: bool = True          # the key light casts shadows
+    occlusion: float = 0.0        # ambient-occlusion strength (render.ambient_occlusion), 0 = none
     light_falloff: float = 6.0    # metres at which a light's intensity has halved
     rack_style: str = "shelving"  # "shelving" | "pallet" | "cube" | "wire" | "boltless" | "slotted" (Recipe.rack_style)
     layout_window: tuple | None = None  # (x0, x1): the part of the bay the layouts draw (Recipe.layout_extent)
@@ -964,10 +965,11 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
         heights = [frame_height(cam, x, depth, shelves[k].board_top, shelves[k].clear_height) for k in visible]
         heights = heights if any(h is not None for h in heights) else None
     occ_rows = ["".join("#" if v else "." for v in row) for row in occ]
+    occlusion = _u(rng, r.ambient_occlusion)   # drawn last: recipes without it keep every other draw
     return Scene(index=index, seed=seed, recipe=r.name, objects=B.objects, shelves=shelves, rack_length=length,
                  rack_depth=depth, visible=visible, camera=cam, lights=lights, ambient=ambient,
                  ambient_color=(1.0, 1.0, 1.0), main_light=0, background=background, occupancy=occ_rows,
-                 effects=effects, domain=r.domain, shadows=r.shadows, rack_style=style, layout_window=window,
+                 effects=effects, domain=r.domain, shadows=r.shadows, occlusion=occlusion, rack_style=style, layout_window=window,
                  layout_heights=heights)
 
 
