@@ -1,0 +1,202 @@
+"""How dark the slot between two loads is, against the loads beside it: renders and labelled photos.
+
+A model can only learn to separate loads from how a gap between them looks. On the labelled
+photos of pallet racking the gaps are dark slots; the eighth session found the renders' gaps
+easy (the bright back wall seen through the slot) and no model of the project finding the
+photos' gaps. This measures it: for every gap between two box runs on a shelf's front view (the
+front layout, as the model is scored), the mean luminance of the slot's face (the front plane
+between the two runs, from 10 % to 90 % of the lower run's height, its middle 70 % across) over
+the mean luminance of the two runs' faces beside it (as wide as the gap, 10-30 cm), measured in
+the image through the scene's own mapping of that plane: the camera for renders, the labelled
+rack's homography for photos. Below 1 the slot is darker than its loads.
+
+    .venv/bin/python -m bench.accuracy.slot_contrast --data /work/data/ab-mx-d21 --data /work/data/ab-ao-d21 \
+        [--photos datasets/real-photos [--photo-split datasets/real-photos/SOURCES.tsv:test]] [--limit 300]
+
+Prints per set the number of gaps measured, the quartiles of the ratio and the share of slots
+darker than 0.6 times their loads, overall and for gaps of at least 8 cm. Numbers only.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+#: gaps measured: between MIN_GAP_M and MAX_GAP_M wide (narrower: loads touching; wider: an empty stretch)
+MIN_GAP_M, MAX_GAP_M, WIDE_GAP_M = 0.02, 0.40, 0.08
+#: a slot's face must cover this many image pixels to be measured
+MIN_PIXELS = 6
+DARK = 0.6
+
+
+def front_gaps(front: np.ndarray, grid) -> list[tuple[float, float, float]]:
+    """(x0, x1, height) in metres of every gap between two box runs of one front-view channel
+    (classes, D x D): the runs' columns are those with a box above the board, the height the
+    lower of the two runs' heights at the gap's edges."""
+    from racklay.layout import BOX
+
+    D = front.shape[0]
+    above = front[: D // 2] == BOX                 # rows above the board, top row first
+    cols = above.any(axis=0)
+    top = np.where(cols, np.argmax(above, axis=0), D // 2)
+    height = (D // 2 - top) * grid.res
+    idx = np.flatnonzero(cols)
+    out = []
+    for a, b in zip(idx[:-1], idx[1:]):
+        if b - a > 1:                              # columns a+1 .. b-1 hold no box
+            x0, x1 = float(grid.col_to_x(a + 1)), float(grid.col_to_x(b))
+            if MIN_GAP_M <= x1 - x0 <= MAX_GAP_M:
+                out.append((x0, x1, float(min(height[a], height[b]))))
+    return out
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    return rgb[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+
+
+def region_mean(Y: np.ndarray, to_image, x0: float, x1: float, z0: float, z1: float) -> float | None:
+    """Mean of Y over the image polygon of the plane rectangle [x0, x1] x [z0, z1] (None: too small
+    or outside the image)."""
+    import cv2
+
+    poly = to_image(np.array([[x0, z0], [x1, z0], [x1, z1], [x0, z1]], np.float64))
+    if not np.all(np.isfinite(poly)):
+        return None
+    mask = np.zeros(Y.shape, np.uint8)
+    cv2.fillPoly(mask, [np.round(poly).astype(np.int32)], 1)
+    n = int(mask.sum())
+    return float(Y[mask > 0].mean()) if n >= MIN_PIXELS else None
+
+
+def slot_ratios(Y: np.ndarray, fronts: np.ndarray, grid, to_image_of) -> list[tuple[float, float]]:
+    """(gap width, slot / loads luminance ratio) for every measurable gap of one image;
+    `to_image_of(k)` maps channel k's front plane (x, z above its board) to image pixels."""
+    out = []
+    for k in range(fronts.shape[0]):
+        gaps = front_gaps(fronts[k], grid)
+        if not gaps:
+            continue
+        to_image = to_image_of(k)
+        for x0, x1, h in gaps:
+            w = x1 - x0
+            f = float(np.clip(w, 0.10, 0.30))
+            z0, z1 = 0.1 * h, 0.9 * h
+            slot = region_mean(Y, to_image, x0 + 0.15 * w, x1 - 0.15 * w, z0, z1)
+            left = region_mean(Y, to_image, x0 - f, x0 - 0.1 * f, z0, z1)
+            right = region_mean(Y, to_image, x1 + 0.1 * f, x1 + f, z0, z1)
+            if slot is None or left is None or right is None:
+                continue
+            out.append((w, slot / max((left + right) / 2, 1.0)))
+    return out
+
+
+def render_ratios(root: Path, limit: int) -> list[tuple[float, float]]:
+    """Every gap of a WareSynth set's front layouts, through each render's camera and lens."""
+    from racklay.data import RackLayRoot, read_image
+    from racklay.layout import Grid
+    from racklay.synth.effects import distort_points
+
+    ds = RackLayRoot(root)
+    ids = ds.ids()[:limit]
+    out = []
+    for sid in ids:
+        meta = json.loads((root / "meta" / f"{sid}.json").read_text())
+        grid = Grid(meta["grid"]["D"], meta["grid"]["extent_m"])
+        cam = meta["camera"]
+        K, R, t = (np.array(cam[k], np.float64) for k in ("K", "R", "t"))
+        k1 = cam.get("distortion_k1", 0.0)
+        y_front = -meta["rack"]["depth"] / 2
+        tops = meta["shelf_board_tops"]
+        fronts = ds.read_layouts("front", sid)
+        Y = luminance(read_image(ds.image_path(sid)))
+
+        def to_image_of(k, tops=tops, K=K, R=R, t=t, k1=k1, y_front=y_front):
+            def f(xz):
+                X = np.c_[xz[:, 0], np.full(len(xz), y_front), tops[k] + xz[:, 1]]
+                c = X @ R.T + t
+                if np.any(c[:, 2] <= 0.05):
+                    return np.full((len(xz), 2), np.nan)
+                uv = (c @ K.T)[:, :2] / c[:, 2:3] - 0.5        # pixel centres at +0.5
+                return distort_points(K, k1, uv)
+            return f
+
+        out += slot_ratios(Y, fronts[: len(tops)], grid, to_image_of)
+    return out
+
+
+def photo_ratios(project_dir: Path, names: set | None) -> list[tuple[float, float]]:
+    """Every gap of the labelled photos' front layouts, through each photo's rack homography."""
+    from annotate.dataset import annotation_layouts
+    from annotate.store import Project
+    from racklay import layout as L
+
+    project = Project(project_dir, create=False)
+    grid = L.Grid(project.settings["D"], project.settings["extent"])
+    out = []
+    for name in project.images():
+        if names is not None and name not in names:
+            continue
+        ann = project.load(name)
+        if ann.get("status") != "done":
+            continue
+        _, fronts, scene = annotation_layouts(project, ann)
+        Y = luminance(project.read_image(name))
+
+        def to_image_of(k, scene=scene):
+            def f(xz):
+                uv = np.c_[L.x_to_u(xz[:, 0], scene.width), scene.shelf_v[k] + xz[:, 1]]
+                return scene.plane.to_image(uv)
+            return f
+
+        out += slot_ratios(Y, fronts[: len(scene.shelf_v)], grid, to_image_of)
+    return out
+
+
+def summary(name: str, ratios: list[tuple[float, float]]) -> str:
+    def row(sel):
+        r = np.array([v for w, v in ratios if sel(w)])
+        if not len(r):
+            return "0 gaps |  |  |  | "
+        q = np.percentile(r, [25, 50, 75])
+        return f"{len(r)} | {q[0]:.2f} | {q[1]:.2f} | {q[2]:.2f} | {100 * np.mean(r < DARK):.0f} %"
+    return (f"| {name} | {row(lambda w: True)} | {row(lambda w: w >= WIDE_GAP_M)} |")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", action="append", default=[], help="a WareSynth (RackLay-format) set with meta (repeat)")
+    ap.add_argument("--limit", type=int, default=300, help="first N samples of each set (default 300)")
+    ap.add_argument("--photos", default=None, help="an annotate project of labelled photos")
+    ap.add_argument("--photo-split", default=None, metavar="TSV:SPLIT",
+                    help="only the photos of this split of a split file (e.g. datasets/real-photos/SOURCES.tsv:test)")
+    args = ap.parse_args(argv)
+    if not args.data and not args.photos:
+        ap.error("give --data and/or --photos")
+    rows = []
+    for d in args.data:
+        p = Path(d)
+        if not (p / "meta").is_dir():
+            ap.error(f"{d}: not a WareSynth set (no meta/ folder)")
+        rows.append(summary(f"`{p.name}` (first {args.limit})", render_ratios(p, args.limit)))
+    if args.photos:
+        names, label = None, "photos"
+        if args.photo_split:
+            from annotate.dataset import read_split_file
+
+            tsv, _, split = args.photo_split.rpartition(":")
+            names = {n for n, s in read_split_file(tsv).items() if s == split}
+            label = f"photos, split {split}"
+        rows.append(summary(f"{label} ({args.photos})", photo_ratios(Path(args.photos), names)))
+    head = ("slot / loads luminance: gaps | 25 % | median | 75 % | darker than "
+            f"{DARK} | gaps >= {WIDE_GAP_M * 100:.0f} cm | 25 % | median | 75 % | darker than {DARK}")
+    print("| set | " + head + " |")
+    print("|---" * (head.count("|") + 2) + "|")
+    print("\n".join(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
