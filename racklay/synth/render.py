@@ -440,10 +440,12 @@ def ambient_occlusion(depth: np.ndarray, normals: np.ndarray, K: np.ndarray,
     its normal faces) are projected into the image; a point lying behind the surface the image
     shows there is occluded, counted less the farther that surface is in front of the pixel (so a
     load 3 m in front does not darken the wall behind it). The sets of points vary over a small
-    tile of pixels and a box blur of that size averages them. Pixels that show nothing stay 1."""
+    tile of pixels and a box blur of that size averages them; computed at half resolution and
+    upsampled (occlusion varies slowly). Pixels that show nothing stay 1."""
+    import cv2
+
     H, W = depth.shape
     valid = depth > 0
-    # at half resolution (occlusion varies slowly; 4x cheaper), upsampled at the end
     h, w = -(-H // 2), -(-W // 2)
     z = np.where(valid, depth, np.float32(1e4))[::2, ::2].astype(np.float32)
     fx, fy, cx, cy = (np.float32(v) for v in (K[0, 0] / 2, K[1, 1] / 2, K[0, 2] / 2, K[1, 2] / 2))
@@ -467,14 +469,8 @@ def ambient_occlusion(depth: np.ndarray, normals: np.ndarray, K: np.ndarray,
         closer = np.minimum(np.float32(2 * radius) / np.maximum(np.abs(z - zs), np.float32(1e-6)), 1)  # range check
         occ += (zs < qz - bias) * closer
     ao = 1 - occ / ker.shape[2]
-    # box blur over the tile (separable, edge-clamped): the per-pixel sample sets average out
-    pad = AO_TILE // 2
-    for axis in (0, 1):
-        a = np.pad(ao, [(pad, AO_TILE - 1 - pad) if i == axis else (0, 0) for i in range(2)], mode="edge")
-        c = np.cumsum(np.concatenate([np.zeros_like(np.take(a, [0], axis=axis)), a], axis=axis), axis=axis)
-        ao = (np.take(c, np.arange(AO_TILE, c.shape[axis]), axis=axis)
-              - np.take(c, np.arange(0, c.shape[axis] - AO_TILE), axis=axis)) / AO_TILE
-    ao = np.repeat(np.repeat(ao, 2, axis=0), 2, axis=1)[:H, :W]
+    ao = cv2.blur(ao, (AO_TILE, AO_TILE), borderType=cv2.BORDER_REPLICATE)    # the sample sets average out
+    ao = cv2.resize(ao, (W, H), interpolation=cv2.INTER_LINEAR)
     return np.where(valid, np.clip(ao, 0, 1), 1).astype(np.float32)
 
 
