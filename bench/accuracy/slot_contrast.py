@@ -12,6 +12,7 @@ rack's homography for photos. Below 1 the slot is darker than its loads.
 
     .venv/bin/python -m bench.accuracy.slot_contrast --data /work/data/ab-mx-d21 --data /work/data/ab-ao-d21 \
         [--photos datasets/real-photos [--photo-split datasets/real-photos/SOURCES.tsv:test]] [--limit 300]
+        [--figure slots.png]
 
 Prints per set the number of gaps measured, the quartiles of the ratio and the share of slots
 darker than 0.6 times their loads, overall and for gaps of at least 8 cm. Numbers only.
@@ -30,6 +31,8 @@ MIN_GAP_M, MAX_GAP_M, WIDE_GAP_M = 0.02, 0.40, 0.08
 #: a slot's face must cover this many image pixels to be measured
 MIN_PIXELS = 6
 DARK = 0.6
+#: images per set in the --figure contact sheet
+FIGURE_ROWS = 4
 
 
 def front_gaps(front: np.ndarray, grid) -> list[tuple[float, float, float]]:
@@ -57,12 +60,10 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
     return rgb[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
 
 
-def region_mean(Y: np.ndarray, to_image, x0: float, x1: float, z0: float, z1: float) -> float | None:
-    """Mean of Y over the image polygon of the plane rectangle [x0, x1] x [z0, z1] (None: too small
-    or outside the image)."""
+def region_mean(Y: np.ndarray, poly: np.ndarray) -> float | None:
+    """Mean of Y over an image polygon (None: too small, outside the image or not finite)."""
     import cv2
 
-    poly = to_image(np.array([[x0, z0], [x1, z0], [x1, z1], [x0, z1]], np.float64))
     if not np.all(np.isfinite(poly)):
         return None
     mask = np.zeros(Y.shape, np.uint8)
@@ -71,9 +72,14 @@ def region_mean(Y: np.ndarray, to_image, x0: float, x1: float, z0: float, z1: fl
     return float(Y[mask > 0].mean()) if n >= MIN_PIXELS else None
 
 
-def slot_ratios(Y: np.ndarray, fronts: np.ndarray, grid, to_image_of) -> list[tuple[float, float]]:
+def slot_ratios(Y: np.ndarray, fronts: np.ndarray, grid, to_image_of,
+                canvas: np.ndarray | None = None) -> list[tuple[float, float]]:
     """(gap width, slot / loads luminance ratio) for every measurable gap of one image;
-    `to_image_of(k)` maps channel k's front plane (x, z above its board) to image pixels."""
+    `to_image_of(k)` maps channel k's front plane (x, z above its board) to image pixels. With a
+    `canvas` (the RGB image), each measured slot is outlined on it in red, its loads' faces in
+    green, the ratio written above."""
+    import cv2
+
     out = []
     for k in range(fronts.shape[0]):
         gaps = front_gaps(fronts[k], grid)
@@ -84,17 +90,26 @@ def slot_ratios(Y: np.ndarray, fronts: np.ndarray, grid, to_image_of) -> list[tu
             w = x1 - x0
             f = float(np.clip(w, 0.10, 0.30))
             z0, z1 = 0.1 * h, 0.9 * h
-            slot = region_mean(Y, to_image, x0 + 0.15 * w, x1 - 0.15 * w, z0, z1)
-            left = region_mean(Y, to_image, x0 - f, x0 - 0.1 * f, z0, z1)
-            right = region_mean(Y, to_image, x1 + 0.1 * f, x1 + f, z0, z1)
+            polys = [to_image(np.array([[a, z0], [b, z0], [b, z1], [a, z1]], np.float64))
+                     for a, b in ((x0 + 0.15 * w, x1 - 0.15 * w), (x0 - f, x0 - 0.1 * f), (x1 + 0.1 * f, x1 + f))]
+            slot, left, right = (region_mean(Y, p) for p in polys)
             if slot is None or left is None or right is None:
                 continue
-            out.append((w, slot / max((left + right) / 2, 1.0)))
+            ratio = slot / max((left + right) / 2, 1.0)
+            out.append((w, ratio))
+            if canvas is not None:
+                t = max(1, round(canvas.shape[1] / 300))
+                for p, c in zip(polys, ((255, 0, 0), (0, 220, 0), (0, 220, 0))):
+                    cv2.polylines(canvas, [np.round(p).astype(np.int32)], True, c, t)
+                x, y = np.round(polys[0].min(axis=0)).astype(int)
+                cv2.putText(canvas, f"{ratio:.2f}", (x, max(y - 4 * t, 10 * t)), cv2.FONT_HERSHEY_SIMPLEX,
+                            0.35 * t, (255, 255, 0), t, cv2.LINE_AA)
     return out
 
 
-def render_ratios(root: Path, limit: int) -> list[tuple[float, float]]:
-    """Every gap of a WareSynth set's front layouts, through each render's camera and lens."""
+def render_ratios(root: Path, limit: int, sheet: list | None = None) -> list[tuple[float, float]]:
+    """Every gap of a WareSynth set's front layouts, through each render's camera and lens; the
+    first FIGURE_ROWS images with a measured gap, outlined, appended to `sheet` (contact-sheet rows)."""
     from racklay.data import RackLayRoot, read_image
     from racklay.layout import Grid
     from racklay.synth.effects import distort_points
@@ -111,7 +126,8 @@ def render_ratios(root: Path, limit: int) -> list[tuple[float, float]]:
         y_front = -meta["rack"]["depth"] / 2
         tops = meta["shelf_board_tops"]
         fronts = ds.read_layouts("front", sid)
-        Y = luminance(read_image(ds.image_path(sid)))
+        rgb = read_image(ds.image_path(sid))
+        Y = luminance(rgb)
 
         def to_image_of(k, tops=tops, K=K, R=R, t=t, k1=k1, y_front=y_front):
             def f(xz):
@@ -123,12 +139,13 @@ def render_ratios(root: Path, limit: int) -> list[tuple[float, float]]:
                 return distort_points(K, k1, uv)
             return f
 
-        out += slot_ratios(Y, fronts[: len(tops)], grid, to_image_of)
+        out += _measure(Y, fronts[: len(tops)], grid, to_image_of, rgb, f"{root.name}/{sid}", sheet)
     return out
 
 
-def photo_ratios(project_dir: Path, names: set | None) -> list[tuple[float, float]]:
-    """Every gap of the labelled photos' front layouts, through each photo's rack homography."""
+def photo_ratios(project_dir: Path, names: set | None, sheet: list | None = None) -> list[tuple[float, float]]:
+    """Every gap of the labelled photos' front layouts, through each photo's rack homography (and
+    the first FIGURE_ROWS photos with a measured gap, outlined, appended to `sheet`)."""
     from annotate.dataset import annotation_layouts
     from annotate.store import Project
     from racklay import layout as L
@@ -143,7 +160,8 @@ def photo_ratios(project_dir: Path, names: set | None) -> list[tuple[float, floa
         if ann.get("status") != "done":
             continue
         _, fronts, scene = annotation_layouts(project, ann)
-        Y = luminance(project.read_image(name))
+        rgb = project.read_image(name)
+        Y = luminance(rgb)
 
         def to_image_of(k, scene=scene):
             def f(xz):
@@ -151,8 +169,20 @@ def photo_ratios(project_dir: Path, names: set | None) -> list[tuple[float, floa
                 return scene.plane.to_image(uv)
             return f
 
-        out += slot_ratios(Y, fronts[: len(scene.shelf_v)], grid, to_image_of)
+        out += _measure(Y, fronts[: len(scene.shelf_v)], grid, to_image_of, rgb, name, sheet)
     return out
+
+
+def _measure(Y, fronts, grid, to_image_of, rgb, name, sheet):
+    """slot_ratios of one image; while `sheet` (this set's contact-sheet rows) holds fewer than
+    FIGURE_ROWS rows, an image with a measured gap is added to it, outlined."""
+    if sheet is None or len(sheet) >= FIGURE_ROWS:
+        return slot_ratios(Y, fronts, grid, to_image_of)
+    canvas = rgb[..., :3].copy()
+    r = slot_ratios(Y, fronts, grid, to_image_of, canvas)
+    if r:
+        sheet.append((name, canvas, None, fronts))
+    return r
 
 
 def summary(name: str, ratios: list[tuple[float, float]]) -> str:
@@ -170,17 +200,23 @@ def main(argv=None) -> int:
     ap.add_argument("--data", action="append", default=[], help="a WareSynth (RackLay-format) set with meta (repeat)")
     ap.add_argument("--limit", type=int, default=300, help="first N samples of each set (default 300)")
     ap.add_argument("--photos", default=None, help="an annotate project of labelled photos")
+    ap.add_argument("--figure", default=None, metavar="PNG",
+                    help=f"also draw a contact sheet: the first {FIGURE_ROWS} images of each set with a measured "
+                         "gap, each slot outlined in red, its loads' faces in green, the ratio above, and the "
+                         "image's front layouts beside it")
     ap.add_argument("--photo-split", default=None, metavar="TSV:SPLIT",
                     help="only the photos of this split of a split file (e.g. datasets/real-photos/SOURCES.tsv:test)")
     args = ap.parse_args(argv)
     if not args.data and not args.photos:
         ap.error("give --data and/or --photos")
-    rows = []
     for d in args.data:
-        p = Path(d)
-        if not (p / "meta").is_dir():
+        if not (Path(d) / "meta").is_dir():
             ap.error(f"{d}: not a WareSynth set (no meta/ folder)")
-        rows.append(summary(f"`{p.name}` (first {args.limit})", render_ratios(p, args.limit)))
+    rows, sheet = [], []
+    for d in args.data:
+        p, mine = Path(d), [] if args.figure else None
+        rows.append(summary(f"`{p.name}` (first {args.limit})", render_ratios(p, args.limit, mine)))
+        sheet += mine or []
     if args.photos:
         names, label = None, "photos"
         if args.photo_split:
@@ -189,12 +225,18 @@ def main(argv=None) -> int:
             tsv, _, split = args.photo_split.rpartition(":")
             names = {n for n, s in read_split_file(tsv).items() if s == split}
             label = f"photos, split {split}"
-        rows.append(summary(f"{label} ({args.photos})", photo_ratios(Path(args.photos), names)))
+        mine = [] if args.figure else None
+        rows.append(summary(f"{label} ({args.photos})", photo_ratios(Path(args.photos), names, mine)))
+        sheet += mine or []
     head = ("slot / loads luminance: gaps | 25 % | median | 75 % | darker than "
             f"{DARK} | gaps >= {WIDE_GAP_M * 100:.0f} cm | 25 % | median | 75 % | darker than {DARK}")
     print("| set | " + head + " |")
     print("|---" * (head.count("|") + 2) + "|")
     print("\n".join(rows))
+    if args.figure and sheet:
+        from racklay.viz import contact_sheet
+
+        print(f"figure: {contact_sheet(sheet, args.figure, title='slot (red) / loads (green) luminance')}")
     return 0
 
 
