@@ -124,19 +124,20 @@ def render_ratios(root: Path, limit: int, sheet: list | None = None) -> list[tup
         K, R, t = (np.array(cam[k], np.float64) for k in ("K", "R", "t"))
         k1 = cam.get("distortion_k1", 0.0)
         y_front = -meta["rack"]["depth"] / 2
+        window = meta["rack"].get("layout_window")           # `frame` layouts are re-centred on it
+        shift = 0.0 if window is None else (window[0] + window[1]) / 2
         tops = meta["shelf_board_tops"]
         fronts = ds.read_layouts("front", sid)
         rgb = read_image(ds.image_path(sid))
         Y = luminance(rgb)
 
-        def to_image_of(k, tops=tops, K=K, R=R, t=t, k1=k1, y_front=y_front):
+        def to_image_of(k, tops=tops, K=K, R=R, t=t, k1=k1, y_front=y_front, shift=shift):
             def f(xz):
-                X = np.c_[xz[:, 0], np.full(len(xz), y_front), tops[k] + xz[:, 1]]
+                X = np.c_[xz[:, 0] + shift, np.full(len(xz), y_front), tops[k] + xz[:, 1]]
                 c = X @ R.T + t
                 if np.any(c[:, 2] <= 0.05):
                     return np.full((len(xz), 2), np.nan)
-                uv = (c @ K.T)[:, :2] / c[:, 2:3] - 0.5        # pixel centres at +0.5
-                return distort_points(K, k1, uv)
+                return distort_points(K, k1, (c @ K.T)[:, :2] / c[:, 2:3]) - 0.5   # pixel centres at +0.5
             return f
 
         out += _measure(Y, fronts[: len(tops)], grid, to_image_of, rgb, f"{root.name}/{sid}", sheet)
@@ -146,20 +147,25 @@ def render_ratios(root: Path, limit: int, sheet: list | None = None) -> list[tup
 def photo_ratios(project_dir: Path, names: set | None, sheet: list | None = None) -> list[tuple[float, float]]:
     """Every gap of the labelled photos' front layouts, through each photo's rack homography (and
     the first FIGURE_ROWS photos with a measured gap, outlined, appended to `sheet`)."""
+    from annotate import geometry as G
     from annotate.dataset import annotation_layouts
-    from annotate.store import Project
+    from annotate.store import DONE_STATUSES, Project
     from racklay import layout as L
 
     project = Project(project_dir, create=False)
     grid = L.Grid(project.settings["D"], project.settings["extent"])
-    out = []
+    out, unlabelled = [], []
     for name in project.images():
         if names is not None and name not in names:
             continue
         ann = project.load(name)
-        if ann.get("status") != "done":
+        if ann.get("status") not in DONE_STATUSES:
+            unlabelled.append(name)
             continue
-        _, fronts, scene = annotation_layouts(project, ann)
+        try:
+            _, fronts, scene = annotation_layouts(project, ann)
+        except G.GeometryError as e:
+            raise SystemExit(f"{project.annotation_path(name)}: {e}") from None
         rgb = project.read_image(name)
         Y = luminance(rgb)
 
@@ -170,6 +176,9 @@ def photo_ratios(project_dir: Path, names: set | None, sheet: list | None = None
             return f
 
         out += _measure(Y, fronts[: len(scene.shelf_v)], grid, to_image_of, rgb, name, sheet)
+    if unlabelled:
+        print(f"{project_dir}: {len(unlabelled)} photo(s) not labelled done, not measured: "
+              f"{', '.join(unlabelled[:5])}{' ...' if len(unlabelled) > 5 else ''}", file=sys.stderr)
     return out
 
 
