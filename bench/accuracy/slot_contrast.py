@@ -45,14 +45,13 @@ def front_gaps(front: np.ndarray, grid) -> list[tuple[float, float, float]]:
     above = front[: D // 2] == BOX                 # rows above the board, top row first
     cols = above.any(axis=0)
     top = np.where(cols, np.argmax(above, axis=0), D // 2)
-    height = (D // 2 - top) * grid.res
     idx = np.flatnonzero(cols)
     out = []
     for a, b in zip(idx[:-1], idx[1:]):
         if b - a > 1:                              # columns a+1 .. b-1 hold no box
-            x0, x1 = float(grid.col_to_x(a + 1)), float(grid.col_to_x(b))
+            x0, x1 = grid.col_span_to_x(a + 1, b)
             if MIN_GAP_M <= x1 - x0 <= MAX_GAP_M:
-                out.append((x0, x1, float(min(height[a], height[b]))))
+                out.append((x0, x1, float(grid.px_to_m(D // 2 - max(top[a], top[b])))))
     return out
 
 
@@ -72,10 +71,11 @@ def region_mean(Y: np.ndarray, poly: np.ndarray) -> float | None:
     return float(Y[mask > 0].mean()) if n >= MIN_PIXELS else None
 
 
-def slot_ratios(Y: np.ndarray, fronts: np.ndarray, grid, to_image_of,
+def slot_ratios(Y: np.ndarray, fronts: np.ndarray, grid, outline_of,
                 canvas: np.ndarray | None = None) -> list[tuple[float, float]]:
     """(gap width, slot / loads luminance ratio) for every measurable gap of one image;
-    `to_image_of(k)` maps channel k's front plane (x, z above its board) to image pixels. With a
+    `outline_of(k)(x0, x1, z0, z1)` is the image polygon of a rectangle on channel k's front
+    plane (x along the shelf, z above its board). With a
     `canvas` (the RGB image), each measured slot is outlined on it in red, its loads' faces in
     green, the ratio written above."""
     import cv2
@@ -85,13 +85,12 @@ def slot_ratios(Y: np.ndarray, fronts: np.ndarray, grid, to_image_of,
         gaps = front_gaps(fronts[k], grid)
         if not gaps:
             continue
-        to_image = to_image_of(k)
+        outline = outline_of(k)
         for x0, x1, h in gaps:
             w = x1 - x0
             f = float(np.clip(w, 0.10, 0.30))
             z0, z1 = 0.1 * h, 0.9 * h
-            polys = [to_image(np.array([[a, z0], [b, z0], [b, z1], [a, z1]], np.float64))
-                     for a, b in ((x0 + 0.15 * w, x1 - 0.15 * w), (x0 - f, x0 - 0.1 * f), (x1 + 0.1 * f, x1 + f))]
+            polys = [outline(a, b, z0, z1) for a, b in ((x0 + 0.15 * w, x1 - 0.15 * w), (x0 - f, x0 - 0.1 * f), (x1 + 0.1 * f, x1 + f))]
             slot, left, right = (region_mean(Y, p) for p in polys)
             if slot is None or left is None or right is None:
                 continue
@@ -110,6 +109,7 @@ def slot_ratios(Y: np.ndarray, fronts: np.ndarray, grid, to_image_of,
 def render_ratios(root: Path, limit: int, sheet: list | None = None) -> list[tuple[float, float]]:
     """Every gap of a WareSynth set's front layouts, through each render's camera and lens; the
     first FIGURE_ROWS images with a measured gap, outlined, appended to `sheet` (contact-sheet rows)."""
+    from racklay.camera import PinholeCamera
     from racklay.data import RackLayRoot, read_image
     from racklay.layout import Grid
     from racklay.synth.effects import distort_points
@@ -120,9 +120,8 @@ def render_ratios(root: Path, limit: int, sheet: list | None = None) -> list[tup
     for sid in ids:
         meta = json.loads((root / "meta" / f"{sid}.json").read_text())
         grid = Grid(meta["grid"]["D"], meta["grid"]["extent_m"])
-        cam = meta["camera"]
-        K, R, t = (np.array(cam[k], np.float64) for k in ("K", "R", "t"))
-        k1 = cam.get("distortion_k1", 0.0)
+        cam = PinholeCamera(*(np.array(meta["camera"][k], np.float64) for k in ("K", "R", "t")))
+        k1 = meta["camera"].get("distortion_k1", 0.0)
         y_front = -meta["rack"]["depth"] / 2
         window = meta["rack"].get("layout_window")           # `frame` layouts are re-centred on it
         shift = 0.0 if window is None else (window[0] + window[1]) / 2
@@ -131,16 +130,16 @@ def render_ratios(root: Path, limit: int, sheet: list | None = None) -> list[tup
         rgb = read_image(ds.image_path(sid))
         Y = luminance(rgb)
 
-        def to_image_of(k, tops=tops, K=K, R=R, t=t, k1=k1, y_front=y_front, shift=shift):
-            def f(xz):
-                X = np.c_[xz[:, 0] + shift, np.full(len(xz), y_front), tops[k] + xz[:, 1]]
-                c = X @ R.T + t
-                if np.any(c[:, 2] <= 0.05):
-                    return np.full((len(xz), 2), np.nan)
-                return distort_points(K, k1, (c @ K.T)[:, :2] / c[:, 2:3]) - 0.5   # pixel centres at +0.5
+        def outline_of(k, tops=tops, cam=cam, k1=k1, y_front=y_front, shift=shift):
+            def f(x0, x1, z0, z1):
+                z = tops[k] + np.array([z0, z0, z1, z1])
+                uv, depth = cam.project_z(np.c_[np.array([x0, x1, x1, x0]) + shift, np.full(4, y_front), z])
+                if np.any(depth <= 0.05):
+                    return np.full((4, 2), np.nan)
+                return distort_points(cam.K, k1, uv) - 0.5        # pixel centres at +0.5
             return f
 
-        out += _measure(Y, fronts[: len(tops)], grid, to_image_of, rgb, f"{root.name}/{sid}", sheet)
+        out += _measure(Y, fronts[: len(tops)], grid, outline_of, rgb, f"{root.name}/{sid}", sheet)
     return out
 
 
@@ -169,26 +168,26 @@ def photo_ratios(project_dir: Path, names: set | None, sheet: list | None = None
         rgb = project.read_image(name)
         Y = luminance(rgb)
 
-        def to_image_of(k, scene=scene):
-            def f(xz):
-                uv = np.c_[L.x_to_u(xz[:, 0], scene.width), scene.shelf_v[k] + xz[:, 1]]
-                return scene.plane.to_image(uv)
+        def outline_of(k, scene=scene):
+            def f(x0, x1, z0, z1):
+                v = scene.shelf_v[k]
+                return G.rect_outline(scene.plane, L.x_to_u(x0, scene.width), L.x_to_u(x1, scene.width), v + z0, v + z1)
             return f
 
-        out += _measure(Y, fronts[: len(scene.shelf_v)], grid, to_image_of, rgb, name, sheet)
+        out += _measure(Y, fronts[: len(scene.shelf_v)], grid, outline_of, rgb, name, sheet)
     if unlabelled:
         print(f"{project_dir}: {len(unlabelled)} photo(s) not labelled done, not measured: "
               f"{', '.join(unlabelled[:5])}{' ...' if len(unlabelled) > 5 else ''}", file=sys.stderr)
     return out
 
 
-def _measure(Y, fronts, grid, to_image_of, rgb, name, sheet):
+def _measure(Y, fronts, grid, outline_of, rgb, name, sheet):
     """slot_ratios of one image; while `sheet` (this set's contact-sheet rows) holds fewer than
     FIGURE_ROWS rows, an image with a measured gap is added to it, outlined."""
     if sheet is None or len(sheet) >= FIGURE_ROWS:
-        return slot_ratios(Y, fronts, grid, to_image_of)
+        return slot_ratios(Y, fronts, grid, outline_of)
     canvas = rgb[..., :3].copy()
-    r = slot_ratios(Y, fronts, grid, to_image_of, canvas)
+    r = slot_ratios(Y, fronts, grid, outline_of, canvas)
     if r:
         sheet.append((name, canvas, None, fronts))
     return r
