@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cache
 from typing import Protocol
 
 import numpy as np
@@ -422,14 +423,18 @@ class GLRenderer:
 AO_RADIUS, AO_SAMPLES, AO_TILE = 0.6, 12, 4
 
 
+@cache
 def _ao_kernels(n: int = AO_SAMPLES, tile: int = AO_TILE) -> np.ndarray:
     """(tile, tile, n, 3) fixed sample offsets in the unit ball, one set per tile position, denser
-    near the centre (so close occluders count most). A fixed seed: renders stay reproducible."""
+    near the centre (so close occluders count most). A fixed seed: renders stay reproducible;
+    drawn once per process (read-only)."""
     rng = np.random.default_rng(7)
     v = rng.normal(size=(tile, tile, n, 3))
     v /= np.linalg.norm(v, axis=-1, keepdims=True)
     scale = 0.1 + 0.9 * ((np.arange(n) + rng.uniform(size=(tile, tile, n))) / n) ** 2
-    return (v * scale[..., None]).astype(np.float32)
+    ker = (v * scale[..., None]).astype(np.float32)
+    ker.flags.writeable = False
+    return ker
 
 
 def ambient_occlusion(depth: np.ndarray, normals: np.ndarray, K: np.ndarray,
