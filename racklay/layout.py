@@ -31,8 +31,10 @@ What is a shelf, what is a box (pallet racking included):
 How much of a bay: a labelled photo draws the bay as far as the photo shows it (where the
 frame's left or right edge cuts the bay, the shelf ends there; where its top edge cuts a level,
 the level's opening and its boxes end there: docs/annotate.md). WareSynth draws the same with
-`layout_extent: frame` (`rasterize_shelf(window=...)`, the scene's `layout_heights`); with
-`bay`, the paper's convention and `complex`'s, it draws the whole bay however much is in view.
+`layout_extent: frame` (`rasterize_shelf(window=...)`, the scene's `layout_heights`), and with
+`row` continues a level across shared uprights into the neighbouring bays as far as the image
+shows them, as a labeller draws "the bay (or bays)" a photo shows; with `bay`, the paper's
+convention and `complex`'s, it draws the whole bay however much is in view.
 
 Rack plane (the annotation tool's, annotate.geometry): u along the rack's front face from its
 left edge (0 .. W), v up from its bottom. A shelf spans the rack's width, so x = u - W/2 and

@@ -656,3 +656,43 @@ def test_frame_extent_draws_the_bay_as_far_as_the_image_shows_it():
         for k in range(len(s.visible)):
             assert lengths[k] == pytest.approx(x1 - x0, abs=2 * g.res)
     assert cut >= 4 and heights >= 3
+
+
+def test_row_extent_continues_the_shelves_into_the_neighbouring_bays():
+    """`layout_extent: row`: the labelling guide draws "the bay (or bays) the photo is about", so
+    a level continues across the shared upright into the next bay as far as the image shows it,
+    with that bay's loads; the images and every other draw stay those of `bay` and `frame`, and a
+    bay with no neighbour in its row is drawn as `frame` draws it."""
+    r = load_recipe("mixed", {**SMALL, "layout_extent": "row"})
+    frame = load_recipe("mixed", {**SMALL, "layout_extent": "frame"})
+    g = L.Grid(256, r.extent_m)
+    across = alone = 0
+    for i in range(40):
+        s, f = sample_scene(r, 5, i), sample_scene(frame, 5, i)
+        assert s.camera.t.tolist() == f.camera.t.tolist() and len(s.objects) == len(f.objects)
+        top, front = scene_layouts(s, g, r.R)
+        if s.layout_row is None:
+            alone += 1
+            for a, b in zip((top, front), scene_layouts(f, g, r.R)):
+                np.testing.assert_array_equal(a, b)
+            continue
+        a, b = s.layout_row
+        x0, x1 = s.layout_window
+        assert a <= x0 < x1 <= b and x1 - x0 <= r.extent_m + 1e-9
+        assert a < -s.rack_length / 2 or b > s.rack_length / 2          # a neighbour on one side at least
+        centre = (x0 + x1) / 2
+        for k, si in enumerate(s.visible):
+            # one shelf over the whole window, the upright between the bays included
+            assert L.shelf_lengths(front, g)[k] == pytest.approx(x1 - x0, abs=2 * g.res)
+            board = s.shelves[si].board_top
+            for bx in s.row_boxes[si]:
+                # every neighbour's box is a load drawn in the scene, standing on the same level
+                assert any(abs(o.center[0] - bx.cx) < 1e-9 and abs(o.center[1] - bx.cy) < 1e-9
+                           and abs(o.center[2] - (board + bx.z0 + bx.sz / 2)) < 1e-9
+                           and np.allclose(o.size, (bx.sx, bx.sy, bx.sz)) for o in s.objects), bx
+                lo, hi = max(bx.x_range()[0], x0), min(bx.x_range()[1], x1)
+                if hi - lo > 4 * g.res and bx.z0 < 0.02:
+                    across += 1     # (partly) inside the window: drawn as box in the front view
+                    col = int(g.x_to_col((lo + hi) / 2 - centre))
+                    assert (front[k][:, col] == L.BOX).any()
+    assert across >= 3 and alone >= 2

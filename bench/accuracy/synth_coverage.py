@@ -5,8 +5,9 @@ scene is rebuilt from its annotation (`annotate.geometry`: rack size, shelf boar
 camera recovered from the rack's homography), and the same quantities are measured on scenes
 sampled from each recipe (`racklay.synth.scene.sample_scene`, no rendering):
 
-    rack length, rack depth, visible shelves, level height (board to board, shelves below the
-    top one), box width / height / depth, box run width (boxes on one shelf that touch or
+    rack length (as far as the layouts draw it: the bay, or with `layout_extent: frame` / `row`
+    the part of the bay / row in the image, as a labelled photo draws it), rack depth, visible
+    shelves, level height (board to board, shelves below the top one), box width / height / depth, box run width (boxes on one shelf that touch or
     overlap along it, less than RUN_GAP apart, merged: what the front layout draws as one run and
     what a labeller draws as one box for a wall of cartons), camera distance to the rack front,
     camera height, focal length per pixel of image width; and the framing, which every photo
@@ -156,7 +157,8 @@ def recipe_quantities(name: str, n: int, seed: int, sets=()) -> dict:
     q = {k: [] for k in QUANTITIES}
     for i in range(n):
         s = sample_scene(r, seed, i)
-        q["rack_length"].append(s.rack_length)
+        x0, x1 = s.layout_window or (-s.rack_length / 2, s.rack_length / 2)
+        q["rack_length"].append(x1 - x0)         # as far as the layouts draw it, as a labelled photo's
         q["rack_depth"].append(s.rack_depth)
         q["shelves"].append(len(s.visible))
         tops = [s.shelves[k].board_top for k in s.visible]
@@ -176,7 +178,6 @@ def recipe_quantities(name: str, n: int, seed: int, sets=()) -> dict:
         def to_image(pts, cam=s.camera, y=-s.rack_depth / 2):
             return cam.project([[x, y, z] for x, z in pts])
 
-        x0, x1 = s.layout_window or (-s.rack_length / 2, s.rack_length / 2)
         drawn = (s.layout_heights or [None])[-1]              # the top level as far as the layouts draw it
         hi = top.board_top + (top.clear_height if drawn is None else drawn)
         for k, v in framing_quantities(to_image, x0, x1, lo, hi, s.camera.width, s.camera.height).items():

@@ -14,7 +14,8 @@ from .scene import CATEGORY_NAMES, SEMANTIC_CLASSES, Scene, cuboid_corners
 
 def scene_layouts(scene: Scene, grid: L.Grid, R: int) -> tuple[np.ndarray, np.ndarray]:
     """(top, front) class-id stacks R x D x D: channel c = visible shelf c (lowest first), each
-    the whole bay or, with a layout window (Recipe.layout_extent 'frame'), the part of it shown."""
+    the whole bay or, with a layout window (Recipe.layout_extent 'frame' or 'row'), the part of it
+    (or of its row of bays) shown."""
     per = [L.rasterize_shelf(shelf, boxes, grid, window=scene.layout_window)
            for shelf, boxes in scene.layout_inputs()]
     return L.stack_shelves(per, R, grid)
@@ -160,6 +161,8 @@ def scene_meta(scene: Scene, recipe, grid: L.Grid, objects: list[dict]) -> dict:
                  # the part of the bay the layouts draw (world x, metres; null: all of it), re-centred,
                  # and per layout channel the height of its opening drawn (null: all of it)
                  "layout_window": None if scene.layout_window is None else _r(scene.layout_window, 6),
+                 # layout_extent 'row': the row of bays (world x) the shelves continue into; null: the bay alone
+                 "layout_row": None if scene.layout_row is None else _r(scene.layout_row, 6),
                  "layout_heights": None if scene.layout_heights is None else
                  [None if h is None else round(h, 6) for h in scene.layout_heights]},
         # per layout channel (lowest visible shelf first): inter-shelf height, like WareSynth's height*.npy

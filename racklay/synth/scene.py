@@ -62,6 +62,8 @@ SLOTTED_FINISHES = (((0.5, 0.53, 0.56), 0.45), ((0.76, 0.77, 0.78), 0.2), ((0.3,
 #: boltless shelving finishes (blue, grey, orange, white, black, green) and how often each is drawn
 BOLTLESS_FINISHES = (((0.12, 0.22, 0.62), 0.35), ((0.6, 0.62, 0.64), 0.25), ((0.92, 0.45, 0.1), 0.15),
                      ((0.9, 0.9, 0.88), 0.1), ((0.12, 0.12, 0.13), 0.1), ((0.2, 0.45, 0.3), 0.05))
+#: styles whose bays in a row share uprights and levels: layout_extent 'row' continues their shelves
+ROW_STYLES = ("shelving", "pallet", "boltless", "slotted")
 #: wire shelving finishes (chrome, black / white / green epoxy) and how often each is drawn
 WIRE_FINISHES = (((0.9, 0.9, 0.92), 0.5), ((0.1, 0.1, 0.11), 0.25), ((0.9, 0.9, 0.87), 0.15), ((0.3, 0.45, 0.36), 0.1))
 
@@ -156,21 +158,30 @@ class Scene:
     rack_style: str = "shelving"  # "shelving" | "pallet" | "cube" | "wire" | "boltless" | "slotted" (Recipe.rack_style)
     layout_window: tuple | None = None  # (x0, x1): the part of the bay the layouts draw (Recipe.layout_extent)
     layout_heights: list | None = None  # per visible shelf: the height of its opening drawn, None: all (ditto)
+    layout_row: tuple | None = None     # (x0, x1): the row of bays the shelves continue into (layout_extent 'row')
+    row_boxes: list | None = None       # per shelf: the neighbouring bays' boxes, x in the considered bay's frame
 
     def layout_inputs(self) -> list[tuple[L.Shelf, list[L.Box]]]:
         """(Shelf, boxes in the shelf frame) of each visible shelf, lowest first, as far up as the
         layouts draw it (`layout_heights`: a level the frame's top cuts ends there, its boxes cut
-        at that height); along x the whole bay (the layouts draw `layout_window` of it)."""
+        at that height); along x the whole bay (the layouts draw `layout_window` of it) or, with
+        `layout_row`, a shelf centred on the considered bay reaching over the whole row of bays,
+        with the neighbouring bays' boxes (the window then always lies within the row)."""
         out = []
+        length = self.rack_length
+        if self.layout_row is not None:
+            length = 2 * max(-self.layout_row[0], self.layout_row[1])
         for k, si in enumerate(self.visible):
             sh = self.shelves[si]
             boxes = [self.objects[i].layout_box for i in sh.items]
+            if self.row_boxes is not None:
+                boxes += self.row_boxes[si]
             clear = sh.clear_height
             shown = self.layout_heights[k] if self.layout_heights else None
             if shown is not None:
                 clear = shown
                 boxes = [replace(b, sz=min(b.sz, shown - b.z0)) for b in boxes if b.z0 < shown]
-            out.append((L.Shelf(self.rack_length, self.rack_depth, clear), boxes))
+            out.append((L.Shelf(length, self.rack_depth, clear), boxes))
         return out
 
 
@@ -439,6 +450,12 @@ class _Builder:
         self.rng, self.r, self.objects = rng, r, []
         self.board_tint = None   # a scene colour for every board (palette_random), else per-board jitter
         self.label_size = None   # (width, height) of the location labels on front beams (beam_labels), else none
+        self.collect = None      # per level: where a neighbouring bay's items go as layout boxes (layout_extent 'row')
+
+    def collected(self, si: int, boxes, x0: float, y0: float) -> None:
+        """Record a neighbouring bay's level-`si` items in the considered bay's frame (no draw)."""
+        if self.collect is not None:
+            self.collect[si].extend(replace(b, cx=b.cx + x0, cy=b.cy + y0) for b in boxes)
 
     def add(self, center, size, material, semantic, yaw=0.0, tint=None, shape="box", **kw) -> int:
         tint = tint if tint is not None else _tint(self.rng, self.r.tint_jitter)
@@ -460,6 +477,8 @@ class _Builder:
         idx = [self.item(cat, b, z_top, x0, y0, shelf=si if mine else -1, keep_layout=mine) for cat, b in items]
         if mine:
             shelf_infos[si].items = idx
+        else:
+            self.collected(si, [b for _, b in items], x0, y0)
 
     def shelf_items(self, boards, length, depth, x0, y0, shelf_infos=None) -> None:
         """Cartons and crates straight on every level of a shelving-like bay (shelving, wire and
@@ -548,6 +567,8 @@ class _Builder:
                                     pallet=pallet) for kind, b, pallet in units]
             if shelf_infos is not None:
                 shelf_infos[si].items = idx
+            else:
+                self.collected(si, [b for _, b, _ in units], x0, y0)
 
     def cube_unit(self, x0, y0, length, depth, boards, columns, cell, panel, tint, back,
                   shelf_infos=None):
@@ -844,6 +865,17 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             row.append(occupied)
         occ.append(row)
 
+    # the considered bay's row as far as its bays stand side by side, sharing uprights (layout_extent 'row')
+    run = (0, 0)
+    if r.layout_extent == "row" and style in ROW_STYLES:
+        lo_c = hi_c = K
+        while lo_c > 0 and occ[0][lo_c - 1]:
+            lo_c -= 1
+        while hi_c < 2 * K and occ[0][hi_c + 1]:
+            hi_c += 1
+        run = (lo_c - K, hi_c - K)
+    row_boxes = [[] for _ in boards] if run != (0, 0) else None
+
     # racks: uprights are shared between neighbouring bays of a row
     for ri, (yc, d2) in enumerate(zip(rows_y, depths)):
         row = occ[ri]
@@ -852,6 +884,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
                 continue
             left_shared = ci > 0 and row[ci - 1]
             is_target = ri == 0 and col == 0
+            B.collect = row_boxes if ri == 0 and run[0] <= col <= run[1] and not is_target else None
             if style == "cube":
                 B.cube_unit(col * pitch_x, yc, length, d2, boards, columns, cell, panel, steel_tint, cube_back,
                             shelf_infos=shelves if is_target else None)
@@ -870,6 +903,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             else:
                 B.rack(col * pitch_x, yc, length, d2, boards, beam_h, top_z, steel_tint, beam_tint, filled=True,
                        shelf_infos=shelves if is_target else None, uprights=(not left_shared, True))
+    B.collect = None
 
     # building: floor, ceiling, walls, lamps
     fl_tint = _tint(rng, 0.12)
@@ -956,11 +990,19 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     # a wide lens gets at most the barrel distortion that keeps its corners (effects.k1_limit)
     effects["distortion_k1"] = max(effects["distortion_k1"], k1_limit(cam.K, cam.width, cam.height))
     cam.k1 = effects["distortion_k1"]
-    window = heights = None
-    if r.layout_extent == "frame":
+    window = heights = layout_row = None
+    if r.layout_extent in ("frame", "row"):
         lo = shelves[visible[0]].board_top
         hi = shelves[visible[-1]].board_top + shelves[visible[-1]].clear_height
-        window = frame_window(cam, length, depth, (lo + hi) / 2)
+        if row_boxes is None:
+            window = frame_window(cam, length, depth, (lo + hi) / 2)
+        else:   # the row's front as far as the image shows it, at most the grid's extent
+            layout_row = (run[0] * pitch_x - length / 2, run[1] * pitch_x + length / 2)
+            shown = frame_window(cam, length, depth, (lo + hi) / 2, span=layout_row)
+            if shown == "none":      # the image's columns miss the row's front: the considered bay
+                window = (-length / 2, length / 2)
+            else:
+                window = _clip_window(shown or layout_row, r.extent_m)
         x = 0.0 if window is None else (window[0] + window[1]) / 2
         heights = [frame_height(cam, x, depth, shelves[k].board_top, shelves[k].clear_height) for k in visible]
         heights = heights if any(h is not None for h in heights) else None
@@ -970,7 +1012,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
                  rack_depth=depth, visible=visible, camera=cam, lights=lights, ambient=ambient,
                  ambient_color=(1.0, 1.0, 1.0), main_light=0, background=background, occupancy=occ_rows,
                  effects=effects, domain=r.domain, shadows=r.shadows, occlusion=occlusion, rack_style=style, layout_window=window,
-                 layout_heights=heights)
+                 layout_heights=heights, layout_row=layout_row, row_boxes=row_boxes)
 
 
 def _in_image(cam: Camera, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -984,18 +1026,34 @@ def _in_image(cam: Camera, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ok & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width), ok & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
 
 
-def frame_window(cam: Camera, length: float, depth: float, z: float, samples: int = 801) -> tuple | None:
+def frame_window(cam: Camera, length: float, depth: float, z: float, samples: int = 801,
+                 span: tuple | None = None) -> tuple | str | None:
     """(x0, x1): the part of the rack's front edge at height z (world x from -length/2 to
-    length/2, y = -depth/2) that the image's columns show, sampled every length / (samples - 1);
-    None when they show all of it (or none: the whole bay is kept)."""
-    xs = np.linspace(-length / 2, length / 2, samples)
+    length/2, or over `span` = (a, b), y = -depth/2) that the image's columns show, sampled every
+    length / (samples - 1); None when they show all of it; none of it: None for a bay (the whole
+    bay is kept), "none" for a span."""
+    a, b = span if span is not None else (-length / 2, length / 2)
+    n = max(samples, int(round((b - a) / length * (samples - 1))) + 1)
+    xs = np.linspace(a, b, n)
     seen = _in_image(cam, np.c_[xs, np.full_like(xs, -depth / 2), np.full_like(xs, z)])[0]
-    if seen.all() or not seen.any():
+    if seen.all():
         return None
-    step = length / (samples - 1)
+    if not seen.any():
+        return None if span is None else "none"
+    step = (b - a) / (n - 1)
     x = xs[seen]
     # each end half a sample beyond the last point seen (the true edge lies within it)
-    return (max(float(x[0]) - step / 2, -length / 2), min(float(x[-1]) + step / 2, length / 2))
+    return (max(float(x[0]) - step / 2, a), min(float(x[-1]) + step / 2, b))
+
+
+def _clip_window(window: tuple, extent: float) -> tuple:
+    """At most `extent` metres of a window, as close to centred on the considered bay (x = 0)
+    as the window allows (the layout grid's span)."""
+    x0, x1 = window
+    if x1 - x0 <= extent:
+        return window
+    c = min(max(0.0, x0 + extent / 2), x1 - extent / 2)
+    return (c - extent / 2, c + extent / 2)
 
 
 def frame_height(cam: Camera, x: float, depth: float, board: float, clear: float,
