@@ -1,4 +1,4 @@
-"""Regenerate docs/img/waresynth_layout_extent.png: what WareSynth's layouts draw of the rack under
+"""Regenerate docs/img/waresynth_layout_extent.jpg: what WareSynth's layouts draw of the rack under
 each `layout_extent` (bay / frame / row), on the same renders.
 
 Renders N scenes of a recipe once per extent (same seed: the images are the same), picks the first
@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     ap.add_argument("--n", type=int, default=48, help="scenes rendered per extent (default 48)")
     ap.add_argument("--rows", type=int, default=4, help="scenes in the figure (default 4)")
     ap.add_argument("--seed", type=int, default=21)
-    ap.add_argument("--out", default=str(REPO / "docs" / "img" / "waresynth_layout_extent.png"))
+    ap.add_argument("--out", default=str(REPO / "docs" / "img" / "waresynth_layout_extent.jpg"))
     args = ap.parse_args(argv)
 
     import matplotlib
