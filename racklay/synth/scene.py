@@ -998,11 +998,10 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             window = frame_window(cam, length, depth, (lo + hi) / 2)
         else:   # the row's front as far as the image shows it, at most the grid's extent
             layout_row = (run[0] * pitch_x - length / 2, run[1] * pitch_x + length / 2)
-            shown = frame_window(cam, length, depth, (lo + hi) / 2, span=layout_row)
-            if shown == "none":      # the image's columns miss the row's front: the considered bay
-                window = (-length / 2, length / 2)
-            else:
-                window = _clip_window(shown or layout_row, r.extent_m)
+            samples = max(801, round((layout_row[1] - layout_row[0]) / length * 800) + 1)   # a bay's sampling step
+            shown = shown_part(cam, *layout_row, depth, (lo + hi) / 2, samples)
+            # the image's columns miss the row's front: the considered bay
+            window = (-length / 2, length / 2) if shown is None else _clip_window(shown, r.extent_m)
         x = 0.0 if window is None else (window[0] + window[1]) / 2
         heights = [frame_height(cam, x, depth, shelves[k].board_top, shelves[k].clear_height) for k in visible]
         heights = heights if any(h is not None for h in heights) else None
@@ -1026,24 +1025,26 @@ def _in_image(cam: Camera, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ok & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width), ok & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
 
 
-def frame_window(cam: Camera, length: float, depth: float, z: float, samples: int = 801,
-                 span: tuple | None = None) -> tuple | str | None:
-    """(x0, x1): the part of the rack's front edge at height z (world x from -length/2 to
-    length/2, or over `span` = (a, b), y = -depth/2) that the image's columns show, sampled every
-    length / (samples - 1); None when they show all of it; none of it: None for a bay (the whole
-    bay is kept), "none" for a span."""
-    a, b = span if span is not None else (-length / 2, length / 2)
-    n = max(samples, int(round((b - a) / length * (samples - 1))) + 1)
-    xs = np.linspace(a, b, n)
+def shown_part(cam: Camera, a: float, b: float, depth: float, z: float, samples: int) -> tuple | None:
+    """(x0, x1): the part of a rack front's edge at height z (world x from a to b, y = -depth/2)
+    that the image's columns show, sampled at `samples` points; (a, b) when they show all of it,
+    None when none."""
+    xs = np.linspace(a, b, samples)
     seen = _in_image(cam, np.c_[xs, np.full_like(xs, -depth / 2), np.full_like(xs, z)])[0]
-    if seen.all():
-        return None
     if not seen.any():
-        return None if span is None else "none"
-    step = (b - a) / (n - 1)
+        return None
+    step = (b - a) / (samples - 1)
     x = xs[seen]
     # each end half a sample beyond the last point seen (the true edge lies within it)
     return (max(float(x[0]) - step / 2, a), min(float(x[-1]) + step / 2, b))
+
+
+def frame_window(cam: Camera, length: float, depth: float, z: float, samples: int = 801) -> tuple | None:
+    """(x0, x1): the part of the rack's front edge at height z (world x from -length/2 to
+    length/2, y = -depth/2) that the image's columns show, sampled every length / (samples - 1);
+    None when they show all of it (or none: the whole bay is kept)."""
+    part = shown_part(cam, -length / 2, length / 2, depth, z, samples)
+    return None if part is None or part == (-length / 2, length / 2) else part
 
 
 def _clip_window(window: tuple, extent: float) -> tuple:
