@@ -13,8 +13,9 @@
 #   A_SETS="pallet_packing=0.8 pallet_gap=[0.03,0.15]" \
 #   B_SETS="pallet_packing=0.8 pallet_gap=[0.03,0.15] visible_fraction_board=0.2 focal_px=[200,2000] camera_distance=[0.35,15]" \
 #   N=6000 DEADLINE=530 OUT=$OUT bench/accuracy/recipe_ab_gpu.sh   (68 s of rendering, 7 min of training per arm)
-# Three arms (2026-11-27: `mixed`, its layouts continued across uprights, and the same with ambient occlusion):
-#   ARMS="A B C" A_SETS="" B_SETS="layout_extent=row" C_SETS="layout_extent=row ambient_occlusion=[0.5,3]" \
+# Three arms (the open questions of 2026-11-28: `mixed`, with ambient occlusion, with its layouts
+# continued across uprights):
+#   ARMS="A B C" A_SETS="" B_SETS="ambient_occlusion=[0.5,3]" C_SETS="layout_extent=row" \
 #   N=6000 DEADLINE=540 OUT=$OUT bench/accuracy/recipe_ab_gpu.sh
 # A dry run on a CPU: DEVICE=cpu N=24 DEADLINE=150 SYNTH_WORKERS=1 WORKERS=0 BATCH=4 THREADS=1 bench/accuracy/recipe_ab_gpu.sh
 set -uo pipefail
