@@ -7,9 +7,10 @@ sampled from each recipe (`racklay.synth.scene.sample_scene`, no rendering):
 
     rack length (as far as the layouts draw it: the bay, or with `layout_extent: frame` / `row`
     the part of the bay / row in the image, as a labelled photo draws it), rack depth, visible
-    shelves, level height (board to board, shelves below the top one), box width / height / depth, box run width (boxes on one shelf that touch or
-    overlap along it, less than RUN_GAP apart, merged: what the front layout draws as one run and
-    what a labeller draws as one box for a wall of cartons), camera distance to the rack front,
+    shelves, level height (board to board, shelves below the top one), box width / height /
+    depth, box run width (boxes on one shelf that touch or overlap along it, less than RUN_GAP
+    apart, merged: what the front layout draws as one run and what a labeller draws as one box
+    for a wall of cartons), camera distance to the rack front,
     camera height, focal length per pixel of image width; and the framing, which every photo
     determines (near-frontal ones too): the width in the image of the part of the bay that the
     layouts draw (at the height of the middle of its levels) over the image width (a labelled

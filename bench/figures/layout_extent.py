@@ -76,7 +76,7 @@ def main(argv=None) -> int:
                                  gridspec_kw={"width_ratios": [1.35, 1]}, squeeze=False)
         for (sid, meta, k), (ax_im, ax_l) in zip(picked, axes):
             grid = Grid(meta["grid"]["D"], meta["grid"]["extent_m"])
-            cam = PinholeCamera(*(np.array(meta["camera"][k], np.float64) for k in ("K", "R", "t")))
+            cam = PinholeCamera(*(np.array(meta["camera"][key], np.float64) for key in ("K", "R", "t")))
             k1 = meta["camera"]["distortion_k1"]
             tops, heights = meta["shelf_board_tops"], meta["shelf_heights"]
             y_front, half = -meta["rack"]["depth"] / 2, meta["rack"]["length"] / 2
