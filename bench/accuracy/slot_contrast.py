@@ -109,10 +109,9 @@ def slot_ratios(Y: np.ndarray, fronts: np.ndarray, grid, outline_of,
 def render_ratios(root: Path, limit: int, sheet: list | None = None) -> list[tuple[float, float]]:
     """Every gap of a WareSynth set's front layouts, through each render's camera and lens; the
     first FIGURE_ROWS images with a measured gap, outlined, appended to `sheet` (contact-sheet rows)."""
-    from racklay.camera import PinholeCamera
     from racklay.data import RackLayRoot, read_image
     from racklay.layout import Grid
-    from racklay.synth.effects import distort_points
+    from racklay.synth.scene import Camera
 
     ds = RackLayRoot(root)
     ids = ds.ids()[:limit]
@@ -120,8 +119,7 @@ def render_ratios(root: Path, limit: int, sheet: list | None = None) -> list[tup
     for sid in ids:
         meta = json.loads((root / "meta" / f"{sid}.json").read_text())
         grid = Grid(meta["grid"]["D"], meta["grid"]["extent_m"])
-        cam = PinholeCamera(*(np.array(meta["camera"][k], np.float64) for k in ("K", "R", "t")))
-        k1 = meta["camera"].get("distortion_k1", 0.0)
+        cam = Camera.from_meta(meta)
         y_front = -meta["rack"]["depth"] / 2
         window = meta["rack"].get("layout_window")           # `frame` layouts are re-centred on it
         shift = 0.0 if window is None else (window[0] + window[1]) / 2
@@ -130,13 +128,13 @@ def render_ratios(root: Path, limit: int, sheet: list | None = None) -> list[tup
         rgb = read_image(ds.image_path(sid))
         Y = luminance(rgb)
 
-        def outline_of(k, tops=tops, cam=cam, k1=k1, y_front=y_front, shift=shift):
+        def outline_of(k, tops=tops, cam=cam, y_front=y_front, shift=shift):
             def f(x0, x1, z0, z1):
                 z = tops[k] + np.array([z0, z0, z1, z1])
-                uv, depth = cam.project_z(np.c_[np.array([x0, x1, x1, x0]) + shift, np.full(4, y_front), z])
+                uv, depth = cam.image_points(np.c_[np.array([x0, x1, x1, x0]) + shift, np.full(4, y_front), z])
                 if np.any(depth <= 0.05):
                     return np.full((4, 2), np.nan)
-                return distort_points(cam.K, k1, uv) - 0.5        # pixel centres at +0.5
+                return uv - 0.5        # pixel centres at +0.5
             return f
 
         out += _measure(Y, fronts[: len(tops)], grid, outline_of, rgb, f"{root.name}/{sid}", sheet)

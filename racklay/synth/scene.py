@@ -125,6 +125,20 @@ class Camera(PinholeCamera):
     height: int = 0
     k1: float = 0.0
 
+    @classmethod
+    def from_meta(cls, meta: dict) -> Camera:
+        """The render camera of a WareSynth meta file (written by `groundtruth.scene_meta`)."""
+        c = meta["camera"]
+        K, R, t = (np.array(c[k], np.float64) for k in ("K", "R", "t"))
+        w, h = meta["image_size"]
+        return cls(K, R, t, width=int(w), height=int(h), k1=float(c.get("distortion_k1", 0.0)))
+
+    def image_points(self, pts) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N, 3) -> (where the rendered, lens-distorted image shows them, N x 2,
+        pixel (0, 0)'s corner at the origin; their camera-frame z, N)."""
+        uv, z = self.project_z(pts)
+        return distort_points(self.K, self.k1, uv), z
+
 
 @dataclass
 class Light:
