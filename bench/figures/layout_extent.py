@@ -39,11 +39,10 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from racklay.camera import PinholeCamera
     from racklay.cli import main as racklay_main
     from racklay.data import RackLayRoot, read_image
     from racklay.layout import BOX, Grid
-    from racklay.synth.effects import distort_points
+    from racklay.synth.scene import Camera
     from racklay.viz import colorize, save_figure
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -54,18 +53,17 @@ def main(argv=None) -> int:
                                  "--workers", "2", "--set", f"layout_extent={ext}", "--set", "layout_size=256",
                                  "--out", str(roots[ext]), "--no-progress"]) == 0
         ds = {ext: RackLayRoot(roots[ext]) for ext in EXTENTS}
-        picked = []
+        picked = []     # (id, {extent: meta}, {extent: front layouts}, the level to draw)
         for sid in ds["row"].ids():
-            meta = json.loads((roots["row"] / "meta" / f"{sid}.json").read_text())
-            rack = meta["rack"]
-            if rack["layout_row"] is None:
+            metas = {ext: json.loads((roots[ext] / "meta" / f"{sid}.json").read_text()) for ext in EXTENTS}
+            if metas["row"]["rack"]["layout_row"] is None:
                 continue
+            fronts = {ext: ds[ext].read_layouts("front", sid) for ext in EXTENTS}
             # past the considered bay, with a neighbour's load on some level
-            gain = [(ds["row"].read_layouts("front", sid)[c] == BOX).any(axis=0).sum()
-                    - (ds["frame"].read_layouts("front", sid)[c] == BOX).any(axis=0).sum()
-                    for c in range(len(meta["shelf_board_tops"]))]
+            gain = [(fronts["row"][c] == BOX).any(axis=0).sum() - (fronts["frame"][c] == BOX).any(axis=0).sum()
+                    for c in range(len(metas["row"]["shelf_board_tops"]))]
             if max(gain) > 4:
-                picked.append((sid, meta, int(np.argmax(gain))))
+                picked.append((sid, metas, fronts, int(np.argmax(gain))))
             if len(picked) == args.rows:
                 break
         if not picked:
@@ -74,21 +72,20 @@ def main(argv=None) -> int:
 
         fig, axes = plt.subplots(len(picked), 2, figsize=(11, 2.7 * len(picked)),
                                  gridspec_kw={"width_ratios": [1.35, 1]}, squeeze=False)
-        for (sid, meta, k), (ax_im, ax_l) in zip(picked, axes):
+        for (sid, metas, fronts, k), (ax_im, ax_l) in zip(picked, axes):
+            meta = metas["row"]
+            windows = {ext: metas[ext]["rack"]["layout_window"] for ext in EXTENTS}
             grid = Grid(meta["grid"]["D"], meta["grid"]["extent_m"])
-            cam = PinholeCamera(*(np.array(meta["camera"][key], np.float64) for key in ("K", "R", "t")))
-            k1 = meta["camera"]["distortion_k1"]
+            cam = Camera.from_meta(meta)
             tops, heights = meta["shelf_board_tops"], meta["shelf_heights"]
             y_front, half = -meta["rack"]["depth"] / 2, meta["rack"]["length"] / 2
-            fronts = {ext: ds[ext].read_layouts("front", sid) for ext in EXTENTS}
             ax_im.imshow(read_image(ds["row"].image_path(sid)))
             z = (tops[0] + tops[-1] + heights[-1]) / 2
             for ext in ("frame", "row"):
-                m = json.loads((roots[ext] / "meta" / f"{sid}.json").read_text())["rack"]
-                w = m["layout_window"] or (-half, half)
+                w = windows[ext] or (-half, half)
                 xs = np.linspace(w[0], w[1], 60)
-                uv, depth = cam.project_z(np.c_[xs, np.full_like(xs, y_front), np.full_like(xs, z)])
-                uv = distort_points(cam.K, k1, uv[depth > 0.05]) - 0.5
+                uv, depth = cam.image_points(np.c_[xs, np.full_like(xs, y_front), np.full_like(xs, z)])
+                uv = uv[depth > 0.05] - 0.5          # pixel centres at +0.5
                 off = 4 if ext == "row" else -4
                 ax_im.plot(uv[:, 0], uv[:, 1] + off, color=COLOURS[ext], lw=2.5 if ext == "row" else 2,
                            ls="-" if ext == "row" else "--", label=f"{ext}: {w[1] - w[0]:.2f} m")
@@ -100,10 +97,10 @@ def main(argv=None) -> int:
             # one strip per extent (z from the board to the level's top), put back at its place along the rack
             hi = heights[k] + 0.1
             band = slice(int(grid.z_to_row(hi)), int(grid.z_to_row(0.0)))     # top row first
-            x0, x1 = meta["rack"]["layout_window"]
+            x0, x1 = windows["row"]
             xlim = (min(-half, x0) - 0.6, max(half, x1) + 0.6)
             for i, ext in enumerate(EXTENTS):
-                w = json.loads((roots[ext] / "meta" / f"{sid}.json").read_text())["rack"]["layout_window"]
+                w = windows[ext]
                 shift = 0.0 if w is None else (w[0] + w[1]) / 2
                 y = (len(EXTENTS) - 1 - i) * (hi + 0.25)
                 ax_l.imshow(colorize(fronts[ext][k][band]), origin="upper", interpolation="nearest",
