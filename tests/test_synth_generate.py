@@ -221,3 +221,39 @@ def test_synth_refuses_a_folder_holding_other_data(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:   # argparse: one usage line, exit 2
         main(["synth", "--recipe", "simple", "--n", "0", "--out", str(tmp_path / "x")])
     assert e.value.code == 2 and not (tmp_path / "x").exists()
+
+
+def test_relayout_redraws_the_layouts_as_a_new_render_would(tmp_path, capsys):
+    """`racklay synth --relayout SET --set layout_extent=row` gives, without rendering, the files a
+    render of the same recipe, seed and layout key gives (layouts, meta, splits, COCO), the images
+    and maps hard-linked from SET; other keys, a changed scene and a second source are refused."""
+    mixed = ["image_width=200", "image_height=120", "layout_size=64"]
+    src, direct, out = tmp_path / "bay", tmp_path / "row", tmp_path / "relaid"
+    generate_dataset(load_recipe("mixed", mixed), 6, src, seed=3, progress=False)
+    generate_dataset(load_recipe("mixed", mixed + ["layout_extent=row"]), 6, direct, seed=3, progress=False)
+    assert racklay_main(["synth", "--relayout", str(src), "--out", str(out), "--set", "layout_extent=row",
+                         "--no-progress"]) == 0
+    got, want, before = files(out), files(direct), files(src)
+    del got["waresynth.json"], want["waresynth.json"]
+    assert got == want
+    assert any(got[k] != before[k] for k in got if k.endswith(".npy"))   # the row convention drew something else
+    img = "Images/000000.png"
+    assert (out / img).stat().st_ino == (src / img).stat().st_ino
+    man = json.loads((out / "waresynth.json").read_text())
+    assert man["recipe"]["layout_extent"] == "row" and man["relayout_of"]["path"] == str(src.resolve())
+    assert check_dataset(out).ok
+    # only layout keys; nothing written for a refused call
+    for args, msg in ((["--set", "box_density=[0,1]"], "can change only layout_extent"),
+                      (["--set", "layout_extent=row", "--n", "6"], "drop --n"),
+                      (["--set", "layout_extent=bay"], "give a layout key to change")):
+        assert racklay_main(["synth", "--relayout", str(src), "--out", str(tmp_path / "no"), *args]) == 2
+        assert msg in capsys.readouterr().err and not (tmp_path / "no").exists()
+    # a scene that is not the one rendered (other generator code) is refused, naming its meta
+    meta = src / "meta" / "000004.json"
+    m = json.loads(meta.read_text())
+    m["camera"]["t"][0] += 0.01
+    meta.write_text(json.dumps(m))
+    assert racklay_main(["synth", "--relayout", str(src), "--out", str(tmp_path / "bad"),
+                         "--set", "layout_size=128", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "000004.json" in err and "camera t" in err and "render it anew" in err

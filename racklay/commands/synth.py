@@ -22,12 +22,13 @@ def register(sub) -> None:
             "the same command once more without --shard: it finds every index finished and rebuilds the "
             "split files and COCO annotations. See docs/waresynth.md."),
         epilog="recipe keys (override with --set key=value):\n" + _keys_help())
-    p.add_argument("--recipe", default="complex",
+    p.add_argument("--recipe", default=None,
                    help=f"built-in recipe name ({', '.join(builtin_recipes())}: racklay/synth/recipes/, "
                         "docs/waresynth.md) or a YAML path (default complex)")
-    p.add_argument("--n", type=at_least(1), required=True, help="number of images in the whole dataset (all shards)")
+    p.add_argument("--n", type=at_least(1), default=None, help="number of images in the whole dataset (all shards; "
+                   "required unless --relayout)")
     p.add_argument("--out", required=True, help="output dataset folder")
-    p.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
+    p.add_argument("--seed", type=int, default=None, help="dataset seed (default 0)")
     p.add_argument("--shard", default=None, metavar="i/n", help="generate only indices with index %% n == i")
     p.add_argument("--workers", type=at_least(1), default=1, help="worker processes, each with its own GL context (default 1)")
     p.add_argument("--lp-threads", type=at_least(1), default=None,
@@ -38,6 +39,11 @@ def register(sub) -> None:
                    help="force every file to disk before its rename (survives power loss; slower). Without it "
                         "files are still written to a temporary name and renamed, so an interrupted run never "
                         "leaves half a file")
+    p.add_argument("--relayout", default=None, metavar="SET",
+                   help="instead of rendering, copy the WareSynth set SET to --out with its layouts redrawn under "
+                        "the layout keys given with --set (layout_extent, layout_size, extent_m): every scene is "
+                        "sampled again and checked against its meta, images and maps are hard-linked (or copied). "
+                        "E.g. --relayout sets/mixed --out sets/mixed-row --set layout_extent=row")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -52,8 +58,12 @@ def run(args) -> int:
     from racklay.synth.generate import generate_dataset, parse_shard
     from racklay.synth.recipe import RecipeError, load_recipe
 
+    if args.relayout:
+        return _relayout(args)
+    if args.n is None:
+        raise CLIError("--n is required: the number of images in the whole dataset (all shards)")
     try:
-        recipe = load_recipe(args.recipe, args.set)
+        recipe = load_recipe(args.recipe or "complex", args.set)
         parse_shard(args.shard)
     except RecipeError as e:
         raise CLIError(str(e)) from None
@@ -61,10 +71,29 @@ def run(args) -> int:
         raise CLIError(f"--n must be >= 1, got {args.n}")
     if args.workers < 1:
         raise CLIError(f"--workers must be >= 1, got {args.workers}")
-    res = generate_dataset(recipe, args.n, args.out, seed=args.seed, shard=args.shard, workers=args.workers,
+    res = generate_dataset(recipe, args.n, args.out, seed=args.seed or 0, shard=args.shard, workers=args.workers,
                            progress=not args.no_progress, lp_threads=args.lp_threads, fsync=args.fsync)
     done = len(res.generated)
     rate = done / res.wall * 60 if res.wall > 0 and done else 0.0
     splits = ", ".join(f"{k}={v}" for k, v in res.splits.items())
     print(f"{args.out}: generated {done}, already finished {res.skipped} ({rate:.0f} images/min); splits: {splits}")
+    return 0
+
+
+def _relayout(args) -> int:
+    from racklay.commands import CLIError
+    from racklay.synth.generate import RelayoutError, relayout_dataset
+    from racklay.synth.recipe import RecipeError
+
+    given = [f for f, v in (("--recipe", args.recipe), ("--n", args.n), ("--seed", args.seed),
+                            ("--shard", args.shard)) if v is not None]
+    if given:
+        raise CLIError(f"--relayout takes the recipe, --n and --seed of the set it copies: drop {', '.join(given)}")
+    try:
+        res = relayout_dataset(args.relayout, args.out, args.set, progress=not args.no_progress)
+    except (RecipeError, RelayoutError) as e:
+        raise CLIError(str(e)) from None
+    splits = ", ".join(f"{k}={v}" for k, v in res.splits.items())
+    print(f"{args.out}: layouts redrawn for {len(res.generated)}, already finished {res.skipped} "
+          f"(from {args.relayout}); splits: {splits}")
     return 0

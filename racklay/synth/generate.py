@@ -338,3 +338,139 @@ def write_coco(root: RackLayRoot, split: str, ids: list[str], recipe_name: str =
                            for i, n in enumerate(CATEGORY_NAMES)],
             "images": images, "annotations": anns}
     return atomic_write_json(root.root / "annotations" / f"instances_{split}.json", coco, indent=None)
+
+
+# --- relayout ----------------------------------------------------------------------------
+#: recipe keys that change what the layouts draw and nothing else (no random draw depends on them)
+LAYOUT_KEYS = ("layout_extent", "layout_size", "extent_m")
+
+
+class RelayoutError(ValueError):
+    """A set that cannot be redrawn; the message names the file and the problem."""
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """dst as a hard link to src (the same file, no extra disk), or a copy where the file system
+    cannot link; through a temporary name, so dst is never half there."""
+    import shutil
+    import tempfile
+
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".tmp", dir=dst.parent)
+    os.close(fd)
+    try:
+        os.unlink(tmp)
+        try:
+            os.link(src, tmp)
+        except OSError:
+            shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
+    except BaseException:
+        if os.path.lexists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _scene_matches(scene, meta: dict) -> str | None:
+    """None if the scene sampled now is the one the meta describes (camera and every object's
+    centre and size, to the meta's rounding); else what differs."""
+    cam = meta["camera"]
+    for key, now in (("K", scene.camera.K), ("R", scene.camera.R), ("t", scene.camera.t)):
+        if np.abs(np.asarray(cam[key], float) - np.asarray(now, float)).max() > 1e-5:
+            return f"camera {key}"
+    objs = meta.get("objects", [])
+    for a in objs:
+        o = scene.objects[a["id"] - 1] if 0 < a["id"] <= len(scene.objects) else None
+        if o is None or np.abs(np.asarray(a["center_world"]) - np.asarray(o.center)).max() > 1e-4 or \
+                np.abs(np.asarray(a["size"]) - np.asarray(o.size)).max() > 1e-4:
+            return f"object {a['id']}"
+    return None
+
+
+def relayout_dataset(src: str | os.PathLike, out: str | os.PathLike, overrides: list[str] | dict,
+                     progress: bool = True) -> RunResult:
+    """A copy of the WareSynth set `src` in `out` whose layouts are redrawn under other layout
+    keys (LAYOUT_KEYS: layout_extent, layout_size, extent_m), without rendering: each scene is
+    sampled again from its (recipe, seed, index), checked against its meta (camera and every
+    object), and its layouts and meta written anew; the image and the per-pixel maps are the
+    source's files (hard links where the file system allows, else copies). Resumes like
+    generate_dataset; splits and COCO files are rebuilt at the end."""
+    from ..atomic import atomic_write_json
+    from .groundtruth import grid_meta, layout_meta, scene_layouts
+    from .recipe import RecipeError, parse_override
+    from .scene import sample_scene
+
+    src, out = Path(src), Path(out)
+    man_path = src / MANIFEST
+    if not man_path.is_file():
+        raise RelayoutError(f"{src}: not a WareSynth set (no {MANIFEST}); --relayout takes a folder written by racklay synth")
+    try:
+        man = json.loads(man_path.read_text())
+        n, seed, base = int(man["n"]), int(man["seed"]), dict(man["recipe"])
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+        raise RelayoutError(f"{man_path}: not a readable WareSynth manifest (n, seed, recipe)") from None
+    if src.resolve() == out.resolve():
+        raise RelayoutError(f"{out}: --out is the source set itself; relayout writes a new folder")
+    items = overrides.items() if isinstance(overrides, dict) else [parse_override(o) for o in overrides]
+    changed = {k: v for k, v in items}
+    other = sorted(set(changed) - set(LAYOUT_KEYS))
+    if other:
+        raise RecipeError(f"--set {', '.join(other)}: a relayout can change only {', '.join(LAYOUT_KEYS)} "
+                          f"(the other keys change the images: render a new set with racklay synth)")
+    recipe = recipe_from_dict({**base, **changed}, f"{man_path} with --set overrides")
+    if not changed or all(base.get(k) == getattr(recipe, k) for k in changed):
+        raise RecipeError(f"--set: give a layout key to change ({', '.join(LAYOUT_KEYS)}); as given the layouts "
+                          f"would be {src}'s")
+    out.mkdir(parents=True, exist_ok=True)
+    out_man = check_manifest(out, recipe, n, seed)
+    if (out / MANIFEST).is_file() and "relayout_of" not in json.loads((out / MANIFEST).read_text()):
+        # the images are the source's, rendered by its code
+        atomic_write_json(out / MANIFEST, {**out_man, "relayout_of": {"path": str(src.resolve()),
+                                                                      "code": man.get("code")}})
+    s_root, o_root = RackLayRoot(src), RackLayRoot(out)
+    have = sorted(int(p.stem) for p in (src / "meta").glob("*.json") if p.stem.isdigit()) \
+        if (src / "meta").is_dir() else []
+    todo = [i for i in have if i < n and not is_done(o_root, i, recipe)]
+    res = RunResult(out=out, skipped=len(have) - len(todo))
+    grid = L.Grid(recipe.layout_size, recipe.extent_m)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=len(have), initial=res.skipped, desc=f"relayout {recipe.layout_extent}", unit="img",
+                   dynamic_ncols=True)
+    t0 = time.perf_counter()
+    try:
+        for i in todo:
+            sid = sample_id(i)
+            meta_file = s_root.meta_path(sid)
+            meta = s_root.read_meta(sid)
+            scene = sample_scene(recipe, seed, i)
+            diff = _scene_matches(scene, meta)
+            if diff:
+                raise RelayoutError(f"{meta_file}: the scene sampled now differs from the one rendered ({diff}): "
+                                    f"{src} was made by generator code {man.get('code', '?')}, which samples scenes "
+                                    f"differently from this version ({generator_fingerprint()}); render it anew")
+            image = s_root.image_path(sid)
+            if not image.is_file():
+                raise RelayoutError(f"{image}: missing (its meta is there); the source set is incomplete")
+            _link_or_copy(image, o_root.root / image.relative_to(src))
+            for d, ext in (("depth", "png"), ("normals", "png"), ("semantic", "png"), ("instance", "png"),
+                           ("kitti", "txt")):
+                f = src / EXTRA_DIRS[d] / f"{sid}.{ext}"
+                if f.is_file():
+                    _link_or_copy(f, out / EXTRA_DIRS[d] / f.name)
+            top, front = scene_layouts(scene, grid, recipe.R)
+            for view, arr in (("top", top), ("front", front)):
+                atomic_save_npy(o_root.layout_path(view, sid), L.encode(arr), fsync=False)
+            meta["rack"].update(layout_meta(scene))
+            meta["grid"] = grid_meta(grid, recipe)
+            atomic_write_json(o_root.meta_path(sid), meta, indent=None, fsync=False)   # last: marks it finished
+            res.generated.append(i)
+            if bar:
+                bar.update(1)
+    finally:
+        res.wall = time.perf_counter() - t0
+        if bar:
+            bar.close()
+        res.splits = finalize_dataset(out, recipe, n, seed)
+    return res

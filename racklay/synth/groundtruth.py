@@ -141,6 +141,23 @@ def kitti_lines(objects: list[dict]) -> str:
     return "\n".join(lines) + ("\n" if lines else "")
 
 
+def grid_meta(grid: L.Grid, recipe) -> dict:
+    """The meta's "grid": the layouts' size, extent and channel count."""
+    return {"D": grid.size, "extent_m": grid.extent, "R": recipe.R}
+
+
+def layout_meta(scene: Scene) -> dict:
+    """The meta's rack fields that depend on what the layouts draw (recipe key layout_extent)."""
+    return {
+        # the part of the bay the layouts draw (world x, metres; null: all of it), re-centred,
+        # and per layout channel the height of its opening drawn (null: all of it)
+        "layout_window": None if scene.layout_window is None else _r(scene.layout_window, 6),
+        # layout_extent 'row': the row of bays (world x) the shelves continue into; null: the bay alone
+        "layout_row": None if scene.layout_row is None else _r(scene.layout_row, 6),
+        "layout_heights": None if scene.layout_heights is None else
+        [None if h is None else round(h, 6) for h in scene.layout_heights]}
+
+
 def scene_meta(scene: Scene, recipe, grid: L.Grid, objects: list[dict]) -> dict:
     cam = scene.camera
     shelves = scene.shelves
@@ -152,19 +169,12 @@ def scene_meta(scene: Scene, recipe, grid: L.Grid, objects: list[dict]) -> dict:
                    "position_world": _r(cam.center, 6), "distortion_k1": round(cam.k1, 6),
                    "convention": "X_cam = R @ X_world + t; OpenCV axes (x right, y down, z forward); "
                                  "world x along the rack, y into it, z up; pixel centres at +0.5"},
-        "grid": {"D": grid.size, "extent_m": grid.extent, "R": recipe.R},
+        "grid": grid_meta(grid, recipe),
         "rack": {"style": scene.rack_style, "length": round(scene.rack_length, 6), "depth": round(scene.rack_depth, 6),
                  "n_shelves": len(shelves),
                  "board_tops": _r([s.board_top for s in shelves], 6),
                  "clear_heights": _r([s.clear_height for s in shelves], 6),
-                 "visible_shelves": list(scene.visible),
-                 # the part of the bay the layouts draw (world x, metres; null: all of it), re-centred,
-                 # and per layout channel the height of its opening drawn (null: all of it)
-                 "layout_window": None if scene.layout_window is None else _r(scene.layout_window, 6),
-                 # layout_extent 'row': the row of bays (world x) the shelves continue into; null: the bay alone
-                 "layout_row": None if scene.layout_row is None else _r(scene.layout_row, 6),
-                 "layout_heights": None if scene.layout_heights is None else
-                 [None if h is None else round(h, 6) for h in scene.layout_heights]},
+                 "visible_shelves": list(scene.visible), **layout_meta(scene)},
         # per layout channel (lowest visible shelf first): inter-shelf height, like WareSynth's height*.npy
         "shelf_heights": _r([shelves[i].clear_height for i in scene.visible], 6),
         "shelf_board_tops": _r([shelves[i].board_top for i in scene.visible], 6),
