@@ -76,7 +76,14 @@ for arm in $ARMS; do
   pid[$arm]=$!
 done
 status=0
-for arm in $ARMS; do wait "${pid[$arm]}" || status=$?; done
+for arm in $ARMS; do
+  # 124 / 137: the hard stop at the deadline interrupted (or, past the 10 s grace, killed) a trainer
+  # that --max-minutes had not yet stopped; its best weights so far are on disk and are used
+  wait "${pid[$arm]}" || { rc=$?
+    if [ "$rc" -eq 124 -o "$rc" -eq 137 ] && [ -f "$WORK/runs/$arm/best.safetensors" ]; then
+      echo "arm $arm: stopped at the deadline (exit $rc); its best weights so far are used"
+    else status=$rc; fi; }
+done
 [ -n "${smi:-}" ] && kill "$smi" 2> /dev/null
 for arm in $ARMS; do
   tail -n 2 "$OUT/$arm.log"
