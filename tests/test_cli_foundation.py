@@ -98,3 +98,21 @@ def test_racklay_demo_says_where_the_demo_went(capsys):
     assert main(["demo", "--quick"]) == 2
     err = capsys.readouterr().err
     assert "transfer demo --quick" in err and err.count("\n") == 1
+
+
+def test_every_command_that_loops_over_images_takes_no_progress(monkeypatch):
+    """Scripts pass --no-progress to any of them (it was refused by predict, eval, calibrate and
+    check-data); a bar is drawn only on a terminal."""
+    from racklay.cli import build_parser
+    from racklay.commands import show_progress
+
+    p = build_parser()
+    for argv in (["synth", "--n", "2", "--out", "o"], ["predict", "x.jpg", "--out", "o"], ["eval", "--data", "d"],
+                 ["calibrate", "--data", "d", "--out", "c.safetensors"], ["check-data", "d"]):
+        args = p.parse_args(argv + ["--no-progress"])
+        assert args.no_progress is True
+        monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+        assert not show_progress(args) and show_progress(p.parse_args(argv))
+        monkeypatch.setattr(sys.stderr, "isatty", lambda: False)
+        assert not show_progress(p.parse_args(argv))
+    assert p.parse_args(["train", "--data", "d", "--no-progress"]).progress is False

@@ -1,6 +1,7 @@
 """racklay calibrate --weights W --data ROOT --split val --out calibrated.safetensors"""
 from __future__ import annotations
 
+from racklay.commands import add_progress_arg, show_progress
 from racklay.config import at_least
 
 
@@ -28,6 +29,7 @@ def register(sub) -> None:
     p.add_argument("--threads", type=at_least(1), default=None, help="intra-op threads (default: library default)")
     p.add_argument("--out", required=True, help="calibrated checkpoint to write (.safetensors)")
     p.add_argument("--json", default=None, help="also write the fitted biases and scores as JSON here")
+    add_progress_arg(p)
     p.set_defaults(func=run)
 
 
@@ -49,7 +51,8 @@ def run(args) -> int:
     if Path(args.out).resolve() == Path(weights).resolve():
         raise CLIError(f"{args.out}: --out must differ from --weights (the input stays as it is)")
     pred = Predictor(weights, threads=args.threads, precision=args.precision)
-    fits = fit_decision_bias(pred, args.data, split=args.split, batch_size=args.batch_size, limit=args.limit)
+    fits = fit_decision_bias(pred, args.data, split=args.split, batch_size=args.batch_size, limit=args.limit,
+                             progress=show_progress(args))
     print(f"{Path(weights).name} on {args.data} [{args.split}]: dataset-level IoU at "
           f"{pred.layout_size}x{pred.layout_size}, plain decision → calibrated")
     print(format_fits(fits))

@@ -1,8 +1,7 @@
 """racklay check-data ROOT"""
 from __future__ import annotations
 
-import sys
-
+from racklay.commands import add_progress_arg, show_progress
 from racklay.config import at_least
 
 
@@ -20,6 +19,7 @@ def register(sub) -> None:
                    help="check in this many processes (the same report; default 1)")
     p.add_argument("--json", default=None, help="also write the report as JSON here")
     p.add_argument("--max-problems", type=at_least(1), default=200, help="print at most this many problem lines (all are counted)")
+    add_progress_arg(p)
     p.set_defaults(func=run)
 
 
@@ -27,7 +27,7 @@ def run(args) -> int:
     from racklay.atomic import atomic_write_json
     from racklay.data import check_dataset
 
-    rep = check_dataset(args.root, R=args.R, D=args.D, progress=sys.stderr.isatty(), workers=args.workers)
+    rep = check_dataset(args.root, R=args.R, D=args.D, progress=show_progress(args), workers=args.workers)
     for line in rep.problems[: args.max_problems]:
         print(line)
     if len(rep.problems) > args.max_problems:

@@ -1,6 +1,7 @@
 """racklay eval --weights W --data ROOT --split test [--json out.json]"""
 from __future__ import annotations
 
+from racklay.commands import add_progress_arg, show_progress
 from racklay.config import at_least, positive_float
 
 
@@ -42,6 +43,7 @@ def register(sub) -> None:
     p.add_argument("--save-predictions", default=None, metavar="DIR",
                    help="also write the predicted layouts as a RackLay dataset in DIR")
     p.add_argument("--json", default=None, help="write the run description and metrics as JSON here")
+    add_progress_arg(p)
     p.set_defaults(func=run)
 
 
@@ -62,6 +64,7 @@ def run(args) -> int:
                      precision=args.precision, cut_gaps=not args.no_gap_cut,
                      flip_average=args.flip_average)
     result = evaluate(pred, args.data, split=args.split, batch_size=args.batch_size, workers=args.workers,
+                      progress=show_progress(args),
                       limit=args.limit, native=args.native, pred_out=args.save_predictions,
                       shelf_length=args.shelf_length, scale_from_truth=args.scale_from_truth)
     scale = ("from truth" if args.scale_from_truth else

@@ -1,6 +1,7 @@
 """racklay predict IMAGES_OR_FOLDER... --weights W --out DIR"""
 from __future__ import annotations
 
+from racklay.commands import add_progress_arg, show_progress
 from racklay.config import at_least
 
 
@@ -33,6 +34,7 @@ def register(sub) -> None:
     p.add_argument("--no-figure", action="store_true", help="skip the paper-style figures")
     p.add_argument("--no-png", action="store_true", help="skip the per-shelf colour PNGs")
     p.add_argument("--full", action="store_true", help="figures show the whole grid, not a crop")
+    add_progress_arg(p)
     p.set_defaults(func=run)
 
 
@@ -60,7 +62,8 @@ def run(args) -> int:
     pred = Predictor(args.weights, backend=args.backend, threads=args.threads,
                      precision=args.precision, flip_average=args.flip_average)
     rep = predict_folder(pred, args.inputs, args.out, figure=not args.no_figure, png=not args.no_png,
-                         crop=not args.full, layout_size=args.layout_size, shelf_length=args.shelf_length)
+                         crop=not args.full, layout_size=args.layout_size, shelf_length=args.shelf_length,
+                         progress=show_progress(args))
     D = args.layout_size or pred.layout_size
     scale = f", shelves scaled to {args.shelf_length:g} m" if args.shelf_length else ""
     scale += ", flip-averaged" if args.flip_average else ""

@@ -1,6 +1,7 @@
 """racklay synth --recipe complex --n 2000 --out datasets/generated/complex --seed 0"""
 from __future__ import annotations
 
+from racklay.commands import add_progress_arg, show_progress
 from racklay.config import at_least
 
 
@@ -44,7 +45,7 @@ def register(sub) -> None:
                         "the layout keys given with --set (layout_extent, layout_size, extent_m): every scene is "
                         "sampled again and checked against its meta, images and maps are hard-linked (or copied). "
                         "E.g. --relayout sets/mixed --out sets/mixed-row --set layout_extent=row")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_progress_arg(p)
     p.set_defaults(func=run)
 
 
@@ -72,7 +73,7 @@ def run(args) -> int:
     if args.workers < 1:
         raise CLIError(f"--workers must be >= 1, got {args.workers}")
     res = generate_dataset(recipe, args.n, args.out, seed=args.seed or 0, shard=args.shard, workers=args.workers,
-                           progress=not args.no_progress, lp_threads=args.lp_threads, fsync=args.fsync)
+                           progress=show_progress(args), lp_threads=args.lp_threads, fsync=args.fsync)
     done = len(res.generated)
     rate = done / res.wall * 60 if res.wall > 0 and done else 0.0
     splits = ", ".join(f"{k}={v}" for k, v in res.splits.items())
@@ -90,7 +91,7 @@ def _relayout(args) -> int:
     if given:
         raise CLIError(f"--relayout takes the recipe, --n and --seed of the set it copies: drop {', '.join(given)}")
     try:
-        res = relayout_dataset(args.relayout, args.out, args.set, progress=not args.no_progress)
+        res = relayout_dataset(args.relayout, args.out, args.set, progress=show_progress(args))
     except (RecipeError, RelayoutError) as e:
         raise CLIError(str(e)) from None
     splits = ", ".join(f"{k}={v}" for k, v in res.splits.items())
