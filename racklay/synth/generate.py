@@ -428,9 +428,8 @@ def relayout_dataset(src: str | os.PathLike, out: str | os.PathLike, overrides: 
         atomic_write_json(out / MANIFEST, {**out_man, "relayout_of": {"path": str(src.resolve()),
                                                                       "code": man.get("code")}})
     s_root, o_root = RackLayRoot(src), RackLayRoot(out)
-    have = sorted(int(p.stem) for p in (src / "meta").glob("*.json") if p.stem.isdigit()) \
-        if (src / "meta").is_dir() else []
-    todo = [i for i in have if i < n and not is_done(o_root, i, recipe)]
+    have = sorted(i for i in range(n) if s_root.meta_path(sample_id(i)).is_file())
+    todo = [i for i in have if not is_done(o_root, i, recipe)]
     res = RunResult(out=out, skipped=len(have) - len(todo))
     grid = L.Grid(recipe.layout_size, recipe.extent_m)
     bar = None
@@ -445,7 +444,10 @@ def relayout_dataset(src: str | os.PathLike, out: str | os.PathLike, overrides: 
             meta_file = s_root.meta_path(sid)
             meta = s_root.read_meta(sid)
             scene = sample_scene(recipe, seed, i)
-            diff = _scene_matches(scene, meta)
+            try:
+                diff = _scene_matches(scene, meta)
+            except (KeyError, TypeError, ValueError, IndexError):
+                raise RelayoutError(f"{meta_file}: not a WareSynth meta (no readable camera and objects)") from None
             if diff:
                 raise RelayoutError(f"{meta_file}: the scene sampled now differs from the one rendered ({diff}): "
                                     f"{src} was made by generator code {man.get('code', '?')}, which samples scenes "
