@@ -226,7 +226,7 @@ def test_synth_refuses_a_folder_holding_other_data(tmp_path, capsys):
 def test_relayout_redraws_the_layouts_as_a_new_render_would(tmp_path, capsys):
     """`racklay synth --relayout SET --set layout_extent=row` gives, without rendering, the files a
     render of the same recipe, seed and layout key gives (layouts, meta, splits, COCO), the images
-    and maps hard-linked from SET; other keys, a changed scene and a second source are refused."""
+    and maps hard-linked from SET; other keys, --n beside it, no key change and a changed scene are refused."""
     mixed = ["image_width=200", "image_height=120", "layout_size=64"]
     src, direct, out = tmp_path / "bay", tmp_path / "row", tmp_path / "relaid"
     generate_dataset(load_recipe("mixed", mixed), 6, src, seed=3, progress=False)

@@ -22,9 +22,14 @@ from ..data import SYNTH_MANIFEST, RackLayRoot, make_splits
 from .recipe import Recipe, recipe_from_dict
 
 MANIFEST = SYNTH_MANIFEST
-EXTRA_DIRS = {"depth": "depth", "normals": "normals", "semantic": "semantic", "instance": "instance",
-              "kitti": "kitti"}
+#: the per-sample files beside the RackLay ones: folder -> file suffix (folder/NNNNNN.suffix)
+EXTRA_FILES = {"depth": ".png", "normals": ".png", "semantic": ".png", "instance": ".png", "kitti": ".txt"}
 STAGES = ("sample", "render", "groundtruth", "write")
+
+
+def extra_path(root: Path, kind: str, sid: str) -> Path:
+    """Where a sample's extra file of this kind (EXTRA_FILES) lies in the dataset folder `root`."""
+    return root / kind / f"{sid}{EXTRA_FILES[kind]}"
 
 
 def sample_id(index: int) -> str:
@@ -147,15 +152,15 @@ class Generator:
         r, root, sid, fs = self.recipe, self.root.root, sample_id(index), self.fsync
         t0, c0 = time.perf_counter(), time.process_time()
         if r.write_depth:
-            atomic_write_bytes(root / "depth" / f"{sid}.png", png_bytes(depth_png(maps["depth"])), fsync=fs)
+            atomic_write_bytes(extra_path(root, "depth", sid), png_bytes(depth_png(maps["depth"])), fsync=fs)
         if r.write_normals:
-            atomic_write_bytes(root / "normals" / f"{sid}.png", png_bytes(maps["normals"]), fsync=fs)
+            atomic_write_bytes(extra_path(root, "normals", sid), png_bytes(maps["normals"]), fsync=fs)
         if r.write_semantic:
-            atomic_write_bytes(root / "semantic" / f"{sid}.png", png_bytes(semantic_map(scene, maps["instance"])), fsync=fs)
+            atomic_write_bytes(extra_path(root, "semantic", sid), png_bytes(semantic_map(scene, maps["instance"])), fsync=fs)
         if r.write_instance:
-            atomic_write_bytes(root / "instance" / f"{sid}.png", png_bytes(maps["instance"].astype(np.uint16)), fsync=fs)
+            atomic_write_bytes(extra_path(root, "instance", sid), png_bytes(maps["instance"].astype(np.uint16)), fsync=fs)
         if kitti is not None:
-            atomic_write_text(root / "kitti" / f"{sid}.txt", kitti, fsync=fs)
+            atomic_write_text(extra_path(root, "kitti", sid), kitti, fsync=fs)
         for view, arr in (("top", top), ("front", front)):
             atomic_save_npy(self.root.layout_path(view, sid), L.encode(arr), fsync=fs)
         atomic_write_bytes(self.root.image_path(sid), png_bytes(rgb), fsync=fs)
@@ -374,9 +379,11 @@ def _link_or_copy(src: Path, dst: Path) -> None:
 def _scene_matches(scene, meta: dict) -> str | None:
     """None if the scene sampled now is the one the meta describes (camera and every object's
     centre and size, to the meta's rounding); else what differs."""
-    cam = meta["camera"]
-    for key, now in (("K", scene.camera.K), ("R", scene.camera.R), ("t", scene.camera.t)):
-        if np.abs(np.asarray(cam[key], float) - np.asarray(now, float)).max() > 1e-5:
+    from .scene import Camera
+
+    cam = Camera.from_meta(meta)
+    for key in ("K", "R", "t"):
+        if np.abs(getattr(cam, key) - np.asarray(getattr(scene.camera, key), float)).max() > 1e-5:
             return f"camera {key}"
     objs = meta.get("objects", [])
     for a in objs:
@@ -456,11 +463,10 @@ def relayout_dataset(src: str | os.PathLike, out: str | os.PathLike, overrides: 
             if not image.is_file():
                 raise RelayoutError(f"{image}: missing (its meta is there); the source set is incomplete")
             _link_or_copy(image, o_root.root / image.relative_to(src))
-            for d, ext in (("depth", "png"), ("normals", "png"), ("semantic", "png"), ("instance", "png"),
-                           ("kitti", "txt")):
-                f = src / EXTRA_DIRS[d] / f"{sid}.{ext}"
+            for kind in EXTRA_FILES:
+                f = extra_path(src, kind, sid)
                 if f.is_file():
-                    _link_or_copy(f, out / EXTRA_DIRS[d] / f.name)
+                    _link_or_copy(f, extra_path(out, kind, sid))
             top, front = scene_layouts(scene, grid, recipe.R)
             for view, arr in (("top", top), ("front", front)):
                 atomic_save_npy(o_root.layout_path(view, sid), L.encode(arr), fsync=False)
