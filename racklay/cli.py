@@ -30,7 +30,7 @@ def build_parser(prog: str = "racklay", description: str | None = None, commands
         description=description or (
             "RackLay toolkit: estimate per-shelf top- and front-view layouts of warehouse racks "
             "from one photo; generate, check, score and show RackLay-format datasets.\n\n"
-            "New here? `transfer demo` runs the whole pipeline on built-in data (~9 min on 2 CPU "
+            "New here? `transfer demo` runs the whole pipeline on built-in data (about 6 min on 2 CPU "
             "cores). Every command has --help; the guides are in docs/ (README.md lists them). "
             "Transfer (pretrain / fine-tune / compare) is the `transfer` command; the labelling "
             "tool is `annotate`."),

@@ -397,6 +397,9 @@ class TrainConfig:
         if self.schedule == "time" and self.max_minutes is None:
             raise ValueError("schedule time decays over the time budget: give max_minutes too")
         self.model_config()  # validates views, sizes, R and the struct options together
+        if self.name is not None and (not self.name.strip() or self.name in (".", "..")
+                                      or any(c in self.name for c in "/\\")):
+            raise ValueError(f"name must be a folder name inside --out (no '/', '\\', '.' or '..'), got {self.name!r}")
 
     def model_config(self) -> "ModelConfig":
         """The network these options build."""

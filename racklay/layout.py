@@ -518,15 +518,25 @@ def scale_about_origin(arrays: np.ndarray, factors, fill=None) -> np.ndarray:
     return out
 
 
+def check_shelf_length(length, grid: Grid) -> None:
+    """A known shelf length (metres; a number, or one per channel, NaN for none) must be one the
+    grid can draw: at least two pixels and at most the grid's extent. Raises ValueError naming the
+    range (a length typed in centimetres is the usual slip)."""
+    want = np.asarray(length, dtype=np.float64)
+    lo = 2 * grid.res
+    bad = want[np.isfinite(want) & ((want < lo) | (want > grid.extent))]
+    if bad.size or np.any(np.isinf(want)):
+        raise ValueError(f"shelf length {length} m: outside what the {grid.extent:g} m, {grid.size}-pixel "
+                         f"layout grid can draw ({lo:.3g} to {grid.extent:g} m; metres, not centimetres)")
+
+
 def scale_shelves(layouts: dict, grid: Grid, length, probs: dict | None = None):
     """Every shelf of a prediction scaled to a known length: `layouts` {view: (R, D, D) class ids},
     `probs` {view: (R, 3, D, D)} (optional), `length` in metres (a number, or one per channel; NaN
     leaves a channel). One factor per shelf for both views and all its dimensions
     (`length_factors`), applied about the shelf origin (`scale_about_origin`; what comes from
     outside the grid is background). Returns (layouts, probs, factors)."""
-    want = np.asarray(length, dtype=np.float64)
-    if np.any(want[np.isfinite(want)] > grid.extent):
-        raise ValueError(f"shelf length {length} m does not fit the {grid.extent:g} m layout grid")
+    check_shelf_length(length, grid)
     views = [v for v in VIEWS if v in layouts]
     f = length_factors([layouts[v] for v in views], grid, length)
     bg = np.eye(NUM_CLASSES, dtype=np.float32)[BACKGROUND]
@@ -541,5 +551,5 @@ __all__ = [
     "Shelf", "Box", "ShelfLayout", "fill_axis_rect", "oriented_rect_mask", "rasterize_shelf",
     "stack_shelves", "encode", "decode", "check_stack", "hflip_layouts",
     "visible_shelf_count", "resize_layouts", "layout_area_m2", "shelf_lengths", "length_factors",
-    "scale_about_origin", "scale_shelves",
+    "scale_about_origin", "check_shelf_length", "scale_shelves",
 ]

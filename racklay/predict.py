@@ -270,18 +270,18 @@ class PredictReport:
 def list_inputs(inputs: Sequence[str | os.PathLike], skipped: list | None = None) -> list[Path]:
     """Files named on the command line (whatever their type: a file that is not an image gets a
     one-line error, not silence), and the photos inside named folders (sorted; `PHOTO_EXTS`).
-    Other files in a folder (a README, annotations) are not photos: they are appended to `skipped`
-    when a list is given, so the caller can say so once."""
+    Other files in a folder (a README, annotations) are not photos, and its subfolders are not
+    searched: both are appended to `skipped` when a list is given, so the caller can say so once."""
     from .data import PHOTO_EXTS
 
     files: list[Path] = []
     for item in inputs:
         p = Path(item)
         if p.is_dir():
-            inside = sorted(q for q in p.iterdir() if q.is_file() and not q.name.startswith("."))
-            files += [q for q in inside if q.suffix.lower() in PHOTO_EXTS]
+            inside = sorted(q for q in p.iterdir() if not q.name.startswith("."))
+            files += [q for q in inside if q.is_file() and q.suffix.lower() in PHOTO_EXTS]
             if skipped is not None:
-                skipped += [q for q in inside if q.suffix.lower() not in PHOTO_EXTS]
+                skipped += [q for q in inside if q.is_dir() or q.suffix.lower() not in PHOTO_EXTS]
         else:
             files.append(p)  # a missing file is reported by the reader, naming it
     return files
@@ -328,7 +328,8 @@ def write_prediction(out_root, sid: str, image: np.ndarray, pred: dict, views: S
         for f in [root.image_path(sid), root.meta_path(sid), root.root / "figures" / f"{sid}.png",
                   *(root.layout_path(v, sid) for v in L.VIEWS),
                   *(root.root / "png").glob(f"{sid}_*_shelf*.png")]:
-            f.unlink(missing_ok=True)
+            if f.is_file():     # the clean-up never hides the error that stopped the write
+                f.unlink()
         raise
 
 
@@ -371,10 +372,15 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
             else:
                 print(msg, file=sys.stderr)
     if skipped:
-        names = ", ".join(q.name for q in skipped[:5]) + (", ..." if len(skipped) > 5 else "")
-        log(f"note: skipped {len(skipped)} file(s) that are not photos ({names})")
+        for what, group in (("file(s) that are not photos", [q for q in skipped if not q.is_dir()]),
+                            ("subfolder(s), not searched (name them to predict their photos)",
+                             [q for q in skipped if q.is_dir()])):
+            if group:
+                names = ", ".join(q.name for q in group[:5]) + (", ..." if len(group) > 5 else "")
+                log(f"note: skipped {len(group)} {what} ({names})")
     extra = {"weights": str(predictor.weights) if predictor.weights else None, "backend": predictor.backend}
     if shelf_length is not None:
+        L.check_shelf_length(shelf_length, predictor.grid)    # before the first photo, not once per photo
         extra["shelf_length_m"] = float(shelf_length)
     if predictor.model is not None and predictor.model.flip_average:
         extra["flip_average"] = True

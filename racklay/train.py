@@ -315,7 +315,7 @@ def open_resume(cfg: TrainConfig, run_dir: Path, main: bool):
             remove_stale_temps(run_dir, name)
     if not cfg.resume:
         if last_path.exists():
-            raise ValueError(f"{run_dir}: run exists; pass resume to continue it or choose another name")
+            raise ValueError(f"{run_dir}: run exists; pass --resume to continue it or choose another --name")
         return None
     if not last_path.is_file():
         raise FileNotFoundError(f"{last_path}: nothing to resume (no last checkpoint)")
@@ -405,6 +405,13 @@ def check_run_data(cfg: TrainConfig, run_dir: Path, train_ids, val_ids) -> dict:
             passed = json.loads(cache.read_text())
         except (OSError, ValueError):
             passed = {}
+    from .data import VIEW_DIRS, RackLayRoot
+
+    have = RackLayRoot(cfg.data).views()
+    missing = [v for v in cfg.views if v not in have]
+    if missing:    # a view-specific dataset: say so, rather than one missing file per sample
+        raise DataError(f"{cfg.data}: has no {'/'.join(missing)} layouts (no {VIEW_DIRS[missing[0]]}/ folder); "
+                        f"train on the views it has with --views {','.join(have) or '?'}")
     ids = list(dict.fromkeys([*train_ids, *val_ids]))
     sizes: dict = {}
     problems, _ = check_samples(cfg.data, ids, cfg.views, R=cfg.R, passed=passed, progress=cfg.progress,

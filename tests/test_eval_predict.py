@@ -292,7 +292,7 @@ def test_outputs_never_overwrite_ground_truth_and_bad_inputs_write_nothing(toy, 
     empty = tmp_path / "empty"
     empty.mkdir()
     assert racklay_main(["predict", str(empty), "--weights", str(ckpt), "--out", str(tmp_path / "o")]) == 2
-    assert "no files to predict" in capsys.readouterr().err
+    assert "no photos to predict" in capsys.readouterr().err
     bad = tmp_path / "bad.png"
     bad.write_text("not a png")
     onnx = tmp_path / "m.onnx"
@@ -384,3 +384,53 @@ def test_flip_averaged_predict_and_eval_say_so(ckpt, toy, tmp_path, capsys):
     assert racklay_main(["predict", str(img), "--weights", str(ckpt), "--out", str(tmp_path / "q"),
                          "--backend", "onnx", "--flip-average"]) == 2
     assert "flip averaging is for the torch backend" in capsys.readouterr().err
+
+
+def test_outputs_that_cannot_be_written_and_impossible_lengths_are_refused_before_any_work(
+        toy, ckpt, tmp_path, capsys, monkeypatch):
+    """An output that cannot be written (a file where a folder goes, a folder where a file goes)
+    and a shelf length the grid cannot draw are one-line errors before the model runs; nothing is
+    predicted or written. A folder's subfolders are said to be skipped; a dataset given as the
+    photo folder is pointed to its Images/."""
+    import racklay.predict as P
+
+    ran = []
+    monkeypatch.setattr(P.Predictor, "predict", lambda *a, **k: ran.append(1))
+    photos = str(toy / "Images")
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    cases = [
+        (["predict", photos, "--weights", str(ckpt), "--out", str(afile)], f"{afile}: is a file, expected a folder"),
+        (["predict", photos, "--weights", str(ckpt), "--out", str(afile / "sub")], "is a file"),
+        (["predict", photos, "--weights", str(ckpt), "--out", str(tmp_path / "p"), "--shelf-length", "270"],
+         "shelf length 270.0 m: outside what the 8 m, 32-pixel layout grid can draw"),
+        (["predict", photos, "--weights", str(ckpt), "--out", str(tmp_path / "p"), "--shelf-length", "1e-9"],
+         "metres, not centimetres"),
+        (["eval", "--weights", str(ckpt), "--data", str(toy), "--json", str(folder)],
+         f"{folder}: is a folder, expected a file (--json file)"),
+        (["score", "--pred", str(toy), "--gt", str(toy), "--json", str(folder)], "is a folder, expected a file"),
+        (["check-data", str(toy), "--json", str(folder)], "is a folder, expected a file"),
+        (["calibrate", "--weights", str(ckpt), "--data", str(toy), "--split", "val", "--out",
+          str(afile / "c.safetensors")], "cannot write the calibrated checkpoint there"),
+    ]
+    for argv, want in cases:
+        assert racklay_main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and want in err[0], (argv, err)
+    assert not ran and not (tmp_path / "p").exists() and list(folder.iterdir()) == []
+
+    # a subfolder is not searched, and the user is told so; a dataset points to its Images/
+    src = tmp_path / "src"
+    (src / "nested").mkdir(parents=True)
+    assert racklay_main(["predict", str(src), "--weights", str(ckpt), "--out", str(tmp_path / "q")]) == 2
+    assert "(empty folder?)" in capsys.readouterr().err
+    assert racklay_main(["predict", str(toy), "--weights", str(ckpt), "--out", str(tmp_path / "q")]) == 2
+    assert f"its photos are in {toy / 'Images'}" in capsys.readouterr().err
+    monkeypatch.undo()
+    (src / "a.png").write_bytes((toy / "Images" / sorted((toy / "Images").iterdir())[0].name).read_bytes())
+    assert racklay_main(["predict", str(src), "--weights", str(ckpt), "--out", str(tmp_path / "q"),
+                         "--no-figure"]) == 0
+    assert "note: skipped 1 subfolder(s), not searched (name them to predict their photos) (nested)" \
+        in capsys.readouterr().err

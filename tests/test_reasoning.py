@@ -492,3 +492,27 @@ def test_cli_analyze_photos_with_a_checkpoint(tmp_path, capsys):
         d = json.loads((out / f"{sid}.json").read_text())
         assert d["grid"]["D"] == 64 and d["report"].startswith("Rack has ")
         assert f"{sid}: Rack has " in printed
+
+
+def test_cli_analyze_stops_at_an_output_it_cannot_write_and_leaves_no_half_rack(tmp_path, capsys):
+    """A rack's outputs are written whole or not at all, and an output that cannot be written
+    stops the command with one line naming it (as predict does): the next racks would fail alike."""
+    from racklay.cli import main
+    from racklay.toy import build_toy_dataset
+
+    ds = build_toy_dataset(tmp_path / "toy", n=5, seed=1, D=64)
+    sid = ds.split_ids("test")[0]
+    out = tmp_path / "out"
+    (out / f"{sid}.glb").mkdir(parents=True)        # a folder where the GLB goes
+    rc = main(["analyze", "--layouts", str(ds.root), "--split", "test", "--out", str(out), "--no-render"])
+    cap = capsys.readouterr()
+    assert rc == 2
+    err = [line for line in cap.err.splitlines() if "error" in line]
+    assert len(err) == 1 and f"{sid}.glb" in err[0], cap.err
+    assert not (out / f"{sid}.json").exists() and "Rack has" not in cap.out
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    assert main(["analyze", "--layouts", str(ds.root), "--out", str(afile)]) == 2
+    assert capsys.readouterr().err.strip() == f"racklay: error: {afile}: is a file, expected a folder (output folder)"
+    assert main(["analyze", "--layouts", str(ds.root), "--weights", "w.safetensors", "--out", str(out)]) == 2
+    assert "--layouts ROOT analyses ground-truth layouts (no model)" in capsys.readouterr().err

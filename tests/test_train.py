@@ -599,3 +599,21 @@ def test_every_option_is_declared_once_and_checked_everywhere_from_there(capsys)
     assert "argument --layout-size: must be >= 8, got 4" in capsys.readouterr().err
     code = "import sys, racklay.config; print('torch' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout.strip() == "False"
+
+
+def test_a_dataset_without_a_view_and_a_name_outside_out_are_refused_plainly(tmp_path, toy):
+    """A top-only dataset trained for both views says which view is missing and the --views that
+    would train (not one missing file per sample, pointing to a check-data that passes); a run
+    name that would leave --out is refused."""
+    from racklay.train import check_run_data, split_ids
+
+    data = tmp_path / "ds"
+    shutil.copytree(toy, data)
+    shutil.rmtree(data / "frontLayouts")
+    cfg = TrainConfig(data=str(data), out=str(tmp_path / "runs"), name="top", **TINY)
+    with pytest.raises(ValueError, match=r"has no front layouts \(no frontLayouts/ folder\); train on the "
+                                         r"views it has with --views top$"):
+        check_run_data(cfg, cfg.run_dir(), *split_ids(cfg))
+    for name in ("../escaped", "a/b", "..", " "):
+        with pytest.raises(ValueError, match="name must be a folder name inside --out"):
+            TrainConfig(data=str(data), out=str(tmp_path / "runs"), name=name, **TINY)

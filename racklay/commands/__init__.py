@@ -18,3 +18,46 @@ def show_progress(args) -> bool:
     import sys
 
     return sys.stderr.isatty() and not getattr(args, "no_progress", False)
+
+
+def _writable_parent(path, what: str) -> None:
+    """The nearest existing folder above `path` must be a folder this process can write into."""
+    import os
+    from pathlib import Path
+
+    p = Path(path).absolute().parent
+    while not p.exists():
+        p = p.parent
+    if not p.is_dir():
+        raise CLIError(f"{path}: cannot write the {what} there ({p} is a file)")
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise CLIError(f"{path}: cannot write the {what} there ({p} is not writable)")
+
+
+def check_out_folder(path, what: str = "output folder") -> None:
+    """Refuse an output folder that cannot be written, before any work is done: it is an existing
+    file, or the folder it would be made in is missing-and-unmakeable or read-only."""
+    from pathlib import Path
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise CLIError(f"{path}: is a file, expected a folder ({what})")
+    if p.is_dir():
+        import os
+
+        if not os.access(p, os.W_OK | os.X_OK):
+            raise CLIError(f"{path}: the {what} is not writable")
+        return
+    _writable_parent(p, what)
+
+
+def check_out_file(path, what: str = "output file") -> None:
+    """Refuse an output file that cannot be written, before any work is done: it is an existing
+    folder, or the folder it would be written in is read-only or a file."""
+    from pathlib import Path
+
+    if path is None:
+        return
+    if Path(path).is_dir():
+        raise CLIError(f"{path}: is a folder, expected a file ({what})")
+    _writable_parent(path, what)

@@ -63,14 +63,22 @@ def write_outputs(result, out: Path, sid: str, image=None, fmt: str = "glb", ren
     from racklay.atomic import atomic_write_text
     from racklay.export3d import render_figure, write_glb, write_ply
 
-    files = [atomic_write_text(out / f"{sid}.json", result.to_json() + "\n")]
-    if fmt in ("glb", "both"):
-        files.append(write_glb(result, out / f"{sid}.glb"))
-    if fmt in ("ply", "both"):
-        files.append(write_ply(result, out / f"{sid}.ply"))
-    if render:
-        render_figure(result, image, out=out / f"{sid}.png", title=f"{sid}: {result.report()}")
-        files.append(out / f"{sid}.png")
+    try:
+        files = [atomic_write_text(out / f"{sid}.json", result.to_json() + "\n")]
+        if fmt in ("glb", "both"):
+            files.append(write_glb(result, out / f"{sid}.glb"))
+        if fmt in ("ply", "both"):
+            files.append(write_ply(result, out / f"{sid}.ply"))
+        if render:
+            render_figure(result, image, out=out / f"{sid}.png", title=f"{sid}: {result.report()}")
+            files.append(out / f"{sid}.png")
+    except BaseException:
+        # a rack's outputs are written whole or not at all: no JSON without its GLB
+        for suffix in (".json", ".glb", ".ply", ".png"):
+            f = out / f"{sid}{suffix}"
+            if f.is_file():
+                f.unlink()
+        raise
     return files
 
 
@@ -130,6 +138,9 @@ def _samples_from_photos(args):
     backend = args.backend or ("onnx" if str(args.weights).endswith(".onnx") else "torch")
     predictor = Predictor(args.weights, backend=backend, flip_average=args.flip_average)
     cfg = _config(args)
+    if args.shelf_length is not None:
+        from racklay.layout import check_shelf_length
+        check_shelf_length(args.shelf_length, predictor.grid)   # before the first photo
 
     def one(path):
         image = read_image(path)
@@ -143,10 +154,12 @@ def _samples_from_photos(args):
 
 def run(args) -> int:
     from racklay.atomic import atomic_write_json
-    from racklay.commands import CLIError
+    from racklay.commands import CLIError, check_out_folder
 
-    if args.layouts and (args.inputs or args.weights):
-        raise CLIError("give either --layouts ROOT or IMAGE_OR_FOLDER with --weights, not both")
+    if args.layouts and args.inputs:
+        raise CLIError("give either --layouts ROOT or IMAGE_OR_FOLDER, not both")
+    if args.layouts and args.weights:
+        raise CLIError("--weights is for photos; --layouts ROOT analyses ground-truth layouts (no model)")
     if args.layouts and args.shelf_length:
         raise CLIError("--shelf-length scales a model's predictions; --layouts are ground truth, already metric")
     if args.layouts and args.flip_average:
@@ -158,6 +171,7 @@ def run(args) -> int:
 
         args.weights = weights_for_cli(args.weights)
     out = Path(args.out)
+    check_out_folder(out)
     samples = _samples_from_layouts(args) if args.layouts else _samples_from_photos(args)
     summary, failed = [], 0
     for n, (sid, thunk) in enumerate(samples):
@@ -165,14 +179,15 @@ def run(args) -> int:
             break
         try:
             result, image, warn = thunk()
-            if warn:
-                print(f"racklay analyze: warning: {warn}", file=sys.stderr)
-            write_outputs(result, out, sid, image, args.format, render=not args.no_render)
-        except (ValueError, FileNotFoundError, OSError) as e:  # DataError / LayoutError name the file
+        except (ValueError, OSError) as e:  # an input that cannot be read (DataError / LayoutError name the file)
             failed += 1
             print(f"racklay analyze: error: {e}", file=sys.stderr)
             summary.append({"id": sid, "error": str(e)})
             continue
+        if warn:
+            print(f"racklay analyze: warning: {warn}", file=sys.stderr)
+        # an output that cannot be written stops the command (one line naming the file), as in predict
+        write_outputs(result, out, sid, image, args.format, render=not args.no_render)
         print(f"{sid}: {result.report()}", flush=True)
         summary.append({"id": sid, "n_shelves": result.n_shelves, "n_box_stacks": result.n_box_stacks,
                         "capacity_m3": round(result.capacity_m3, 6), "free_m3": round(result.free_m3, 6),

@@ -15,7 +15,7 @@ def register(sub) -> None:
                     "that maximise the mean of the dataset-level shelf and box IoU on a split the model "
                     "was not trained on, and write a copy of the checkpoint that carries them: `predict`, "
                     "`eval`, `analyze` and the annotator then use them. A model trained on layouts that are "
-                    "~99%% background under-calls boxes with a plain argmax; this is the layout analogue of "
+                    "~99% background under-calls boxes with a plain argmax; this is the layout analogue of "
                     "choosing a detector's score threshold. Probabilities (and AP) are unchanged. "
                     "Fit on a validation split, never on the test split you report.",
         epilog="example: racklay calibrate --weights runs/x/best.safetensors --data datasets/release "
@@ -39,7 +39,7 @@ def run(args) -> int:
 
     from racklay.atomic import atomic_write_json
     from racklay.calibrate import fit_decision_bias, format_fits, write_calibrated
-    from racklay.commands import CLIError
+    from racklay.commands import CLIError, check_out_file
     from racklay.predict import Predictor
     from racklay.release import weights_for_cli
 
@@ -50,6 +50,8 @@ def run(args) -> int:
         raise CLIError(f"{args.out}: --out must be a .safetensors file")
     if Path(args.out).resolve() == Path(weights).resolve():
         raise CLIError(f"{args.out}: --out must differ from --weights (the input stays as it is)")
+    check_out_file(args.out, "calibrated checkpoint")
+    check_out_file(args.json, "--json file")
     pred = Predictor(weights, threads=args.threads, precision=args.precision)
     fits = fit_decision_bias(pred, args.data, split=args.split, batch_size=args.batch_size, limit=args.limit,
                              progress=show_progress(args))

@@ -25,8 +25,10 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from racklay.atomic import atomic_write_json
+    from racklay.commands import check_out_file
     from racklay.data import check_dataset
 
+    check_out_file(args.json, "--json file")
     rep = check_dataset(args.root, R=args.R, D=args.D, progress=show_progress(args), workers=args.workers)
     for line in rep.problems[: args.max_problems]:
         print(line)

@@ -51,13 +51,16 @@ def run(args) -> int:
     from pathlib import Path
 
     from racklay.atomic import atomic_write_json
+    from racklay.commands import check_out_file, check_out_folder
     from racklay.evaluate import eval_report, evaluate
     from racklay.metrics import format_tables
     from racklay.predict import Predictor
     from racklay.release import weights_for_cli
 
     args.weights = weights_for_cli(args.weights)
+    check_out_file(args.json, "--json file")
     if args.save_predictions:
+        check_out_folder(args.save_predictions, "--save-predictions folder")
         from racklay.data import check_prediction_out
         check_prediction_out(args.save_predictions, data=args.data)
     pred = Predictor(args.weights, backend=args.backend, threads=args.threads,

@@ -41,7 +41,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from pathlib import Path
 
-    from racklay.commands import CLIError
+    from racklay.commands import CLIError, check_out_folder
     from racklay.data import check_prediction_out
     from racklay.predict import Predictor, list_inputs, predict_folder
     from racklay.release import weights_for_cli
@@ -51,7 +51,10 @@ def run(args) -> int:
     out = Path(args.out).resolve()
     files = list_inputs(args.inputs)
     if not files:
-        raise CLIError(f"{' '.join(map(str, args.inputs))}: no files to predict (empty folder?)")
+        sets = [p for p in map(Path, args.inputs) if (p / "Images").is_dir()]
+        hint = f"; a RackLay dataset? its photos are in {sets[0] / 'Images'}" if sets else " (empty folder?)"
+        raise CLIError(f"{' '.join(map(str, args.inputs))}: no photos to predict{hint}")
+    check_out_folder(args.out)
     check_prediction_out(args.out)
     for f in files:
         if f.resolve().parent == out / "Images":

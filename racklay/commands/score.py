@@ -18,9 +18,11 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from racklay.atomic import atomic_write_json
+    from racklay.commands import check_out_file
     from racklay.evaluate import score_folders
     from racklay.metrics import format_tables
 
+    check_out_file(args.json, "--json file")
     result, n = score_folders(args.pred, args.gt, args.split)
     print(format_tables(result, title=f"{n} images: {args.pred} vs {args.gt}"))
     if args.json:

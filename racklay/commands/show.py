@@ -40,7 +40,8 @@ def run(args) -> int:
                 else f"{ds.root}: no images in {ds.root / 'Images'}"
             raise CLIError(where)
         if not 0 <= args.index < len(ids):
-            raise CLIError(f"--index {args.index} out of range: {ds.root} has {len(ids)} samples")
+            raise CLIError(f"--index {args.index} out of range: {ds.root}" + (f" [{args.split}]" if args.split else "")
+                           + f" has {len(ids)} samples")
         sid = ids[args.index]
     views = ds.views()
     # the shape most of the dataset's layouts have: a file that differs is the one named

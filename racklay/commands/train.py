@@ -47,7 +47,7 @@ def config_from_args(args):
     if "data" not in given:
         from racklay.commands import CLIError
         raise CLIError("--data is required (or --config with a data: entry)")
-    return TrainConfig.from_dict(given, "flags")
+    return TrainConfig.from_dict(given, "command line")
 
 
 def run(args) -> int:
