@@ -22,7 +22,7 @@ import numpy as np
 
 from racklay import layout as L
 from racklay.atomic import encode_png
-from racklay.data import DataError, RackLayRoot, make_splits
+from racklay.data import DataError, RackLayRoot, check_split_name, make_splits
 
 from . import geometry as G
 from . import schema as S
@@ -65,7 +65,7 @@ def read_split_file(path: str | os.PathLike) -> dict[str, str]:
 
     path = Path(path)
     try:
-        with open(path, newline="", encoding="utf-8") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:    # a spreadsheet's byte-order mark too
             reader = csv.DictReader(f, delimiter="\t")
             cols = reader.fieldnames or []
             missing = [c for c in ("file", "split") if c not in cols]
@@ -79,6 +79,10 @@ def read_split_file(path: str | os.PathLike) -> dict[str, str]:
                     raise ValueError(f"{path}: line {line}: empty {'file' if not name else 'split'}")
                 if name in out:
                     raise ValueError(f"{path}: line {line}: {name} is listed twice")
+                try:
+                    check_split_name(split)
+                except ValueError as e:
+                    raise ValueError(f"{path}: line {line}: {e}") from None
                 out[name] = split
     except OSError as e:
         raise ValueError(f"{path}: cannot read the split file ({e.strerror or e})") from None

@@ -407,8 +407,19 @@ class RackLayRoot:
             atomic_write_json(self.meta_path(sid), meta)
 
     def write_split(self, name: str, ids: Iterable[str]) -> Path:
+        check_split_name(name)
         lines = [f"{IMAGES_DIR}/{sid}.png" for sid in ids]
         return atomic_write_text(self.split_path(name), "\n".join(lines) + ("\n" if lines else ""))
+
+
+def check_split_name(name: str) -> str:
+    """A split's name is a plain word (letters, digits, '_', '-', '.'; not starting with '.'): it
+    becomes the file splits/NAME.txt inside the dataset, never a path out of it."""
+    import re
+
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name or ""):
+        raise DataError(f"split name {name!r}: use letters, digits, '_', '-' or '.' (it names splits/NAME.txt)")
+    return name
 
 
 def parse_split_entry(line: str) -> str:

@@ -165,13 +165,20 @@ def test_export_split_file_puts_each_photo_in_its_split(tmp_path, capsys):
                       ("file\tsplit\np0.png\ttest\np1.png\ttrain\np2.png\ttest\np3.png\ttrain\nzz.png\ttest\n",
                        "not in"),
                       ("file\tsite\np0.png\ta\n", "no 'split' column"),
-                      ("file\tsplit\np0.png\ttest\np0.png\ttrain\n", "line 3: p0.png is listed twice")):
+                      ("file\tsplit\np0.png\ttest\np0.png\ttrain\n", "line 3: p0.png is listed twice"),
+                      # a split name is a plain word: never a path out of the dataset
+                      ("file\tsplit\np0.png\ttest\np1.png\ttrain\np2.png\t../../evil\np3.png\ttrain\n",
+                       "line 4: split name '../../evil': use letters, digits")):
         tsv.write_text(text)
         bad = tmp_path / "bad"
         assert annotate_main(["export", str(proj.root), "--out", str(bad), "--split-file", str(tsv)]) == 2
         err = capsys.readouterr().err.strip()
         assert why in err and len(err.splitlines()) == 1, err
         assert not bad.exists() and not list(tmp_path.glob(".bad.*"))
+    assert not list(tmp_path.parent.parent.glob("evil*"))
+    # a split file saved by a spreadsheet (byte-order mark) reads as any other
+    tsv.write_bytes("\ufefffile\tsplit\np0.png\ttest\np1.png\ttrain\np2.png\ttest\np3.png\ttrain\n".encode())
+    assert annotate_main(["export", str(proj.root), "--out", str(tmp_path / "bom"), "--split-file", str(tsv)]) == 0
 
 
 def exported(tmp_path, n=5):
