@@ -396,8 +396,13 @@ def check_run_data(cfg: TrainConfig, run_dir: Path, train_ids, val_ids) -> dict:
     Returns the updated record of passed files."""
     import json
 
-    from .data import DataError, check_samples
+    from .data import VIEW_DIRS, DataError, RackLayRoot, check_samples
 
+    have = RackLayRoot(cfg.data).views()
+    missing = [v for v in cfg.views if v not in have]
+    if missing:    # a view-specific dataset: say so, rather than one missing file per sample
+        raise DataError(f"{cfg.data}: has no {'/'.join(missing)} layouts (no {VIEW_DIRS[missing[0]]}/ folder); "
+                        f"train on the views it has with --views {','.join(have) or '?'}")
     passed = {}
     cache = run_dir / DATA_CHECK
     if cache.is_file():
@@ -405,13 +410,6 @@ def check_run_data(cfg: TrainConfig, run_dir: Path, train_ids, val_ids) -> dict:
             passed = json.loads(cache.read_text())
         except (OSError, ValueError):
             passed = {}
-    from .data import VIEW_DIRS, RackLayRoot
-
-    have = RackLayRoot(cfg.data).views()
-    missing = [v for v in cfg.views if v not in have]
-    if missing:    # a view-specific dataset: say so, rather than one missing file per sample
-        raise DataError(f"{cfg.data}: has no {'/'.join(missing)} layouts (no {VIEW_DIRS[missing[0]]}/ folder); "
-                        f"train on the views it has with --views {','.join(have) or '?'}")
     ids = list(dict.fromkeys([*train_ids, *val_ids]))
     sizes: dict = {}
     problems, _ = check_samples(cfg.data, ids, cfg.views, R=cfg.R, passed=passed, progress=cfg.progress,

@@ -37,18 +37,17 @@ def _writable_parent(path, what: str) -> None:
 def check_out_folder(path, what: str = "output folder") -> None:
     """Refuse an output folder that cannot be written, before any work is done: it is an existing
     file, or the folder it would be made in is missing-and-unmakeable or read-only."""
+    import os
     from pathlib import Path
 
     p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise CLIError(f"{path}: is a file, expected a folder ({what})")
     if p.is_dir():
-        import os
-
         if not os.access(p, os.W_OK | os.X_OK):
             raise CLIError(f"{path}: the {what} is not writable")
-        return
-    _writable_parent(p, what)
+    elif p.exists():
+        raise CLIError(f"{path}: is a file, expected a folder ({what})")
+    else:
+        _writable_parent(p, what)
 
 
 def check_out_file(path, what: str = "output file") -> None:
