@@ -104,6 +104,9 @@ def split_ids(ids: list[str], counts: dict[str, float] | None = None,
         need = int(sum(counts.values()))
         if need > len(ids):
             raise ValueError(f"--split asks for {need} images but {len(ids)} are exported")
+        if need < len(ids):   # the rest would be in no split: written, but never trained or tested on
+            raise ValueError(f"--split gives a split to {need} of the {len(ids)} exported images; the counts "
+                             f"must add up to {len(ids)} (or use --split-fractions)")
         return make_splits(ids, counts={k: int(v) for k, v in counts.items()}, seed=seed)
     fractions = fractions or {"train": 0.8, "test": 0.2}
     check_fractions(fractions)

@@ -15,7 +15,7 @@ import copy
 import json
 import math
 import os
-import re
+import unicodedata
 from pathlib import Path
 from typing import Any, TypedDict
 
@@ -188,13 +188,31 @@ def _obj(v, source, field, kind: type) -> dict:
     return v
 
 
-_SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._ -]{0,150}$")
+#: the longest photo name the tool stores (its annotation, lock and history files add ~10 characters
+#: to it; file systems allow 255 bytes, a UTF-8 character takes up to 4)
+MAX_NAME_CHARS = 150
 
 
 def check_image_name(name: str, source: str = "image name", field: str = "image") -> str:
-    """A plain file name (no folders, no '..', no hidden files): the only kind the tool stores."""
-    if not isinstance(name, str) or not _SAFE_NAME.match(name) or ".." in name or "/" in name or "\\" in name:
+    """A plain file name: the only kind the tool stores. Any language and the characters cameras
+    and file managers write ('IMG_0001 (1).jpg', 'Regal Übersicht.jpg'); not a folder or a path
+    ('/', '\\'), not hidden (a leading '.'), no surrounding spaces, no control or invisible
+    formatting characters (nor the undecodable bytes of a name in another encoding)."""
+    if not isinstance(name, str) or not name:
         _fail(source, field, f"not a plain file name: {name!r}")
+    bad = None
+    if "/" in name or "\\" in name:
+        bad = "it names a folder"
+    elif name.startswith("."):
+        bad = "a hidden file"
+    elif name != name.strip():
+        bad = "spaces around it"
+    elif len(name) > MAX_NAME_CHARS:
+        bad = f"longer than {MAX_NAME_CHARS} characters"
+    elif any(unicodedata.category(c).startswith("C") for c in name):
+        bad = "a control, invisible or undecodable character"
+    if bad:
+        _fail(source, field, f"not a plain file name: {name!r} ({bad}; rename the photo)")
     return name
 
 

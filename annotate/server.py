@@ -1,7 +1,6 @@
 """Serving the annotation tool: the port check, gradio's launch settings (offline), the model
 that proposes boxes, a per-run temporary folder for gradio's files, and `serve`."""
 import os
-import threading
 
 from .app import build_app  # sets GRADIO_ANALYTICS_ENABLED=False before gradio is imported
 from .page import CSS, head
@@ -78,15 +77,6 @@ def run_temp_dir() -> str:
     return path
 
 
-def exit_on_sigterm() -> None:
-    """SIGTERM (`kill`, systemd, docker stop) becomes a normal exit, so atexit clean-up runs."""
-    import signal
-    import sys
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
-
-
 def _drop_temp_dir(path: str, env_before: str | None) -> None:
     """Undo run_temp_dir() when serve() fails to start."""
     import shutil
@@ -118,8 +108,6 @@ def serve(project_dir, host: str = "127.0.0.1", port: int = 7860, model: str | N
     except BaseException:
         _drop_temp_dir(tmp, env_before)
         raise
-    if block:
-        exit_on_sigterm()
     print(f"annotate: serving {project.root} ({len(project.images())} images) at http://{host}:{port}"
           + (f", pre-labels from {os.path.basename(str(model))}" if model else ""))
     if block:

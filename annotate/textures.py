@@ -26,6 +26,9 @@ from annotate.store import DONE_STATUSES, Project
 
 #: a tile's side on the rack plane, metres (about one carton)
 TILE_M = 0.45
+#: the --tile values accepted, metres: from a small carton's face to a pallet load's (a tile of
+#: millimetres would cut each box into thousands of textures, for minutes)
+TILE_RANGE_M = (0.05, 3.0)
 #: written texture size, pixels a side (WareSynth's texture layers are 256 x 256)
 TEXTURE_PX = 256
 #: a tile narrower or lower than this in the photo has too few pixels to be a texture
@@ -65,12 +68,20 @@ def face_texture(image: np.ndarray, plane: G.RackPlane, rect, size: int = TEXTUR
     return np.clip(tex * (TARGET_LUMA / max(luma, 8.0)), 0, 255).astype(np.uint8)
 
 
+def texture_prefixes(names: list[str]) -> dict[str, str]:
+    """Photo name -> the prefix of its texture files: the file stem, or stem_EXT where two photos
+    share a stem ('a.jpg' and 'a.png' give 'a_jpg' and 'a_png', so neither overwrites the other)."""
+    stems = [Path(n).stem for n in names]
+    return {n: s if stems.count(s) == 1 else f"{s}_{Path(n).suffix.lstrip('.').lower()}"
+            for n, s in zip(names, stems)}
+
+
 def export_textures(project: Project, out: str | os.PathLike, split_of: dict[str, str] | None = None,
                     split: str | None = None, only_status=DONE_STATUSES, tile: float = TILE_M,
                     progress: bool = False) -> dict:
     """Write the tiles of every labelled box of the finished photos (those of `split` in
     `split_of` when given) as JPEG textures into the new or empty folder `out`, named
-    PHOTO-STEM_bBOXID_KK.jpg (KK: the tile). Returns a summary: photos, textures, and what was
+    PHOTO-STEM_bBOXID_KK.jpg (KK: the tile; texture_prefixes). Returns a summary: photos, textures, and what was
     left out (boxes too small; tiles too small or reaching outside the photo). An annotation that
     gives no scene is an error naming its file."""
     import cv2
@@ -78,8 +89,8 @@ def export_textures(project: Project, out: str | os.PathLike, split_of: dict[str
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ValueError(f"{out}: not a new or empty folder; choose a new folder")
-    if not tile > 0:
-        raise ValueError(f"--tile: must be positive metres, got {tile}")
+    if not TILE_RANGE_M[0] <= tile <= TILE_RANGE_M[1]:
+        raise ValueError(f"--tile: {tile} m is not a carton face's size (use {TILE_RANGE_M[0]} to {TILE_RANGE_M[1]} m)")
     if split is not None and split_of is None:
         raise ValueError("--split needs --split-file (which photo is in which split)")
     check_statuses(only_status)
@@ -94,6 +105,7 @@ def export_textures(project: Project, out: str | os.PathLike, split_of: dict[str
     if not names:
         raise ValueError(f"{project.root}: no photo with status {', '.join(only_status)}"
                          + (f" in split {split!r}" if split else ""))
+    prefix = texture_prefixes([name for name, _ in names])
     left = {"boxes too small": 0, "tiles too small or outside the photo": 0}
     n = 0
     with staged_folder(out) as tmp:
@@ -116,7 +128,7 @@ def export_textures(project: Project, out: str | os.PathLike, split_of: dict[str
                     if tex is None:
                         left["tiles too small or outside the photo"] += 1
                         continue
-                    path = tmp / f"{Path(name).stem}_b{b.id}_{k:02d}.jpg"
+                    path = tmp / f"{prefix[name]}_b{b.id}_{k:02d}.jpg"
                     if not cv2.imwrite(str(path), tex[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90]):
                         raise OSError(f"{path}: could not be written")
                     n += 1

@@ -72,9 +72,10 @@ def run(parser: argparse.ArgumentParser, argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    from racklay.runtime import tune_allocator
+    from racklay.runtime import exit_on_sigterm, tune_allocator
 
     tune_allocator()
+    exit_on_sigterm()
     try:
         rc = args.func(args)
     except KeyboardInterrupt:

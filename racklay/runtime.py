@@ -62,3 +62,17 @@ def tune_allocator() -> str:
             ok = False
         _applied = "tuned" if ok else "mallopt refused"
     return _applied
+
+
+def exit_on_sigterm() -> None:
+    """SIGTERM (`kill`, systemd, docker stop, a scheduler's time limit) becomes a normal exit
+    (SystemExit 143) in the main thread, so `finally` blocks and atexit clean-up run: a command
+    stopped this way removes its hidden temporary files and folders (racklay.atomic, annotate's
+    staged export) as an error or Ctrl-C does, instead of leaving them behind. Every command line
+    sets it (`racklay.cli.run`)."""
+    import signal
+    import sys
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))

@@ -14,14 +14,14 @@ from racklay.data import RackLayRoot, check_dataset
 from test_annotate_geometry import Camera, clicks, iou, true_layouts
 
 
-def make_project(tmp_path, n=5, statuses=None):
+def make_project(tmp_path, n=5, statuses=None, names=None):
     root = tmp_path / "proj"
     root.mkdir()
     cam = Camera([1.0, -3.2, 1.0], [1.0, 0, 1.0])
     proj = Project(root)
     proj.save_settings(dict(proj.settings, D=256, extent=4.0))
     for k in range(n):
-        name = f"p{k}.png"
+        name = names[k] if names else f"p{k}.png"
         (root / name).write_bytes(encode_png(np.full((480, 640, 3), 30 * k % 250, np.uint8)))
         ann = clicks(cam)
         ann["image"] = name
@@ -73,6 +73,39 @@ def test_export_refuses_incomplete_and_bad_split(tmp_path, capsys):
     assert rc == 2 and "no annotation with status todo" in capsys.readouterr().err
     with pytest.raises(ValueError, match="asks for 5 images but 2"):
         split_ids(["a", "b"], counts={"train": 5})
+    # counts that leave images in no split (never trained or tested on) are refused, not silent
+    (tmp_path / "two").mkdir()
+    rc = annotate_main(["export", str(make_project(tmp_path / "two", 2).root), "--out", str(tmp_path / "o3"),
+                        "--split", "train=1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "gives a split to 1 of the 2 exported images" in err and not (tmp_path / "o3").exists()
+
+
+def test_photo_names_as_cameras_and_people_write_them_are_labelled_and_exported(tmp_path, capsys):
+    """A copied photo ('IMG_0001 (1).png'), a name in another language, spaces: the project lists,
+    opens, saves and exports them (they used to stop `serve` and the whole project's export)."""
+    from annotate.editor import Tool
+
+    names = ["IMG_0001 (1).png", "Regal Übersicht.png", "倉庫 #2.png"]
+    proj = make_project(tmp_path, 3, names=names)
+    assert proj.images() == sorted(names)
+    tool = Tool(proj)
+    st = tool.open("Regal Übersicht.png")
+    assert tool.frame(st) is not None and proj.load("Regal Übersicht.png")["image"] == "Regal Übersicht.png"
+    out = tmp_path / "ds"
+    assert annotate_main(["export", str(proj.root), "--out", str(out), "--split", "train=2,test=1"]) == 0
+    assert check_dataset(out).ok
+    got = sorted(RackLayRoot(out).read_meta(f"{k:06d}")["source_image"] for k in range(3))
+    assert got == sorted(names)
+    # what is still refused is what a project cannot store: a path, a hidden file, an invisible
+    # character; each a one-line error that names the file and says to rename it
+    for bad in ("a/b.png", ".x.png", "zero\u200bwidth.png", "bell\x07.png", " lead.png"):
+        with pytest.raises(ValueError, match="not a plain file name.*rename the photo"):
+            proj.image_path(bad)
+    (proj.root / "tab\tname.png").write_bytes((proj.root / names[0]).read_bytes())
+    assert annotate_main(["export", str(proj.root), "--out", str(tmp_path / "ds2")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'tab\\tname.png'" in err and "rename the photo" in err
 
 
 def test_import_round_trip(tmp_path, capsys):

@@ -86,3 +86,25 @@ def test_a_box_the_frame_cuts_gives_the_tiles_of_its_visible_part():
     cropped = img[:, : int(x_mid) + 2]
     got = [face_texture(cropped, scene.plane, r) for r in box_tiles(b)]
     assert got[0] is not None and got[1] is None
+
+
+def test_photos_sharing_a_stem_keep_both_their_textures_and_a_tile_of_millimetres_is_refused(tmp_path, capsys):
+    """'a.jpg' and 'a.png' (a camera's JPEG beside its PNG export) wrote the same file names, the
+    second photo's textures silently replacing the first's."""
+    import cv2
+
+    proj = make_project(tmp_path, 2, names=["a.png", "b.png"])
+    ok, jpg = cv2.imencode(".jpg", np.full((480, 640, 3), 120, np.uint8))
+    (proj.root / "a.jpg").write_bytes(jpg.tobytes())
+    from test_annotate_geometry import clicks
+
+    ann = clicks(Camera([1.0, -3.2, 1.0], [1.0, 0, 1.0]))
+    ann.update(image="a.jpg", status="done")
+    proj.save(ann)
+    res = export_textures(proj, tmp_path / "tex")
+    assert res["photos"] == 3 and res["textures"] == 3 * TILES
+    assert len(texture_files(str(tmp_path / "tex"))) == 3 * TILES
+    assert {p.name.rsplit("_b", 1)[0] for p in (tmp_path / "tex").iterdir()} == {"a_jpg", "a_png", "b"}
+    rc = annotate_main(["textures", str(proj.root), "--out", str(tmp_path / "t2"), "--tile", "0.002"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--tile: 0.002 m is not a carton face's size" in err and not (tmp_path / "t2").exists()

@@ -44,3 +44,32 @@ def test_every_command_line_tunes_before_running(monkeypatch):
     sub.add_parser("go").set_defaults(func=lambda args: calls.append("ran") or 0)
     assert run(parser, ["go"]) == 0
     assert calls == ["tuned", "ran"]
+
+
+def test_a_command_stopped_by_sigterm_leaves_no_hidden_partial_output(tmp_path):
+    """`kill`, docker stop or a scheduler's time limit during an export: the command exits 143 and
+    its hidden staging folder is removed, as on an error or Ctrl-C (it used to stay behind)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent(f"""
+        import argparse, os, signal, sys, time
+        from pathlib import Path
+        from annotate.dataset import staged_folder
+        from racklay.cli import run
+
+        def export(args):
+            with staged_folder(Path({str(tmp_path / "out")!r})) as tmp:
+                (tmp / "half.npy").write_bytes(b"x" * 1000)
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(30)
+            return 0
+
+        parser = argparse.ArgumentParser(prog="x")
+        parser.add_subparsers().add_parser("export").set_defaults(func=export)
+        sys.exit(run(parser, ["export"]))
+    """)
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 143, p.stderr
+    assert list(tmp_path.iterdir()) == []

@@ -7,7 +7,7 @@ import sys
 def register(sub) -> None:
     from annotate.dataset import parse_statuses
     from annotate.store import DONE_STATUSES
-    from annotate.textures import TEXTURE_PX, TILE_M
+    from annotate.textures import TEXTURE_PX, TILE_M, TILE_RANGE_M
 
     p = sub.add_parser(
         "textures", help="write the labelled boxes' faces as WareSynth carton textures",
@@ -24,7 +24,8 @@ def register(sub) -> None:
                    help="tab-separated file with 'file' and 'split' columns (e.g. the project's SOURCES.tsv)")
     p.add_argument("--split", default=None, help="only the photos of this split of --split-file (e.g. train)")
     p.add_argument("--tile", type=float, default=TILE_M,
-                   help=f"tile side on the rack plane, metres (default {TILE_M}: about one carton)")
+                   help=f"tile side on the rack plane, metres, {TILE_RANGE_M[0]} to {TILE_RANGE_M[1]} "
+                        f"(default {TILE_M}: about one carton)")
     p.add_argument("--only-status", type=parse_statuses, default=DONE_STATUSES,
                    help=f"use photos with these statuses (default {','.join(DONE_STATUSES)})")
     p.set_defaults(func=run)
