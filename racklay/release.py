@@ -28,29 +28,30 @@ def sha256_file(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
-def release_weights() -> Path:
-    """Path of the shipped weights, after checking the file is there and intact (sha256)."""
+def release_weights(flag: str = "--weights") -> Path:
+    """Path of the shipped weights, after checking the file is there and intact (sha256); `flag`
+    is the option that gives another file, named in the errors."""
     path = WEIGHTS_DIR / RELEASE_NAME
     if not path.is_file():
         raise FileNotFoundError(f"{path}: the shipped model is missing from this installation; "
-                                "reinstall racklay or pass --weights FILE")
+                                f"reinstall racklay or pass {flag} FILE")
     key = str(path)
     if key not in _verified:
         got = sha256_file(path)
         if RELEASE_SHA256 and got != RELEASE_SHA256:
             raise ValueError(f"{path}: sha256 {got[:12]}... does not match the release's {RELEASE_SHA256[:12]}... "
-                             "(corrupt or replaced file); reinstall racklay or pass --weights FILE")
+                             f"(corrupt or replaced file); reinstall racklay or pass {flag} FILE")
         _verified.add(key)
     return path
 
 
-def resolve_weights(weights: str | os.PathLike | None, log=None) -> Path:
-    """`--weights` as given, or the shipped model when it is None (said once through `log`)."""
+def resolve_weights(weights: str | os.PathLike | None, log=None, flag: str = "--weights") -> Path:
+    """`--weights` (or `flag`) as given, or the shipped model when it is None (said once through `log`)."""
     if weights:
         return Path(weights)
-    path = release_weights()
+    path = release_weights(flag)
     if log is not None:
-        log(f"using the shipped model {path.name} (docs/model-card.md); --weights FILE for another")
+        log(f"using the shipped model {path.name} (docs/model-card.md); {flag} FILE for another")
     return path
 
 
@@ -141,12 +142,17 @@ def add_weights_arg(p, what: str = "model checkpoint (.safetensors) or exported 
                    help=f"{what} (default: the shipped model {RELEASE_NAME}, see docs/model-card.md)")
 
 
-def weights_for_cli(weights: str | os.PathLike | None, quiet: bool = False) -> str:
-    """`--weights` as a path string: the shipped model when not given (said on stderr unless
-    `quiet`), else the file, which must exist (one-line error naming it)."""
+def weights_for_cli(weights: str | os.PathLike | None, quiet: bool = False, flag: str = "--weights") -> str:
+    """`--weights` (or `flag`, named in the messages) as a path string: the shipped model when not
+    given (said on stderr unless `quiet`), else the file, which must exist (one-line error naming
+    it; a run folder given instead points to the weights inside it)."""
     import sys
 
-    path = resolve_weights(weights, log=None if quiet else (lambda m: print(m, file=sys.stderr)))
+    path = resolve_weights(weights, log=None if quiet else (lambda m: print(m, file=sys.stderr)), flag=flag)
+    if path.is_dir():
+        inside = sorted(p.name for p in path.glob("*.safetensors")) + sorted(p.name for p in path.glob("*.onnx"))
+        hint = f" (it holds {', '.join(inside[:3])}: give one of them)" if inside else ""
+        raise ValueError(f"{path}: {flag} is a folder, not a weights file{hint}")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: weights file not found")
     return str(path)

@@ -294,8 +294,20 @@ def test_missing_split_names_the_splits_found(tiny_data, tmp_path, capsys):
     assert rc == 2 and "val.txt: split file not found" in err and "test, train" in err
     rc = main(["finetune", "--real", str(tmp_path), "--out", str(tmp_path / "f")])   # from the shipped model
     assert rc == 2 and "split file not found (splits found in" in capsys.readouterr().err
-    rc = main(["finetune", "--init", "nowhere.safetensors", "--real", str(tmp_path), "--out", str(tmp_path / "f")])
+    real = str(tiny_data / "real")
+    rc = main(["finetune", "--init", "nowhere.safetensors", "--real", real, "--out", str(tmp_path / "f")])
     assert rc == 2 and "nowhere.safetensors: weights file not found" in capsys.readouterr().err
+    # a run folder given for the checkpoint names the flag and the weights inside it; a missing
+    # replay set is found before any model is loaded
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "best.safetensors").write_bytes(b"")
+    rc = main(["finetune", "--init", str(run), "--real", real, "--out", str(tmp_path / "f")])
+    assert rc == 2 and "--init is a folder, not a weights file (it holds best.safetensors" in capsys.readouterr().err
+    rc = main(["finetune", "--init", str(run / "best.safetensors"), "--real", real, "--replay", str(tmp_path / "nope"),
+               "--out", str(tmp_path / "f")])
+    assert rc == 2 and "nope: replay dataset folder not found" in capsys.readouterr().err
+    assert not (tmp_path / "f").exists()
 
 
 def test_corrupt_checkpoint_is_a_clear_error(tiny_data, tmp_path, capsys):

@@ -76,7 +76,7 @@ def run(args) -> int:
     if not args.no_model:
         from racklay.release import weights_for_cli
 
-        model = weights_for_cli(args.model, quiet=True)   # serve names its model once it listens
+        model = weights_for_cli(args.model, quiet=True, flag="--model")   # serve names its model once it listens
     if args.pixel_aspect is not None:
         from annotate.store import Project
 

@@ -1,6 +1,8 @@
 """transfer finetune: fine-tune a pretrain checkpoint on a small real set."""
 from __future__ import annotations
 
+import os
+
 from racklay.config import TrainConfig, add_flags, at_least
 
 from . import add_model_args, add_train_args, print_run, split_out, train_kwargs
@@ -51,8 +53,12 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ..workflow import CHECKPOINT_LOSS, finetune
+    from ..workflow import CHECKPOINT_LOSS, finetune, require_split
 
+    # the data first: a wrong path is one line at once, not after the model has loaded
+    require_split(args.real, args.train_split, "real")
+    if args.replay is not None and not os.path.isdir(args.replay):
+        raise FileNotFoundError(f"{args.replay}: replay dataset folder not found")
     if args.fraction is not None and not 0 < args.fraction <= 1:
         raise ValueError(f"--fraction must be in (0, 1], got {args.fraction}")
     from racklay.release import weights_for_cli
@@ -62,7 +68,7 @@ def run(args) -> int:
     for k in (*CHECKPOINT_LOSS, "replay", "replay_ratio"):   # absent: the checkpoint's / TrainConfig's
         if getattr(args, k) is not None:
             kw[k] = getattr(args, k)
-    run_dir = finetune(weights_for_cli(args.init), args.real, out, name=name, seed=args.seed, lr=args.lr,
+    run_dir = finetune(weights_for_cli(args.init, flag="--init"), args.real, out, name=name, seed=args.seed, lr=args.lr,
                        train_split=args.train_split, train_fraction=args.fraction,
                        val_fraction=args.val_fraction, freeze_encoder_epochs=args.freeze_encoder_epochs,
                        augment=not args.no_augment, image_size=args.image_size, layout_size=args.layout_size,
