@@ -191,6 +191,10 @@ def test_recipe_errors_before_anything_is_written(tmp_path, capsys):
         assert not out.exists()
     with pytest.raises(RecipeError, match="not found"):
         load_recipe("no_such_recipe")
+    # an empty (unsaved, truncated) recipe file is not the defaults in disguise
+    (tmp_path / "empty.yaml").write_text("# nothing yet\n")
+    with pytest.raises(RecipeError, match=r"empty.yaml: empty recipe"):
+        load_recipe(str(tmp_path / "empty.yaml"))
 
 
 def test_existing_folder_with_other_settings_is_refused(tmp_path, reference):

@@ -306,6 +306,8 @@ def load_recipe(name_or_path: str | None = None, overrides: list[str] | dict | N
         path = resolve_recipe_path(name_or_path)
         src = str(path)
         data = read_yaml_mapping(path, "key: value", error=RecipeError)
+        if not data:   # an unsaved or truncated file would otherwise render the defaults unnoticed
+            raise RecipeError(f"{path}: empty recipe (no 'key: value' line); leave out --recipe for the defaults")
         data.setdefault("name", path.stem)
         recipe_from_dict(data, src)  # errors in the file are reported against the file
     if overrides:
