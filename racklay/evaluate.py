@@ -66,7 +66,8 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
 
     limit: score only the first `limit` ids of the split. with_probs: pass softmax probabilities
     so the result carries average precision. pred_out: also write the predicted layouts as a
-    RackLay dataset there (so `racklay score` / `racklay show` can read them).
+    RackLay dataset there, at the dataset's layout size (so `racklay score` / `racklay show` read
+    them beside it).
     shelf_length: every predicted shelf scaled to this known length (metres) before scoring.
     scale_from_truth: every predicted shelf scaled to its true shelf's length, so the score is of
     the shape alone (`racklay.layout.scale_shelves`)."""
@@ -83,6 +84,8 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
     loader = data_loader(ds, workers, batch_size=batch_size, shuffle=False)
     metrics = LayoutMetrics()
     out_root = RackLayRoot(pred_out) if pred_out is not None else None
+    # saved at the dataset's own layout size, so `racklay score --pred OUT --data DATA` reads them
+    out_D = root.layout_shape(ds.ids[:20])[1] if out_root is not None else None
     bar = None
     if progress:
         from tqdm import tqdm
@@ -104,7 +107,7 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
                     p = None if p is None else L.resize_layouts(p, D)
                 metrics.update(v, c, gt, probs=p)
                 if out_root is not None:
-                    for sid, lay in zip(batch["id"], c):
+                    for sid, lay in zip(batch["id"], c if c.shape[-1] == out_D else L.resize_layouts(c, out_D)):
                         out_root.write_sample(sid, **{v: lay})
             if bar is not None:
                 bar.update(len(batch["id"]))

@@ -434,3 +434,21 @@ def test_outputs_that_cannot_be_written_and_impossible_lengths_are_refused_befor
                          "--no-figure"]) == 0
     assert "note: skipped 1 subfolder(s), not searched (name them to predict their photos) (nested)" \
         in capsys.readouterr().err
+
+
+def test_saved_predictions_are_at_the_dataset_size_and_score_as_eval_native(toy, ckpt, tmp_path):
+    """eval --save-predictions wrote the model's 32² layouts, which `racklay score` refused against
+    the 128² dataset it had just evaluated; saved at the dataset's size they score exactly as
+    `eval --native` does."""
+    import json
+
+    pred = tmp_path / "pred"
+    assert racklay_main(["eval", "--weights", str(ckpt), "--data", str(toy), "--native", "--fp32",
+                         "--save-predictions", str(pred), "--json", str(tmp_path / "e.json"), "--no-progress"]) == 0
+    pr = RackLayRoot(pred)
+    assert np.load(pr.layout_path("front", pr.layout_ids("front")[0])).shape == (R, 128, 128)
+    assert racklay_main(["score", "--pred", str(pred), "--gt", str(toy), "--json", str(tmp_path / "s.json")]) == 0
+    ev, sc = (json.loads((tmp_path / f).read_text()) for f in ("e.json", "s.json"))
+    for v in ("top", "front"):
+        for c in ("background", "shelf", "box"):
+            assert sc[v]["dataset"][c]["IoU"] == pytest.approx(ev["metrics"][v]["dataset"][c]["IoU"])
