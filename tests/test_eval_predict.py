@@ -443,8 +443,10 @@ def test_saved_predictions_are_at_the_dataset_size_and_score_as_eval_native(toy,
     import json
 
     pred = tmp_path / "pred"
-    assert racklay_main(["eval", "--weights", str(ckpt), "--data", str(toy), "--native", "--fp32",
-                         "--save-predictions", str(pred), "--json", str(tmp_path / "e.json"), "--no-progress"]) == 0
+    assert racklay_main(["eval", "--weights", str(ckpt), "--data", str(toy), "--fp32",
+                         "--save-predictions", str(pred), "--no-progress"]) == 0
+    assert racklay_main(["eval", "--weights", str(ckpt), "--data", str(toy), "--fp32", "--native",
+                         "--json", str(tmp_path / "e.json"), "--no-progress"]) == 0
     pr = RackLayRoot(pred)
     assert np.load(pr.layout_path("front", pr.layout_ids("front")[0])).shape == (R, 128, 128)
     assert racklay_main(["score", "--pred", str(pred), "--gt", str(toy), "--json", str(tmp_path / "s.json")]) == 0
