@@ -37,14 +37,17 @@ def build_app(project: Project, predictor=None, user: str | None = None):
         state = gr.State(None)
         header = gr.Markdown(elem_id="header")
         with gr.Row():
-            filter_dd = gr.Dropdown(choices=list(FILTERS), value="all", label="list", elem_id="filter", scale=1)
-            # filled by on_load for a logged-in session: the page served before login must not list the photos
-            image_dd = gr.Dropdown(choices=[], label="photo (status)", elem_id="image-select", scale=3)
-            gr.Button("◀ prev (p)", elem_id="btn-prev", size="sm", scale=0)
-            gr.Button("next ▶ (n)", elem_id="btn-next", size="sm", scale=0)
-            gr.Button("next unfinished (u)", elem_id="btn-next-todo", size="sm", scale=0)
-            status_dd = gr.Dropdown(choices=list(S.STATUSES), label="annotation status", elem_id="status", scale=2)
-            gr.Button("mark done (d)", elem_id="btn-done", size="sm", scale=0)
+            filter_dd = gr.Dropdown(choices=list(FILTERS), value="all", label="list", elem_id="filter", scale=1,
+                                    min_width=110)
+            # filled by on_load for a logged-in session: the page served before login must not list the photos;
+            # wide enough for a camera's file name and its status at 1280-1440 px
+            image_dd = gr.Dropdown(choices=[], label="photo (status)", elem_id="image-select", scale=6, min_width=300)
+            gr.Button("◀ prev (p)", elem_id="btn-prev", size="sm", scale=0, min_width=90)
+            gr.Button("next ▶ (n)", elem_id="btn-next", size="sm", scale=0, min_width=90)
+            gr.Button("next unfinished (u)", elem_id="btn-next-todo", size="sm", scale=0, min_width=90)
+            status_dd = gr.Dropdown(choices=list(S.STATUSES), label="annotation status", elem_id="status", scale=2,
+                                    min_width=130)
+            gr.Button("mark done (d)", elem_id="btn-done", size="sm", scale=0, min_width=90)
         with gr.Row(elem_classes="mode-row"):
             for i, m in enumerate(MODES):
                 gr.Button(f"{i + 1} {m}", elem_id=f"mode-{m}", size="sm")

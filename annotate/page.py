@@ -75,7 +75,7 @@ VIEWER_HTML = """<div id="rl-viewer">
  <label>contrast <input type="range" id="rl-contrast" min="30" max="300" value="100"></label>
  <button id="rl-view-reset" type="button">reset view</button>
  <span class="rl-hint">wheel: zoom at the cursor · right-drag or Space+drag: pan · view only, nothing is saved</span></div>
-<div id="rl-viewport" style="height:%dpx"><div id="rl-stage"><img id="rl-img" alt="" draggable="false">
+<div id="rl-viewport" style="height:%dpx"><div id="rl-loading">loading the photo…</div><div id="rl-stage"><img id="rl-img" alt="" draggable="false">
 <svg id="rl-svg" xmlns="http://www.w3.org/2000/svg"></svg></div></div>
 </div>""" % DISPLAY_H
 
@@ -154,7 +154,11 @@ VIEWER_JS = r"""
     const key = el.getAttribute('data-key');
     if (key === rl.photoKey) return;
     rl.photoKey = key;
-    const img = $('#rl-img');
+    const img = $('#rl-img'), loading = $('#rl-loading');
+    if (loading) {           // shown from the page's start until each new photo is decoded
+      loading.hidden = !el.textContent.trim();
+      img.onload = img.onerror = () => { loading.hidden = true; };
+    }
     img.src = el.textContent ? 'data:image/jpeg;base64,' + el.textContent.trim() : '';
   }
   // --- drawing: the photo in a stage that is zoomed and panned by a CSS transform --------------
@@ -367,6 +371,9 @@ CSS = """
 #rl-stage { position: absolute; left: 0; top: 0; transform-origin: 0 0; }
 #rl-img, #rl-svg { position: absolute; left: 0; top: 0; max-width: none; }
 #rl-svg { pointer-events: none; overflow: visible; }
+#rl-loading { position: absolute; inset: 0; display: flex; align-items: center; justify-content: center;
+              color: #ddd; font-size: 1.1em; pointer-events: none; z-index: 2; }
+#rl-loading[hidden] { display: none; }
 #rl-banner { background: #b00020; color: #fff; padding: 8px 12px; font-weight: 600; border-radius: 4px; margin-bottom: 6px; }
 #rl-toolbar { font-size: 0.85em; display: flex; gap: 12px; align-items: center; flex-wrap: wrap; margin-bottom: 4px; }
 #rl-toolbar input[type=range] { width: 110px; vertical-align: middle; }
