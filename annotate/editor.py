@@ -593,8 +593,9 @@ class Tool:
                 return f"rack preset {p['name']}"
             for k, v in (("width", width), ("height", height), ("depth", depth)):
                 if v is not None and v != r.get(k):
-                    if not (np.isfinite(v) and 0 < v <= 100):
-                        return f"⚠ rack {k} must be between 0 and 100 m"
+                    lo, hi = S.RACK_SIZE_M
+                    if not (np.isfinite(v) and lo <= v <= hi):
+                        return f"⚠ rack {k} must be between {lo:g} and {hi:g} m"
                     r[k] = float(v)
                     r["preset"] = None
                     r["size_confirmed"] = True

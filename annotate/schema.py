@@ -322,10 +322,16 @@ PHOTO_MARGIN = 0.05
 MIN_BOX_PX = 1.0
 
 
+#: a rack's width, height and depth in metres, from a small cube unit to a high-bay rack (a size
+#: outside, e.g. 1e-9 typed for 1, draws layouts of nothing)
+RACK_SIZE_M = (0.05, 100.0)
+
+
 def photo_problems(ann: Annotation, width: int, height: int, name: str | None = None) -> list[str]:
     """Every way a (schema-valid) annotation does not fit its photo of width x height pixels
-    (named `name`): a different image name or image_size, rack corners, shelf points or box
-    corners outside the photo (beyond PHOTO_MARGIN), coinciding rack corners, boxes without area.
+    (named `name`): a different image name or image_size, a rack size outside RACK_SIZE_M, rack
+    corners, shelf points or box corners outside the photo (beyond PHOTO_MARGIN), coinciding rack
+    corners, boxes without area.
     One line each, naming the item by its id (stable when other items are added or deleted);
     empty when the annotation fits. The one check behind `annotate export` and the server's
     refusal to save an edit that breaks it (annotate.store.Project.save)."""
@@ -342,6 +348,10 @@ def photo_problems(ann: Annotation, width: int, height: int, name: str | None = 
         if not (-m <= x <= width + m and -m <= y <= height + m):
             out.append(f"{what} at ({x:.6g}, {y:.6g}) is outside the {width}x{height} photo")
 
+    for k in ("width", "height", "depth"):
+        v = ann["rack"].get(k)
+        if v is not None and not RACK_SIZE_M[0] <= v <= RACK_SIZE_M[1]:
+            out.append(f"rack {k} {v:.6g} m is not a rack's size ({RACK_SIZE_M[0]:g} to {RACK_SIZE_M[1]:g} m)")
     corners = ann["rack"]["corners"]
     for i, p in enumerate(corners):
         outside(f"rack corner {i + 1}", p)

@@ -73,9 +73,23 @@ def test_export_refuses_incomplete_and_bad_split(tmp_path, capsys):
     assert rc == 2 and "no annotation with status todo" in capsys.readouterr().err
     with pytest.raises(ValueError, match="asks for 5 images but 2"):
         split_ids(["a", "b"], counts={"train": 5})
-    # counts that leave images in no split (never trained or tested on) are refused, not silent
+    # a rack size no rack has (1e-9 typed for 1) is refused by name, as it is in the tool
+    from annotate.editor import Tool
+
     (tmp_path / "two").mkdir()
-    rc = annotate_main(["export", str(make_project(tmp_path / "two", 2).root), "--out", str(tmp_path / "o3"),
+    two = make_project(tmp_path / "two", 2)
+    ann = two.load("p0.png")
+    ann["rack"]["height"] = 1e-9
+    (two.root / "annotations" / "p0.png.json").write_text(json.dumps(ann))
+    rc = annotate_main(["export", str(two.root), "--out", str(tmp_path / "o4")])
+    assert rc == 2 and "p0.png.json: cannot export (rack height 1e-09 m is not a rack's size (0.05 to 100 m))" \
+        in capsys.readouterr().err
+    tool = Tool(two)
+    assert tool.set_rack(tool.open("p1.png"), width=0.001).msg == "⚠ rack width must be between 0.05 and 100 m"
+    ann["rack"]["height"] = 1.9
+    (two.root / "annotations" / "p0.png.json").write_text(json.dumps(ann))
+    # counts that leave images in no split (never trained or tested on) are refused, not silent
+    rc = annotate_main(["export", str(two.root), "--out", str(tmp_path / "o3"),
                         "--split", "train=1"])
     err = capsys.readouterr().err
     assert rc == 2 and "gives a split to 1 of the 2 exported images" in err and not (tmp_path / "o3").exists()
