@@ -311,6 +311,15 @@ class RackLayRoot:
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
 
+    def require(self, what: str = "dataset") -> "RackLayRoot":
+        """This dataset, or a one-line error naming the path: no such folder, or a file given
+        where the `what` folder goes (an image or a split file instead of the dataset)."""
+        if self.root.is_dir():
+            return self
+        if self.root.exists():
+            raise DataError(f"{self.root}: is a file, not a {what} folder")
+        raise FileNotFoundError(f"{self.root}: {what} folder not found")
+
     # --- paths ---
     def image_path(self, sid: str) -> Path:
         for ext in IMAGE_EXTS:
@@ -594,8 +603,10 @@ def check_dataset(root: str | os.PathLike, R: int | None = None, D: int | None =
     """Validate every sample of a dataset; return a report with one line per problem."""
     ds = RackLayRoot(root)
     rep = CheckReport(root=ds.root)
-    if not ds.root.is_dir():
-        rep.problems.append(f"{ds.root}: dataset folder not found")
+    try:
+        ds.require()
+    except (DataError, FileNotFoundError) as e:
+        rep.problems.append(str(e))
         return rep
     if not (ds.root / IMAGES_DIR).is_dir():
         rep.problems.append(f"{ds.root / IMAGES_DIR}: images folder missing")

@@ -33,9 +33,7 @@ def split_dataset(pred, data, split: str | None, limit: int | None = None):
     from .data import RackLayRoot
     from .torchdata import RackLayDataset
 
-    root = RackLayRoot(data)
-    if not root.root.is_dir():
-        raise FileNotFoundError(f"{root.root}: dataset folder not found")
+    root = RackLayRoot(data).require()
     ids = root.resolve(split)
     if limit is not None:
         ids = ids[: int(limit)]

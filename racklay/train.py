@@ -92,9 +92,7 @@ def load_teacher(cfg: TrainConfig, device) -> RackLayNet:
 def split_ids(cfg: TrainConfig) -> tuple[list[str], list[str]]:
     from .data import RackLayRoot, make_splits
 
-    root = RackLayRoot(cfg.data)
-    if not root.root.is_dir():
-        raise FileNotFoundError(f"{root.root}: dataset folder not found")
+    root = RackLayRoot(cfg.data).require()
     train = root.resolve(cfg.train_split)
     if cfg.val_fraction:
         parts = make_splits(train, {"train": 1 - cfg.val_fraction, "val": cfg.val_fraction}, seed=cfg.seed)
@@ -121,9 +119,7 @@ def replay_ids(cfg: TrainConfig) -> list[str]:
     files). Its R must match the run's; its layouts are resized to the layout size like the data's."""
     from .data import RackLayRoot
 
-    root = RackLayRoot(cfg.replay)
-    if not root.root.is_dir():
-        raise FileNotFoundError(f"{root.root}: replay dataset folder not found")
+    root = RackLayRoot(cfg.replay).require("replay dataset")
     ids = root.resolve("train" if "train" in root.splits() else None)
     if not ids:
         raise ValueError(f"{root.root}: replay dataset has no samples")

@@ -412,6 +412,10 @@ def test_outputs_that_cannot_be_written_and_impossible_lengths_are_refused_befor
          f"{folder}: is a folder, expected a file (--json file)"),
         (["score", "--pred", str(toy), "--gt", str(toy), "--json", str(folder)], "is a folder, expected a file"),
         (["check-data", str(toy), "--json", str(folder)], "is a folder, expected a file"),
+        # wrong-kind inputs say so (they read "not found"): a folder for the weights, a file for the data
+        (["eval", "--weights", str(folder), "--data", str(toy)], f"{folder}: --weights is a folder, not a weights file"),
+        (["eval", "--weights", str(ckpt), "--data", str(afile)], f"{afile}: is a file, not a dataset folder"),
+        (["show", str(afile), "--index", "0", "--out", str(tmp_path / "s.png")], "is a file, not a dataset folder"),
         (["calibrate", "--weights", str(ckpt), "--data", str(toy), "--split", "val", "--out",
           str(afile / "c.safetensors")], "cannot write the calibrated checkpoint there"),
     ]

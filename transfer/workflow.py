@@ -32,9 +32,7 @@ def default_lr() -> float:
 
 def require_split(root: str | os.PathLike, split: str, what: str) -> RackLayRoot:
     """The dataset root with its split `split`; a clear error naming the splits found otherwise."""
-    ds = RackLayRoot(root)
-    if not ds.root.is_dir():
-        raise DataError(f"{ds.root}: {what} dataset folder not found")
+    ds = RackLayRoot(root).require(f"{what} dataset")
     if not ds.split_ids(split):  # raises DataError naming the split files that exist
         raise DataError(f"{ds.split_path(split)}: {what} split {split!r} is empty")
     return ds

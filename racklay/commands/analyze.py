@@ -88,9 +88,7 @@ def _samples_from_layouts(args):
     from racklay.data import DataError, RackLayRoot
     from racklay.reasoning import analyze_layouts
 
-    ds = RackLayRoot(args.layouts)
-    if not ds.root.is_dir():
-        raise FileNotFoundError(f"{ds.root}: dataset folder not found")
+    ds = RackLayRoot(args.layouts).require()
     views = ds.views()
     if not views:
         raise DataError(f"{ds.root}: no topLayouts/ or frontLayouts/ folder")

@@ -25,9 +25,7 @@ def run(args) -> int:
     from racklay.data import RackLayRoot
     from racklay.viz import layout_figure
 
-    ds = RackLayRoot(args.root)
-    if not ds.root.is_dir():
-        raise CLIError(f"{ds.root}: dataset folder not found")
+    ds = RackLayRoot(args.root).require()
     ext = Path(args.out).suffix.lower()
     if ext not in (".png", ".jpg", ".jpeg", ".pdf", ".svg"):
         raise CLIError(f"{args.out}: unsupported figure format {ext or '(none)'!r}; use .png, .jpg, .pdf or .svg")

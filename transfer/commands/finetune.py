@@ -1,8 +1,6 @@
 """transfer finetune: fine-tune a pretrain checkpoint on a small real set."""
 from __future__ import annotations
 
-import os
-
 from racklay.config import TrainConfig, add_flags, at_least
 
 from . import add_model_args, add_train_args, print_run, split_out, train_kwargs
@@ -53,12 +51,14 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    from racklay.data import RackLayRoot
+
     from ..workflow import CHECKPOINT_LOSS, finetune, require_split
 
     # the data first: a wrong path is one line at once, not after the model has loaded
     require_split(args.real, args.train_split, "real")
-    if args.replay is not None and not os.path.isdir(args.replay):
-        raise FileNotFoundError(f"{args.replay}: replay dataset folder not found")
+    if args.replay is not None:
+        RackLayRoot(args.replay).require("replay dataset")
     if args.fraction is not None and not 0 < args.fraction <= 1:
         raise ValueError(f"--fraction must be in (0, 1], got {args.fraction}")
     from racklay.release import weights_for_cli
