@@ -439,6 +439,17 @@ def test_train_flags_cover_trainconfig_and_take_help_defaults_from_it(capsys, mo
         with pytest.raises(SystemExit):
             main(argv)
         assert "argument --epochs: must be >= 1, got 0" in capsys.readouterr().err
+    # a negative seed is the flag's one-line error in every command (numpy's "expected non-negative
+    # integer" named nothing)
+    from annotate.cli import main as annotate_main
+
+    for argv, main in ((["train", "--data", "x", "--seed", "-1"], racklay_main),
+                       (["synth", "--n", "2", "--out", "x", "--seed", "-1"], racklay_main),
+                       (["export", "x", "--out", "y", "--seed", "-1"], annotate_main),
+                       (["demo", "--seed", "-1"], transfer_main)):
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert "argument --seed: must be >= 0, got -1" in capsys.readouterr().err, argv
 
 
 def test_replay_mixes_fresh_synthetic_samples_into_every_epoch(tmp_path, toy):

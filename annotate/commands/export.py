@@ -7,6 +7,7 @@ import sys
 def register(sub) -> None:
     from annotate.dataset import parse_statuses
     from annotate.store import DONE_STATUSES
+    from racklay.config import at_least
 
     p = sub.add_parser(
         "export", help="write the annotations as a RackLay-format dataset",
@@ -30,7 +31,7 @@ def register(sub) -> None:
                    help="the split of every photo from a tab-separated file with 'file' and 'split' "
                         "columns (e.g. the project's SOURCES.tsv, split by site so that no site is in "
                         "two splits); every exported photo must be listed")
-    p.add_argument("--seed", type=int, default=0, help="seed of the split shuffle (default 0)")
+    p.add_argument("--seed", type=at_least(0), default=0, help="seed of the split shuffle (default 0)")
     p.add_argument("--only-status", type=parse_statuses, default=DONE_STATUSES,
                    help=f"export images with these statuses (default {','.join(DONE_STATUSES)})")
     p.add_argument("--skip-invalid", action="store_true",

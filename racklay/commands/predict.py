@@ -24,7 +24,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--backend", choices=("torch", "onnx"), default="torch",
                    help="torch (default) or onnxruntime (a checkpoint is exported in memory)")
-    p.add_argument("--layout-size", type=int, default=None, metavar="D",
+    p.add_argument("--layout-size", type=at_least(2), default=None, metavar="D",
                    help="write layouts at D x D (nearest resize of the model's output, same metric extent), "
                         "e.g. 512 to score against the original RackLay data (default: the model's size)")
     add_shelf_length_arg(p)

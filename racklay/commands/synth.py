@@ -29,7 +29,7 @@ def register(sub) -> None:
     p.add_argument("--n", type=at_least(1), default=None, help="number of images in the whole dataset (all shards; "
                    "required unless --relayout)")
     p.add_argument("--out", required=True, help="output dataset folder")
-    p.add_argument("--seed", type=int, default=None, help="dataset seed (default 0)")
+    p.add_argument("--seed", type=at_least(0), default=None, help="dataset seed (default 0)")
     p.add_argument("--shard", default=None, metavar="i/n", help="generate only indices with index %% n == i")
     p.add_argument("--workers", type=at_least(1), default=1, help="worker processes, each with its own GL context (default 1)")
     p.add_argument("--lp-threads", type=at_least(1), default=None,

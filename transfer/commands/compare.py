@@ -35,7 +35,7 @@ def register(sub) -> None:
     p.add_argument("--real", required=True, metavar="ROOT", help="real RackLay-format root with train and test splits")
     p.add_argument("--out", required=True, help="output folder (resumable)")
     p.add_argument("--seeds", type=at_least(1), default=3, help="number of seeds (0..N-1; default 3)")
-    p.add_argument("--first-seed", type=int, default=0, help="first seed (default 0)")
+    p.add_argument("--first-seed", type=at_least(0), default=0, help="first seed (default 0)")
     p.add_argument("--fractions", type=_floats, default=[0.1, 0.25, 0.5, 1.0],
                    help="fractions of the real training split for the learning curve (default 0.1,0.25,0.5,1.0); "
                         "Table 2 uses the largest")

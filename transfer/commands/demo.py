@@ -10,7 +10,7 @@ def add_demo_args(p) -> None:
 
     d = DemoConfig()
     p.add_argument("--out", default=d.out, help=f"output folder (default {d.out}); a second run reuses finished steps")
-    p.add_argument("--seed", type=int, default=d.seed, help="seed for data, training and augmentation")
+    p.add_argument("--seed", type=at_least(0), default=d.seed, help="seed for data, training and augmentation")
     p.add_argument("--weights", default=None, metavar="FILE",
                    help="model to start from (default: the shipped model, docs/model-card.md)")
     p.add_argument("--n-real", type=at_least(10), default=d.n_real, help=f"proxy-real images, >= 10 (default {d.n_real})")
