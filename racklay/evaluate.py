@@ -82,7 +82,7 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
     loader = data_loader(ds, workers, batch_size=batch_size, shuffle=False)
     metrics = LayoutMetrics()
     out_root = RackLayRoot(pred_out) if pred_out is not None else None
-    # saved at the dataset's own layout size, so `racklay score --pred OUT --data DATA` reads them
+    # saved at the dataset's own layout size, so `racklay score --pred OUT --gt DATA` reads them
     out_D = root.layout_shape(ds.ids[:20])[1] if out_root is not None else None
     bar = None
     if progress:

@@ -42,7 +42,7 @@ def register(sub) -> None:
     p.add_argument("--threads", type=at_least(1), default=None, help="intra-op threads (default: library default)")
     p.add_argument("--save-predictions", default=None, metavar="DIR",
                    help="also write the predicted layouts as a RackLay dataset in DIR, at the dataset's "
-                        "layout size (`racklay score --pred DIR --data DATA` scores them)")
+                        "layout size (`racklay score --pred DIR --gt DATA` scores them)")
     p.add_argument("--json", default=None, help="write the run description and metrics as JSON here")
     add_progress_arg(p)
     p.set_defaults(func=run)
