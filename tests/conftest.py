@@ -22,6 +22,16 @@ ENV = {**os.environ, **MALLOC_ENV}
 
 
 @pytest.fixture(autouse=True)
+def _default_sigterm():
+    """A command line run in this process (racklay.cli.run) turns SIGTERM into SystemExit; put the
+    default back after each test, so a CI time limit's SIGTERM still ends pytest."""
+    import signal
+
+    yield
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+@pytest.fixture(autouse=True)
 def _seeded_global_rngs():
     """Every test starts from the same global torch / numpy random state, so what it builds at
     random (an initialised model, a noise image) does not depend on which tests ran before it or
