@@ -23,9 +23,13 @@ def cpu_model() -> str:
             info = f.read()
     except OSError:
         return platform.processor() or "unknown"
-    name = next((ln.split(":", 1)[1].strip() for ln in info.splitlines() if ln.startswith("model name")), "unknown")
-    family = next((ln.split(":", 1)[1].strip() for ln in info.splitlines() if ln.startswith("cpu family")), "?")
-    flags = next((ln.split(":", 1)[1].split() for ln in info.splitlines() if ln.startswith("flags")), [])
+    fields: dict[str, str] = {}
+    for ln in info.splitlines():       # the first core's fields
+        key, sep, value = ln.partition(":")
+        if sep:
+            fields.setdefault(key.strip(), value.strip())
+    name, family = fields.get("model name", "unknown"), fields.get("cpu family", "?")
+    flags = fields.get("flags", "").split()
     extra = ", ".join(f for f in ("avx512f", "avx512_bf16", "amx_bf16") if f in flags) or "no AVX-512"
     return f"{name} (family {family}; {extra})"
 
