@@ -13,8 +13,8 @@ from importlib import resources
 from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
-RELEASE_NAME = "racklay-lite0-struct-v8.safetensors"
-RELEASE_SHA256 = "229fa3f5886aaee1487f084f8dd88b0185caa26a4a9fd944aa80f124ef23d9d4"
+RELEASE_NAME = "racklay-lite0-struct-v9.safetensors"
+RELEASE_SHA256 = "a049a51a8c361b5c7b196f38e0adce7b396fbd0f27de45c8f89115ff168c976f"
 WEIGHTS_DIR = Path(str(resources.files("racklay") / "weights"))   # package data
 
 _verified: set[str] = set()

@@ -163,7 +163,7 @@ def test_shipped_model_draws_separate_boxes_where_a_photo_shows_them_apart():
     """Pallet loads standing apart (photo 105, a frame of the pallet-racking test site the model
     never saw): the shipped struct model draws them as separate rectangles on their board, not one
     band per shelf (v5 drew bands): in the front view (rows top-down in z) every shelf's lowest box
-    row is its board's row. (v8 separates loads on the labels' shelf on 11 of the 82 test photos
+    row is its board's row. (v9 separates loads on the labels' shelf on 9 of the 82 test photos
     that show them apart, this one included: docs/model-card.md, "Known limits".)"""
     from racklay import layout as L
     from racklay.data import read_image
