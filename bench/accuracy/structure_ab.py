@@ -22,6 +22,11 @@ held-out split of `--data` (WareSynth `complex` for the reproduction row):
 - boxes as boxes: the front-view shelf channels whose truth has two or more separate runs of box
   columns along x, how many of them the arm also separates, how many with a gap where the truth
   has one ("placed": within 5 % of the shelf's length), and how many it separates at all;
+- gap AUC (struct arms, torch): on those shelves, how well the arm's per-position signal ranks the
+  truth's gap positions above its box positions (`gap_auc`: the gap output where the arm has one,
+  else the box logit, negated; 0.5 is no skill), sampled along each true shelf as the structure
+  loss is, so it reads the shape whatever the metric size. Whatever the threshold: an arm that
+  separates no shelf can still have the signal (a threshold or a photo step can use), or not;
 - time to accuracy: the run's CPU-minutes (wall minutes x threads x processes) and CPU-minutes per
   point of validation score (mean of shelf and box IoU, x100);
 - with `--photos` (an annotate project, e.g. the labelled real photos): metric and scale-from-truth
@@ -43,6 +48,8 @@ import json
 import sys
 import tempfile
 from pathlib import Path
+
+import numpy as np
 
 PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
 BOX_TARGET = {"top": 70.0, "front": 75.0}            # reproduction row, dataset-level box IoU
@@ -77,6 +84,59 @@ def centre_cut(root, split, limit, D: int | None, per_image: bool = False) -> in
         hits = [L.gaps_match(L.box_gaps(ch), [(0.5, 0.5)]) for ch in front]   # one gap: two box runs
         n += any(hits) if per_image else sum(hits)
     return n
+
+
+def rank_auc(pos: np.ndarray, neg: np.ndarray) -> float:
+    """P(a positive scores above a negative), ties counting half (the Mann-Whitney AUC)."""
+    neg = np.sort(np.asarray(neg, np.float64).ravel())
+    pos = np.asarray(pos, np.float64).ravel()
+    if not len(pos) or not len(neg):
+        return float("nan")
+    below = np.searchsorted(neg, pos, "left")
+    ties = np.searchsorted(neg, pos, "right") - below
+    return float((below + 0.5 * ties).sum() / (len(pos) * len(neg)))
+
+
+def gap_auc(pred, data, split: str, limit: int | None = None) -> dict | None:
+    """How well a struct model's per-position signal ranks the truth's gaps between boxes above
+    its boxes, on the front-view shelves whose truth has a gap (`racklay.structure.gap_positions`,
+    sampled at the truth's own length, as `structure_loss` compares them): the gap output's logit
+    where the model has one, else the drawn box logit negated. {"auc": pooled over positions,
+    "median_shelf": the median of the per-shelf AUCs, "shelves": how many} or None (not a torch
+    struct model, or no shelf with a gap)."""
+    import torch
+
+    from racklay.evaluate import split_dataset
+    from racklay.structure import gap_positions, truth_structure
+    from racklay.torchdata import data_loader
+
+    if pred.model is None or pred.cfg.decoder != "struct" or "front" not in pred.views:
+        return None
+    _, views, ds = split_dataset(pred, data, split, limit)
+    if "front" not in views:
+        return None
+    pos, neg, per = [], [], []
+    bf16 = pred.precision == "bf16"
+    with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        for batch in data_loader(ds, 0, batch_size=8, shuffle=False):
+            _, st = pred.model(batch["image"], with_structure=True)
+            st = st["front"]
+            score = (st["gap"] if "gap" in st else -st["box"]).float()
+            tr = truth_structure("front", batch["front"].long(), pred.grid.extent, score.shape[-1])
+            gaps = gap_positions(tr["box"]) & tr["presence"].unsqueeze(-1)
+            for n, r in zip(*np.nonzero(gaps.any(-1).numpy())):
+                s, g, b = score[n, r].numpy(), gaps[n, r].numpy(), tr["box"][n, r].numpy()
+                pos.append(s[g])
+                neg.append(s[b])
+                per.append(rank_auc(s[g], s[b]))
+    if not per:
+        return None
+    return {"auc": rank_auc(np.concatenate(pos), np.concatenate(neg)), "median_shelf": float(np.median(per)),
+            "shelves": len(per)}
+
+
+def gap_cell(g: dict | None) -> str:
+    return f"{g['auc']:.2f} ({g['median_shelf']:.2f}; {g['shelves']:g})" if g else "-"
 
 
 def run_cost(run: Path) -> tuple[float, float]:
@@ -122,6 +182,7 @@ def score_run(pred, run: Path, args, photos) -> dict:
     row = {"decoder": pred.cfg.decoder}
     res = evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False)
     row["metric"], row["separation"] = scores(res), separation(res)
+    row["gap_auc"] = gap_auc(pred, args.data, args.split, args.limit)
     row["shape"] = scores(evaluate(pred, args.data, split=args.split, limit=args.limit, progress=False,
                                    scale_from_truth=True))
     row["cpu_minutes"], row["best_val"] = run_cost(run) if run.is_dir() else (None, None)
@@ -142,6 +203,7 @@ def score_run(pred, run: Path, args, photos) -> dict:
     if photos is not None:
         res = evaluate(pred, photos, split="test", native=True, progress=False)
         row["photos_metric"], row["photos_separation"] = scores(res), separation(res, "images")
+        row["photos_gap_auc"] = gap_auc(pred, photos, "test")
         found = shelves_found(res)
         row["photos_shelves"] = found[1] if found else None
         row["photos_shape"] = scores(evaluate(pred, photos, split="test", native=True, progress=False,
@@ -223,14 +285,15 @@ def main() -> int:
     n = f"first {args.limit} of " if args.limit else ""
     print(f"\n{n}{args.data} [{args.split}]: dataset-level shelf, box IoU (top / front); paper-protocol mIoU")
     print("| arm | metric IoU | box AP | shape IoU (scale from truth) | paper mIoU rack/box top, front | "
-          "channels separated (truth >= 2 box runs: both / truth; placed; predicted >= 2) | CPU-min | best val | CPU-min per val point |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "channels separated (truth >= 2 box runs: both / truth; placed; predicted >= 2) | gap AUC (median per shelf; shelves) "
+          "| CPU-min | best val | CPU-min per val point |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name, r in out.items():
         m = r["metric"]
         paper = " / ".join(f"{m[v]['rack_mIoU']:.1f}, {m[v]['box_mIoU']:.1f}" for v in ("top", "front") if v in m)
         cost = ("- | - | -" if r["cpu_minutes"] is None else f"{r['cpu_minutes']:.0f} | {r['best_val']:.1f} | "
                 f"{r['cpu_minutes'] / max(r['best_val'], 1e-9):.2f}")
-        print(f"| {name} | {fmt(m)} | {fmt_ap(m)} | {fmt(r['shape'])} | {paper} | {sep_cell(r['separation'])} | {cost} |")
+        print(f"| {name} | {fmt(m)} | {fmt_ap(m)} | {fmt(r['shape'])} | {paper} | {sep_cell(r['separation'])} | {gap_cell(r['gap_auc'])} | {cost} |")
     print(f"(placed: the arm's gaps where the truth's are, within {L.GAP_TOLERANCE:.0%} of the shelf's length; "
           f"one cut in the middle of every shelf would place {centre_cut(args.data, args.split, args.limit, pred.layout_size)})")
     print("\ntargets (reproduction row, a model trained on complex): paper-protocol mIoU >= the paper's "
@@ -251,14 +314,14 @@ def main() -> int:
     if photos is not None:
         print(f"\nlabelled photos ({args.photos}; arms trained on renders only): shelf, box IoU (top / front)")
         print("| arm | metric | box AP | scale from truth (targets: shelf >= 70, box >= 50) | "
-              "photos with separate boxes (label and prediction / label; placed; prediction) | "
+              "photos with separate boxes (label and prediction / label; placed; prediction) | gap AUC | "
               "photos with >= 2 labelled shelves, all found / all; photos with fewer, more shelves than labelled |")
-        print("|---|---|---|---|---|---|")
+        print("|---|---|---|---|---|---|---|")
         for name, r in out.items():
             c = r["photos_shelves"]
             shelves = f"{c['multi_found']:g} / {c['multi']:g}; {c['fewer']:g}, {c['more']:g}" if c else "-"
             print(f"| {name} | {fmt(r['photos_metric'])} | {fmt_ap(r['photos_metric'])} | {fmt(r['photos_shape'])} | "
-                  f"{sep_cell(r['photos_separation'])} | {shelves} |")
+                  f"{sep_cell(r['photos_separation'])} | {gap_cell(r['photos_gap_auc'])} | {shelves} |")
         print(f"(one cut in the middle of every shelf would place {centre_cut(photos, 'test', None, None, True)})")
     if args.calibrate_on:
         print(f"\ncalibrated: each run's decision biases fitted on {args.calibrate_on} (racklay calibrate), then "
