@@ -1,8 +1,9 @@
 """The one-command demo of the toolkit's main job, starting from the shipped model.
 
-On a fresh machine with no GPU and nothing downloaded (under 10 minutes on 2 cores, fp32):
+On a fresh machine with no GPU and nothing downloaded (about 6-11 minutes on 2 cores; docs/model-card.md, Demo timing):
 
-1. the shipped model (trained on WareSynth's `release` recipe, docs/model-card.md) predicts
+1. the shipped model (WareSynth renders, then labelled photos of other sites than the test
+   split's; docs/model-card.md) predicts
    every real photo (the copies of `datasets/real-photos/` shipped in `transfer/photos/`): a
    figure per photo and one contact sheet. Those
    photos carry no labels here: they are shown, not scored;
