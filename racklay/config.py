@@ -354,6 +354,9 @@ class TrainConfig:
     gap_weight: float = option(
         1.0, "--decoder struct: weight of the per-position box loss at the gaps between boxes (empty positions "
              "with a box on either side); > 1 makes bridging two boxes costly (default {default})", lo=0, keep=True)
+    gap_loss_weight: float = option(
+        1.0, "--decoder struct with --struct-gap: weight of the gap output's own loss (is each position a gap "
+             "between two boxes), relative to the rest of the structure loss (default {default})", lo=0, keep=True)
     disc_weight: float = option(0.01, "adversarial weight lambda (default {default})", lo=0, keep=True)
     disc_start: int = option(5, "first epoch (0-based) with adversarial terms (default {default})", lo=0, keep=True)
     disc_lr: float = option(1e-4, "discriminator learning rate (default {default})", gt=0, keep=True)

@@ -190,7 +190,8 @@ def gap_positions(box: torch.Tensor) -> torch.Tensor:
 GAP_POS_WEIGHT = 5.0
 
 
-def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, gap_weight: float = 1.0) -> torch.Tensor:
+def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, gap_weight: float = 1.0,
+                   gap_loss_weight: float = 1.0) -> torch.Tensor:
     """Direct supervision of a predicted structure with the truth's: BCE on shelf presence; for
     shelves that exist, L1 of log length and log extent (scale) and, per position, BCE on box and
     L1 of the box fractions where a box is (shape, sampled at the true length). `gap_weight`
@@ -198,7 +199,7 @@ def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, ga
     positions of a 2.3 m shelf, so without it bridging two boxes costs the loss next to nothing.
     A structure with a gap output (`StructDecoder(gap=True)`: "gap" and "box_raw") has its box BCE
     on the box logit before the cut and a BCE of its own on the gap logit at `gap_positions`
-    (positives weighted `GAP_POS_WEIGHT`)."""
+    (positives weighted `GAP_POS_WEIGHT`), weighted by `gap_loss_weight`."""
     T = st["box"].shape[-1]
     tr = truth_structure(view, layouts, extent, T)
     pres = tr["presence"]
@@ -214,7 +215,7 @@ def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, ga
     box = st["box_raw"] if "gap" in st else st["box"]
     loss = loss + F.binary_cross_entropy_with_logits(box.float()[pres], tr["box"][pres].float(), weight=w)
     if "gap" in st:
-        loss = loss + F.binary_cross_entropy_with_logits(
+        loss = loss + gap_loss_weight * F.binary_cross_entropy_with_logits(
             st["gap"].float()[pres], gap_positions(tr["box"][pres]).float(),
             pos_weight=torch.tensor(GAP_POS_WEIGHT, device=st["gap"].device))
     has_box = tr["box"] & pres.unsqueeze(-1)

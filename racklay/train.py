@@ -508,7 +508,8 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
     sl = {}
     if structured and cfg.struct_weight:
         extent = run.mcfg.extent
-        sl["struct"] = sum(structure_loss(v, structs[v], targets[v], extent, cfg.gap_weight) for v in cfg.views)
+        sl["struct"] = sum(structure_loss(v, structs[v], targets[v], extent, cfg.gap_weight, cfg.gap_loss_weight)
+                            for v in cfg.views)
         loss = loss + cfg.label_weight * cfg.struct_weight * sl["struct"]
     kd = {}
     if run.teacher is not None:

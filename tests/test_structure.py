@@ -131,6 +131,10 @@ def test_a_gap_output_is_trained_on_the_gaps_and_its_cut_costs_the_box_loss_noth
     assert structure_loss("front", right, lay, EXT) < 1e-3
     assert structure_loss("front", blind, lay, EXT) > 5.0
     assert structure_loss("front", {k: v for k, v in right.items() if k not in ("gap", "box_raw")}, lay, EXT) < 1e-3
+    # --gap-loss-weight scales the gap term alone: at 0 a blind gap output costs nothing more
+    off, one, three = (float(structure_loss("front", blind, lay, EXT, gap_loss_weight=w)) for w in (0.0, 1.0, 3.0))
+    assert off == pytest.approx(float(structure_loss("front", right, lay, EXT, gap_loss_weight=0.0)), abs=1e-3)
+    assert three - off == pytest.approx(3 * (one - off), rel=1e-4)
 
 
 def _struct_net(R=3, img=64, lay=S, **cfg):

@@ -70,13 +70,13 @@ def checkpoint_config(path: str | os.PathLike):
 
 #: the loss settings a checkpoint records and a fine-tune keeps (`checkpoint_loss`; `transfer finetune`
 #: flags that override them)
-CHECKPOINT_LOSS = ("class_weights", "iou_weight", "gap_weight")
+CHECKPOINT_LOSS = ("class_weights", "iou_weight", "gap_weight", "gap_loss_weight")
 
 
 def checkpoint_loss(path: str | os.PathLike) -> dict:
     """The loss settings the checkpoint was trained with, from its `train_config` metadata:
-    `class_weights` (tuple), `iou_weight` and `gap_weight` (floats), each only when the file records it. A
-    fine-tune keeps them: the release model was trained with boxes weighted 10, and fine-tuning it
+    `class_weights` (tuple), `iou_weight`, `gap_weight` and `gap_loss_weight` (floats), each only when
+    the file records it. A fine-tune keeps them: the release model was trained with boxes weighted 10, and fine-tuning it
     with another weighting moves its decisions (measured in docs/model-card.md, "Fine-tuning keeps
     the model's class weights")."""
     from racklay.checkpoint import load_checkpoint

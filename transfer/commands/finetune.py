@@ -42,7 +42,9 @@ def register(sub) -> None:
         "iou_weight": "weight of the soft-IoU loss (default: the checkpoint's, from its metadata; else "
                       "TrainConfig's {default})",
         "gap_weight": "struct models: weight of the box loss at gaps between boxes (default: the checkpoint's, "
-                      "from its metadata; else TrainConfig's {default})"})
+                      "from its metadata; else TrainConfig's {default})",
+        "gap_loss_weight": "struct models with a gap output: weight of its own loss (default: the checkpoint's, "
+                           "from its metadata; else TrainConfig's {default})"})
     add_flags(p.add_argument_group("synthetic replay"), TrainConfig, ["replay", "replay_ratio"], default=None, helps={
         "replay": "synthetic RackLay root (e.g. the release set, or `racklay synth` output) whose train split "
                   "is mixed into every epoch, so a fine-tune on a few dozen photos does not forget the "
