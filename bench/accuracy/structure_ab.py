@@ -25,8 +25,8 @@ held-out split of `--data` (WareSynth `complex` for the reproduction row):
 - gap AUC (struct arms, torch): on those shelves, how well the arm's per-position signal ranks the
   truth's gap positions above its box positions (`gap_auc`: the gap output where the arm has one,
   else the box logit, negated; 0.5 is no skill), sampled along each true shelf as the structure
-  loss is, so it reads the shape whatever the metric size. Whatever the threshold: an arm that
-  separates no shelf can still have the signal (a threshold or a photo step can use), or not;
+  loss is, so it reads the shape whatever the metric size. It needs no threshold: an arm that
+  separates no shelf may still carry a signal a threshold or a photo step could use, or may not;
 - time to accuracy: the run's CPU-minutes (wall minutes x threads x processes) and CPU-minutes per
   point of validation score (mean of shelf and box IoU, x100);
 - with `--photos` (an annotate project, e.g. the labelled real photos): metric and scale-from-truth
