@@ -202,15 +202,27 @@ class Predictor:
             arr = x.numpy() if hasattr(x, "numpy") else np.asarray(x)
             outs = self.session.run(list(self.views), {"image": np.ascontiguousarray(arr, dtype=np.float32)})
             return dict(zip(self.views, outs))
+        out = self._forward(x)
+        return {v: out[v].float().numpy() for v in self.views}
+
+    def structures(self, x) -> dict:
+        """A struct model's structures {view: {field: (N, R[, T]) tensor}} (`racklay.structure`:
+        presence, length, extent, per-position box and sizes, gap) for a normalised batch, at the
+        predictor's precision (torch backend)."""
+        if self.model is None or self.cfg.decoder != "struct":
+            raise ValueError(f"{self.weights or 'the model'}: structures need a struct model on the torch backend "
+                             f"(this one: {self.cfg.decoder} decoder, {self.backend})")
+        return self._forward(x, with_structure=True)[1]
+
+    def _forward(self, x, **kw):
+        """The torch model on a normalised batch: memory format and precision as this predictor runs it."""
         import torch
 
         t = x if isinstance(x, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
-        bf16 = self.precision == "bf16"
         if self.channels_last:
             t = t.contiguous(memory_format=torch.channels_last)
-        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            out = self.model(t)
-        return {v: out[v].float().numpy() for v in self.views}
+        with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+            return self.model(t, **kw)
 
     def predict_batch(self, x) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """(classes {view: (N, R, S, S) uint8}, probs {view: (N, R, 3, S, S) float32})."""

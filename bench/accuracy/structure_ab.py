@@ -104,8 +104,6 @@ def gap_auc(pred, data, split: str, limit: int | None = None) -> dict | None:
     where the model has one, else the drawn box logit negated. {"auc": pooled over positions,
     "median_shelf": the median of the per-shelf AUCs, "shelves": how many} or None (not a torch
     struct model, or no shelf with a gap)."""
-    import torch
-
     from racklay.evaluate import split_dataset
     from racklay.structure import gap_positions, truth_structure
     from racklay.torchdata import data_loader
@@ -116,19 +114,16 @@ def gap_auc(pred, data, split: str, limit: int | None = None) -> dict | None:
     if "front" not in views:
         return None
     pos, neg, per = [], [], []
-    bf16 = pred.precision == "bf16"
-    with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-        for batch in data_loader(ds, 0, batch_size=8, shuffle=False):
-            _, st = pred.model(batch["image"], with_structure=True)
-            st = st["front"]
-            score = (st["gap"] if "gap" in st else -st["box"]).float()
-            tr = truth_structure("front", batch["front"].long(), pred.grid.extent, score.shape[-1])
-            gaps = gap_positions(tr["box"]) & tr["presence"].unsqueeze(-1)
-            for n, r in zip(*np.nonzero(gaps.any(-1).numpy())):
-                s, g, b = score[n, r].numpy(), gaps[n, r].numpy(), tr["box"][n, r].numpy()
-                pos.append(s[g])
-                neg.append(s[b])
-                per.append(rank_auc(s[g], s[b]))
+    for batch in data_loader(ds, 0, batch_size=8, shuffle=False):
+        st = pred.structures(batch["image"])["front"]
+        score = (st["gap"] if "gap" in st else -st["box"]).float()
+        tr = truth_structure("front", batch["front"].long(), pred.grid.extent, score.shape[-1])
+        gaps = gap_positions(tr["box"]) & tr["presence"].unsqueeze(-1)
+        for n, r in zip(*np.nonzero(gaps.any(-1).numpy())):
+            s, g, b = score[n, r].numpy(), gaps[n, r].numpy(), tr["box"][n, r].numpy()
+            pos.append(s[g])
+            neg.append(s[b])
+            per.append(rank_auc(s[g], s[b]))
     if not per:
         return None
     return {"auc": rank_auc(np.concatenate(pos), np.concatenate(neg)), "median_shelf": float(np.median(per)),
