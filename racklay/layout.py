@@ -340,6 +340,10 @@ def encode(classes: np.ndarray) -> np.ndarray:
     if classes.size and (classes.min() < 0 or classes.max() >= NUM_CLASSES):
         bad = np.setdiff1d(np.unique(classes), np.arange(NUM_CLASSES))
         raise LayoutError(f"class ids must be 0, 1 or 2; found {bad[:5].tolist()}")
+    if classes.dtype == np.uint8:   # (background's value is 0) ~10x faster than a look-up with intp indices
+        out = np.multiply(classes, FILE_VALUES[SHELF])
+        out[classes == BOX] = FILE_VALUES[BOX]
+        return out
     return FILE_VALUES[classes.astype(np.intp)]
 
 

@@ -241,3 +241,24 @@ def test_phone_photos_with_exif_orientation_read_upright_everywhere(tmp_path, or
     info = image_info(path)
     assert (info.width, info.height, info.orientation) == (got.shape[1], got.shape[0], orientation)
     assert Project(tmp_path).image_size("phone.jpg") == (got.shape[1], got.shape[0])
+
+
+def test_npy_bytes_are_what_np_save_writes(tmp_path):
+    """racklay.atomic.npy_bytes builds the .npy bytes in one piece; readers (numpy, WareSynth's own
+    tools) must see exactly np.save's file."""
+    import io
+
+    from racklay.atomic import atomic_save_npy, npy_bytes
+
+    rng = np.random.default_rng(0)
+    arrays = [rng.integers(0, 3, (4, 32, 32), dtype=np.uint8), rng.random((3, 5)).astype(np.float32),
+              np.zeros((0, 7), np.int64), np.arange(6, dtype=np.uint16).reshape(2, 3)[:, ::-1],
+              np.array(3.5), np.zeros((2, 2), dtype=[("a", "<f4"), ("b", "u1")])]
+    for a in arrays:
+        ref = io.BytesIO()
+        np.save(ref, a, allow_pickle=False)
+        assert npy_bytes(a) == ref.getvalue(), a.dtype
+        p = atomic_save_npy(tmp_path / "a.npy", a, fsync=False)
+        assert np.array_equal(np.load(p), a)
+    with pytest.raises(ValueError):
+        npy_bytes(np.array([{"x": 1}], dtype=object))

@@ -160,6 +160,12 @@ def test_encode_decode_round_trip_and_strictness():
         L.decode(np.array([0, 114, 255], np.uint8), "x.npy")
     with pytest.raises(L.LayoutError):
         L.encode(np.array([3]))
+    with pytest.raises(L.LayoutError, match=r"\[3\]"):
+        L.encode(np.array([[0, 3]], np.uint8))
+    stack = np.random.default_rng(0).integers(0, 3, (4, 16, 16), dtype=np.uint8)
+    for arr in (stack, stack.astype(np.int64), stack[:, ::2, ::-1]):   # any dtype, any strides
+        out = L.encode(arr)
+        assert out.dtype == np.uint8 and np.array_equal(out, L.FILE_VALUES[arr.astype(np.intp)])
     with pytest.raises(L.LayoutError, match="dtype"):
         L.check_stack(np.zeros((4, 8, 8), np.float32))
     with pytest.raises(L.LayoutError, match="shape"):

@@ -3,6 +3,7 @@ resume after an interruption, recipe errors before anything is written."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -171,6 +172,48 @@ def test_real_interrupt_leaves_no_partial_files(tmp_path):
     res = generate_dataset(load_recipe("simple", TINY), 40, out, seed=0, progress=False, limit=1)
     assert res.skipped >= 2
     assert not [p for p in (out / "meta").glob("*.json") if not ds.image_path(p.stem).exists()]
+
+
+def _worker_pids(pid: int) -> list[int]:
+    """The pool workers (spawned interpreters) among the children of process `pid` (Linux /proc)."""
+    kids = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    return [int(k) for k in kids if b"spawn_main" in Path(f"/proc/{k}/cmdline").read_bytes()]
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="finds the workers through Linux /proc")
+def test_a_worker_killed_mid_run_stops_the_run_with_a_message_and_a_rerun_finishes(tmp_path):
+    """A worker that dies (the OOM killer, a crash in the GL driver) must not leave the run
+    waiting for ever: the command stops with one line naming the image, and a rerun resumes."""
+    import signal
+    import time
+
+    out = tmp_path / "crashed"
+    cmd = [sys.executable, "-m", "racklay", "synth", "--recipe", "simple", "--n", "200", "--out", str(out),
+           "--workers", "2", "--no-progress"] + sum((["--set", s] for s in TINY), [])
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.time()
+    while time.time() - t0 < 60 and not list((out / "meta").glob("*.json")):
+        time.sleep(0.05)
+    pids = _worker_pids(proc.pid)
+    assert pids, "no worker process found"
+    os.kill(pids[0], signal.SIGKILL)
+    try:
+        _, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail("the run kept waiting for the killed worker")
+    assert proc.returncode != 0
+    msg = err.strip().splitlines()
+    assert len(msg) == 1 and "a worker process died while making image" in msg[0] and str(out) in msg[0], err
+    assert "run the same command again" in msg[0]
+    ds = RackLayRoot(out)
+    for sid in ds.ids():
+        ds.read_image(sid)
+    before = len(ds.ids())
+    assert 0 < before < 200
+    res = generate_dataset(load_recipe("simple", TINY), 200, out, seed=0, progress=False, workers=2)
+    assert res.skipped == before and len(res.generated) == 200 - before
+    assert check_dataset(out).ok
 
 
 def test_recipe_errors_before_anything_is_written(tmp_path, capsys):

@@ -186,3 +186,87 @@ def test_ambient_occlusion_changes_only_the_rgb_and_is_off_by_default(tmp_path):
     assert s0.camera.K.tolist() == s1.camera.K.tolist() and len(s0.objects) == len(s1.objects)
     ratio = (rgb1.astype(float).sum(-1) + 1) / (rgb0.astype(float).sum(-1) + 1)
     assert np.median(ratio) < 1 and np.mean(ratio < 0.5) > 0.01      # darker, recesses much darker
+
+
+def test_only_the_part_the_lens_reads_is_drawn_and_the_sample_is_the_same(tmp_path, monkeypatch):
+    """The generator draws only the part of the padded render that the lens distortion reads
+    (or the unpadded image without distortion): every file of a sample must be what drawing
+    the whole padded frame gives, bit for bit."""
+    from racklay.synth import generate
+
+    r = load_recipe("pallet", SMALL + ["focal_px=[90,220]", "distortion_k1=[-0.12,0.05]"])
+    assert min(render_padding(r)) > 0
+    parts = Generator(r, 0, tmp_path / "a")
+    try:
+        got = [parts.make(i) for i in range(4)]
+        drawn = []
+        monkeypatch.setattr(generate, "source_region", lambda maps, size: (0, 0, *size))   # the whole frame
+        monkeypatch.setattr(parts.renderer, "render", _recording(parts.renderer.render, drawn))
+        whole = [parts.make(i) for i in range(4)]
+    finally:
+        parts.close()
+    assert all(region == (0, 0, parts.renderer.W, parts.renderer.H) for region in drawn)
+    for a, b in zip(got, whole):
+        assert np.array_equal(a[1], b[1])                            # rgb
+        for k in ("instance", "depth", "normals"):
+            assert np.array_equal(a[2][k], b[2][k]), k
+        assert a[5]["objects"] == b[5]["objects"]
+
+
+def _recording(render, drawn):
+    def rec(scene, camera=None, region=None):
+        drawn.append(region)
+        return render(scene, camera, region=region)
+    return rec
+
+
+def test_render_region_is_the_crop_of_the_whole_frame(tmp_path):
+    g = Generator(load_recipe("complex", SMALL), 0, tmp_path / "a")
+    try:
+        scene = sample_scene(g.recipe, 0, 1)
+        full = g.renderer.render(scene)
+        part = g.renderer.render(scene, region=(30, 17, 151, 90))
+        with pytest.raises(ValueError, match="not inside"):
+            g.renderer.render(scene, region=(0, 0, 201, 120))
+    finally:
+        g.close()
+    for k in ("rgb", "instance", "depth", "normals"):
+        assert np.array_equal(getattr(part, k), getattr(full, k)[17:90, 30:151]), k
+
+
+def test_distortion_maps_of_a_centred_camera_are_solved_per_pixel_exactly():
+    """The maps of a centred principal point are solved on one quadrant and mirrored: the same
+    bits as the fixed-point solve of every pixel (odd and even image sizes)."""
+    from racklay.synth.effects import distortion_maps, undistort_normalised
+
+    for W, H, k1 in ((200, 120, -0.1), (201, 121, 0.04), (470, 280, -0.03)):
+        f = 0.6 * W
+        K = np.array([[f, 0, W / 2], [0, 1.01 * f, H / 2], [0, 0, 1]])
+        mx, my = distortion_maps(K, k1, W, H, offset=(7, 5))
+        u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+        xu, yu = undistort_normalised((u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], k1)
+        assert np.array_equal(mx, (xu * K[0, 0] + K[0, 2] + 7 - 0.5).astype(np.float32))
+        assert np.array_equal(my, (yu * K[1, 1] + K[1, 2] + 5 - 0.5).astype(np.float32))
+
+
+def test_edge_antialias_averages_exactly_the_pixels_next_to_an_id_change():
+    from racklay.synth.effects import edge_antialias
+
+    rng = np.random.default_rng(0)
+    inst = np.zeros((40, 60), np.uint32)
+    inst[10:25, 20:45] = 7
+    inst[30:, :5] = 3
+    rgb = rng.integers(0, 256, (40, 60, 3), dtype=np.uint8)
+    out = edge_antialias(rgb, inst)
+    pad = np.pad(rgb.astype(np.uint16), ((1, 1), (1, 1), (0, 0)), mode="reflect")   # cv2.blur's default border
+    box = sum(pad[dy:dy + 40, dx:dx + 60] for dy in range(3) for dx in range(3))
+    blur = ((box + 4) // 9).astype(np.uint16)
+    # c: an id change to the left or above; a pixel is softened when it or its right, lower or
+    # lower-right neighbour has one (the two pixels at every id change, and the corner between)
+    c = np.zeros((41, 61), bool)
+    c[:40, 1:60] |= inst[:, 1:] != inst[:, :-1]
+    c[1:40, :60] |= inst[1:] != inst[:-1]
+    edge = c[:40, :60] | c[:40, 1:] | c[1:, :60] | c[1:, 1:]
+    want = np.where(edge[..., None], (rgb + blur) // 2, rgb)
+    assert edge.sum() > 100 and np.abs(out.astype(int) - want.astype(int)).max() <= 1
+    assert np.array_equal(out[~edge], rgb[~edge])

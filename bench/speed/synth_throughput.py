@@ -28,13 +28,14 @@ def main(argv=None) -> int:
     ap.add_argument("--recipe", default="complex")
     ap.add_argument("--n", type=int, default=300)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--lp-threads", type=int, default=1)
+    ap.add_argument("--lp-threads", type=int, default=None,
+                    help="LP_NUM_THREADS per worker (default: the generator's, 0 with --workers > 1)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None, help="output folder (default: a temporary one, removed afterwards)")
     ap.add_argument("--set", action="append", default=[])
     args = ap.parse_args(argv)
 
-    from racklay.synth.generate import STAGES, generate_dataset
+    from racklay.synth.generate import STAGES, WORKER_LP_THREADS, generate_dataset
     from racklay.synth.recipe import load_recipe
 
     recipe = load_recipe(args.recipe, args.set)
@@ -49,13 +50,15 @@ def main(argv=None) -> int:
                            progress=True)
     wall = time.perf_counter() - t0
     load1 = os.getloadavg()
+    lp = args.lp_threads if args.lp_threads is not None else WORKER_LP_THREADS if args.workers > 1 else \
+        os.environ.get("LP_NUM_THREADS", "llvmpipe's default")
     ru = resource.getrusage(resource.RUSAGE_CHILDREN), resource.getrusage(resource.RUSAGE_SELF)
     cpu = sum(r.ru_utime + r.ru_stime for r in ru)
     n = len(res.generated)
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file())
     rate = n / wall * 60
     print(f"\nWareSynth throughput: recipe {recipe.name}, {recipe.image_width}x{recipe.image_height}, "
-          f"{n} images, {args.workers} worker(s) x LP_NUM_THREADS={args.lp_threads}, "
+          f"{n} images, {args.workers} worker(s) x LP_NUM_THREADS={lp}, "
           f"layouts {recipe.R}x{recipe.layout_size}^2 x 2 views")
     print(f"  wall {wall:.1f} s (incl. start-up and finalize)  ->  {rate:.0f} images/min  "
           f"({rate / WARESYNTH_PER_MIN:.1f}x WareSynth's {WARESYNTH_PER_MIN:.0f}/min)")

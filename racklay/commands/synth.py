@@ -32,8 +32,9 @@ def register(sub) -> None:
     p.add_argument("--seed", type=at_least(0), default=None, help="dataset seed (default 0)")
     p.add_argument("--shard", default=None, metavar="i/n", help="generate only indices with index %% n == i")
     p.add_argument("--workers", type=at_least(1), default=1, help="worker processes, each with its own GL context (default 1)")
-    p.add_argument("--lp-threads", type=at_least(1), default=None,
-                   help="llvmpipe threads per worker (LP_NUM_THREADS; default: 1 with --workers > 1)")
+    p.add_argument("--lp-threads", type=at_least(0), default=None,
+                   help="llvmpipe rasteriser threads per worker (LP_NUM_THREADS; 0 = the worker's own thread, "
+                        "the default with --workers > 1; with one worker llvmpipe's default, one per core)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a recipe key, YAML value: --set box_density=[0.2,0.9] --set shadows=false")
     p.add_argument("--fsync", action="store_true",
@@ -56,7 +57,7 @@ def _keys_help() -> str:
 
 def run(args) -> int:
     from racklay.commands import CLIError
-    from racklay.synth.generate import generate_dataset, parse_shard
+    from racklay.synth.generate import WorkerCrash, generate_dataset, parse_shard
     from racklay.synth.recipe import RecipeError, load_recipe
 
     if args.relayout:
@@ -72,8 +73,11 @@ def run(args) -> int:
         raise CLIError(f"--n must be >= 1, got {args.n}")
     if args.workers < 1:
         raise CLIError(f"--workers must be >= 1, got {args.workers}")
-    res = generate_dataset(recipe, args.n, args.out, seed=args.seed or 0, shard=args.shard, workers=args.workers,
-                           progress=show_progress(args), lp_threads=args.lp_threads, fsync=args.fsync)
+    try:
+        res = generate_dataset(recipe, args.n, args.out, seed=args.seed or 0, shard=args.shard, workers=args.workers,
+                               progress=show_progress(args), lp_threads=args.lp_threads, fsync=args.fsync)
+    except WorkerCrash as e:
+        raise CLIError(str(e)) from None
     done = len(res.generated)
     rate = done / res.wall * 60 if res.wall > 0 and done else 0.0
     splits = ", ".join(f"{k}={v}" for k, v in res.splits.items())

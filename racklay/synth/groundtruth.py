@@ -69,7 +69,7 @@ def object_annotations(scene: Scene, instance: np.ndarray, coco: bool = True) ->
     sel = [i for i, o in enumerate(scene.objects) if o.category >= 0 and (counts[i + 1] > 0 or o.shelf >= 0)]
     all_corners = cuboid_corners([scene.objects[i] for i in sel])
     uv_all, z_all = cam.project_z(all_corners.reshape(-1, 3))
-    uv_all, z_all = uv_all.reshape(-1, 8, 2), z_all.reshape(-1, 8)
+    uv_all, z_all = distort_points(cam.K, cam.k1, uv_all.reshape(-1, 8, 2)), z_all.reshape(-1, 8)
     c_cam_all = cam.to_cam(np.array([scene.objects[i].center for i in sel]).reshape(-1, 3))
     for k, i in enumerate(sel):
         o = scene.objects[i]
@@ -80,7 +80,6 @@ def object_annotations(scene: Scene, instance: np.ndarray, coco: bool = True) ->
         amodal = None
         frac, trunc = 0.0, 1.0
         if in_front:
-            uv = distort_points(cam.K, cam.k1, uv)
             x0, y0 = uv.min(axis=0)
             x1, y1 = uv.max(axis=0)
             area, inside = _clip_area(uv, W, H)

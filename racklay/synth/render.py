@@ -32,7 +32,7 @@ class RenderOutput:
 
 
 class Renderer(Protocol):
-    def render(self, scene: Scene, camera=None) -> RenderOutput: ...
+    def render(self, scene: Scene, camera=None, region=None) -> RenderOutput: ...
 
     def release(self) -> None: ...
 
@@ -328,13 +328,24 @@ class GLRenderer:
             if n:
                 vao.render(self.moderngl.TRIANGLES, instances=n)
 
-    def render(self, scene: Scene, camera=None) -> RenderOutput:
+    def render(self, scene: Scene, camera=None, region=None) -> RenderOutput:
         """Render `scene` through `camera` (default: scene.camera; a padded camera is used when
-        the image is distorted afterwards)."""
+        the image is distorted afterwards). `region` = (x0, y0, x1, y1), image pixels (rows top
+        down, x1 and y1 exclusive): only that part is drawn and returned, each of its pixels
+        exactly as in the whole frame (a scissor, not another camera), at a fraction of the cost;
+        None: the whole frame. Ambient occlusion looks at the whole frame, so a scene with it
+        is drawn whole and then cut to the region."""
         ctx, mgl = self.ctx, self.moderngl
         cam = camera if camera is not None else scene.camera
         if (cam.width, cam.height) != (self.W, self.H):
             raise ValueError(f"renderer is {self.W}x{self.H}, camera is {cam.width}x{cam.height}")
+        x0, y0, x1, y1 = (0, 0, self.W, self.H) if region is None else (int(v) for v in region)
+        if not (0 <= x0 < x1 <= self.W and 0 <= y0 < y1 <= self.H):
+            raise ValueError(f"region {region} is not inside the {self.W}x{self.H} render")
+        drawn = (0, 0, self.W, self.H) if scene.occlusion > 0 else (x0, y0, x1, y1)
+        gl_box = (drawn[0], self.H - drawn[3], drawn[2] - drawn[0], drawn[3] - drawn[1])   # GL rows bottom up
+        for fbo in (self.gbuf_fbo, self.color_ms, self.color_out):
+            fbo.scissor = gl_box
         boxes, cyls = instance_array(scene, self.bank, cam)
         if max(len(boxes), len(cyls)) > self.capacity:
             raise ValueError(f"scene has {len(boxes)} solids, renderer capacity is {self.capacity}")
@@ -403,16 +414,19 @@ class GLRenderer:
         ctx.depth_func = "<"
         if self.msaa:
             ctx.copy_framebuffer(self.color_out, self.color_ms)
-        # read back (GL rows are bottom-up)
-        W, H = self.W, self.H
-        rgb = np.frombuffer(self.color_out.read(components=3, alignment=1), np.uint8).reshape(H, W, 3)[::-1]
-        ids = np.frombuffer(self.id_tex.read(alignment=1), np.uint32).reshape(H, W)[::-1]
-        z = np.frombuffer(self.z_tex.read(alignment=1), np.float32).reshape(H, W)[::-1]
-        nrm = np.frombuffer(self.n_tex.read(alignment=1), np.uint8).reshape(H, W, 4)[::-1, :, :3]
+        # read back the drawn part (GL rows are bottom-up)
+        W, H = gl_box[2:]
+        rgb = np.frombuffer(self.color_out.read(viewport=gl_box, components=3, alignment=1), np.uint8)
+        ids = np.frombuffer(self.gbuf_fbo.read(viewport=gl_box, components=1, attachment=0, alignment=1, dtype="u4"), np.uint32)
+        z = np.frombuffer(self.gbuf_fbo.read(viewport=gl_box, components=1, attachment=1, alignment=1, dtype="f4"), np.float32)
+        nrm = np.frombuffer(self.gbuf_fbo.read(viewport=gl_box, components=4, attachment=2, alignment=1), np.uint8)
+        rgb, ids, z = rgb.reshape(H, W, 3)[::-1], ids.reshape(H, W)[::-1], z.reshape(H, W)[::-1]
+        nrm = nrm.reshape(H, W, 4)[::-1, :, :3]
         if scene.occlusion > 0:
             rgb = occlude(rgb, ambient_occlusion(z, nrm, K), scene.occlusion)
-        return RenderOutput(rgb=np.ascontiguousarray(rgb), instance=np.ascontiguousarray(ids),
-                            depth=np.ascontiguousarray(z), normals=np.ascontiguousarray(nrm))
+        cut = (slice(y0 - drawn[1], y1 - drawn[1]), slice(x0 - drawn[0], x1 - drawn[0]))
+        return RenderOutput(rgb=np.ascontiguousarray(rgb[cut]), instance=np.ascontiguousarray(ids[cut]),
+                            depth=np.ascontiguousarray(z[cut]), normals=np.ascontiguousarray(nrm[cut]))
 
     def release(self) -> None:
         self.ctx.release()
