@@ -270,3 +270,22 @@ def test_edge_antialias_averages_exactly_the_pixels_next_to_an_id_change():
     want = np.where(edge[..., None], (rgb + blur) // 2, rgb)
     assert edge.sum() > 100 and np.abs(out.astype(int) - want.astype(int)).max() <= 1
     assert np.array_equal(out[~edge], rgb[~edge])
+
+
+def test_two_renderers_in_one_process_each_draw_their_own_frame(tmp_path):
+    """Each GL renderer makes its own context current to draw: a second one made in the same
+    process (a notebook, a test, an A/B of two recipes) must not change what the first draws."""
+    first = Generator(load_recipe("complex", SMALL), 0, tmp_path / "a")
+    try:
+        alone = first.make(1)[1]
+        second = Generator(load_recipe("complex", SMALL + ["antialias=4"]), 0, tmp_path / "b")
+        try:
+            after = first.make(1)[1]
+            other = second.make(1)[1]
+            again = first.make(1)[1]
+        finally:
+            second.close()
+    finally:
+        first.close()
+    assert np.array_equal(after, alone) and np.array_equal(again, alone)
+    assert not np.array_equal(other, alone)

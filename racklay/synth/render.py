@@ -335,13 +335,18 @@ class GLRenderer:
         exactly as in the whole frame (a scissor, not another camera), at a fraction of the cost;
         None: the whole frame. Ambient occlusion looks at the whole frame, so a scene with it
         is drawn whole and then cut to the region."""
-        ctx, mgl = self.ctx, self.moderngl
         cam = camera if camera is not None else scene.camera
         if (cam.width, cam.height) != (self.W, self.H):
             raise ValueError(f"renderer is {self.W}x{self.H}, camera is {cam.width}x{cam.height}")
         x0, y0, x1, y1 = (0, 0, self.W, self.H) if region is None else (int(v) for v in region)
         if not (0 <= x0 < x1 <= self.W and 0 <= y0 < y1 <= self.H):
             raise ValueError(f"region {region} is not inside the {self.W}x{self.H} render")
+        with self.ctx:   # this renderer's GL context current (another renderer may have been made since)
+            return self._render(scene, cam, (x0, y0, x1, y1))
+
+    def _render(self, scene: Scene, cam, region: tuple[int, int, int, int]) -> RenderOutput:
+        ctx, mgl = self.ctx, self.moderngl
+        x0, y0, x1, y1 = region
         drawn = (0, 0, self.W, self.H) if scene.occlusion > 0 else (x0, y0, x1, y1)
         gl_box = (drawn[0], self.H - drawn[3], drawn[2] - drawn[0], drawn[3] - drawn[1])   # GL rows bottom up
         for fbo in (self.gbuf_fbo, self.color_ms, self.color_out):
@@ -403,11 +408,17 @@ class GLRenderer:
         _set(p, "light_col", data=col.tobytes())
         self.tex.use(0)
         self.shadow_tex.use(1)
-        self.color_ms.use()
-        if self.msaa:  # depth pre-pass so that only visible fragments are shaded
+        # The colour pass tests against finished depth and does not write it: each pixel is shaded
+        # once, by its nearest surface (the last drawn of equal ones, as "<=" with writes gives).
+        # Without MSAA that depth is the G-buffer's (shared): it must survive the colour clear.
+        if self.msaa:  # depth pre-pass into the multisampled buffer
+            self.color_ms.depth_mask = True
+            self.color_ms.use()
             self.color_ms.clear(0.1, 0.1, 0.11, 1.0, depth=1.0)
             self._draw(self.depth_prog, counts)
-        else:
+        self.color_ms.depth_mask = False   # (glClear leaves a masked depth buffer alone)
+        self.color_ms.use()
+        if not self.msaa:
             self.color_ms.clear(0.1, 0.1, 0.11, 1.0)
         ctx.depth_func = "<="
         self._draw(p, counts)
