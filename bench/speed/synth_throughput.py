@@ -7,7 +7,10 @@ splits), then print images/min, the per-stage breakdown and the ratio to WareSyn
 
 Stage times are wall seconds measured inside each worker (summed over workers, per image);
 with K workers on K cores they add up to about K x the wall time per image. The machine's
-load average is printed because the numbers depend on what else runs.
+load average is printed because the numbers depend on what else runs. Each run writes ~2.3 MB
+per image; on a VM whose fresh memory is slow to touch once the page cache is full
+(`bench/speed/machine_check.py` says so), the same run swings by ±20 %: compare runs made back to
+back, ideally each after `sync; echo 3 > /proc/sys/vm/drop_caches` (root).
 """
 from __future__ import annotations
 

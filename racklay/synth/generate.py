@@ -93,8 +93,8 @@ REGION_MARGIN = 3
 def source_region(maps, size: tuple[int, int]) -> tuple[int, int, int, int]:
     """(x0, y0, x1, y1): the part of a render of `size` (width, height) that the distortion
     `maps` (effects.distortion_maps) read, with REGION_MARGIN pixels around it (or one more, for
-    an even origin), clipped to the render. Only that part is drawn: the rest of the padding a wide barrel lens needs is wasted
-    on a narrower or pincushion one."""
+    an even origin), clipped to the render. Only that part is drawn: the rest of the padding
+    that the recipe's widest barrel lens needs is wasted on a narrower or a pincushion one."""
     mx, my = maps
     W, H = size
     m = REGION_MARGIN
@@ -198,9 +198,6 @@ _WORKER: Generator | None = None
 
 def _init_worker(recipe_dict, seed, out, lp_threads, fsync):
     global _WORKER
-    from ..runtime import tune_allocator
-
-    tune_allocator()   # a spawned worker is a fresh interpreter: the command line's tuning is not inherited
     if lp_threads is not None:
         os.environ["LP_NUM_THREADS"] = str(lp_threads)
     _WORKER = Generator(recipe_from_dict(recipe_dict, "recipe"), seed, out, fsync=fsync)
@@ -305,7 +302,8 @@ def generate_dataset(recipe: Recipe, n: int, out: str | os.PathLike, seed: int =
                 if gen:
                     gen.close()
         elif todo:
-            for i, t in _pool_results(todo, workers, (recipe.to_dict(), seed, str(out), WORKER_LP_THREADS if lp_threads is None else lp_threads, fsync), out):
+            lp = WORKER_LP_THREADS if lp_threads is None else lp_threads
+            for i, t in _pool_results(todo, workers, (recipe.to_dict(), seed, str(out), lp, fsync), out):
                 _acc(res, i, t, bar)
     finally:
         res.wall = time.perf_counter() - t0

@@ -237,9 +237,10 @@ class SceneRNG:
         import random
 
         self._r = random.Random(seed)
-        self.random = self._r.random   # the hottest draw (tints): no wrapper call
+        self.random = self._r.random   # the hottest draw (tints) without a wrapper call: shadows the method below
 
-    def random(self) -> float:  # noqa: F811 - documents the method the instance attribute above is
+    def random(self) -> float:
+        """Uniform float in [0, 1)."""
         return self._r.random()
 
     def uniform(self, lo: float = 0.0, hi: float = 1.0) -> float:
