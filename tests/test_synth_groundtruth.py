@@ -559,6 +559,35 @@ def test_packed_pallet_levels_stand_their_loads_a_gap_apart():
     assert np.median(spread_gaps) > 0.15, np.median(spread_gaps)
 
 
+def test_full_warehouse_knobs_build_loads_up_and_fill_the_other_bays():
+    """`pallet_load_height` sets how far a load fills its level's clear height above the pallet;
+    `neighbour_fill` loads every bay but the considered one at least that densely (what a gap
+    between two loads shows in a full warehouse), leaving the considered bay to `box_density`."""
+    from racklay.synth.scene import CATEGORY_NAMES, PALLET_HEIGHT
+
+    tall = load_recipe("pallet", {"pallet_load_height": [0.9, 1.0], "box_density": [1.0, 1.0], "wire_deck": 0.0})
+    fills = []
+    for index in range(10):
+        scene = sample_scene(tall, 2, index)
+        for sh in scene.shelves:
+            fills += [(scene.objects[i].layout_box.sz - PALLET_HEIGHT) / (sh.max_item_top - PALLET_HEIGHT)
+                      for i in sh.items]
+    assert len(fills) > 20 and min(fills) >= 0.9 - 1e-9, min(fills)
+
+    def other_loads(fill):
+        r = load_recipe("pallet", {"neighbour_fill": fill, "box_density": [0.0, 0.0], "wire_deck": 0.0,
+                                   "background": {"wall": 0.0, "busy": 1.0}})
+        n = 0
+        for index in range(6):
+            scene = sample_scene(r, 2, index)
+            assert all(not sh.items for sh in scene.shelves), "the considered bay follows box_density"
+            n += sum(o.shape == "none" and CATEGORY_NAMES[o.category].startswith("pallet_")
+                     for o in scene.objects if o.shelf < 0)
+        return n
+
+    assert other_loads(0.0) == 0 and other_loads(1.0) > 50
+
+
 FRONTAL_W, FRONTAL_H, FRONTAL_F = 470, 280, 400.0
 
 

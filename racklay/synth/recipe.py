@@ -70,6 +70,7 @@ class Recipe:
     pallet_gap: list = _f([0.06, 0.15], "frange", 0.0, 1.0, "pallet racking: clearance between neighbouring pallets, metres (one draw per level)")
     pallet_overhang: list = _f([0.0, 0.0], "frange", 0.0, 0.4, "pallet racking: a load may be wider than its pallet by up to this much on each side along the beams, metres (one draw per load; never past a neighbour or the beams' ends)")
     pallet_packing: float = _f(0.0, "float", 0.0, 1.0, "pallet racking: probability that a level's pallets stand packed at pallet_gap from each other (as in a bay sized for them) rather than spread evenly along the beams")
+    pallet_load_height: list = _f([0.35, 1.0], "frange", 0.0, 1.0, "pallet racking: a load's height above its pallet as a fraction of the level's clear height above the pallet ~ U(lo, hi) (one draw per load; near 1: loads built up to the next beam's forklift clearance, as in a full warehouse)")
     # --- cube units (drawn only where rack_style gives them a weight) ---
     cube_columns: list = _f([2, 5], "irange", 1, 8, "cube units: cells side by side")
     cube_rows: list = _f([2, 5], "irange", 1, 8, "cube units: rows of cells (each row's floor panel is a shelf)")
@@ -89,6 +90,7 @@ class Recipe:
     rack_rows: int = _f(3, "int", 0, 8, "rack rows behind the considered one (busy background)")
     bays_per_side: int = _f(3, "int", 0, 10, "neighbouring bays on each side in the same row (busy background)")
     clutter: list = _f([2, 10], "irange", 0, 60, "clutter items (pallets, forklift-like blocks, extinguishers)")
+    neighbour_fill: float = _f(0.0, "float", 0.0, 1.0, "the levels of every bay but the considered one are loaded at a density of at least this: box_density's draw d becomes f + (1 - f) d (0: as box_density; a busy warehouse's other bays are mostly full, and they are what a gap between two loads shows)")
     # --- boxes ----------------------------------------------------------------------------
     box_density: list = _f([0.0, 1.0], "frange", 0.0, 1.0, "per-shelf occupancy density ~ U(lo, hi)")
     flush_fraction: float = _f(0.0, "float", 0.0, 1.0, "shelving: probability that an item stands flush against its neighbour along the shelf (no gap: walls of cartons, one run in the layouts) instead of min_gap or more from it")

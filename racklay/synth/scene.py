@@ -408,7 +408,7 @@ def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: floa
         else:
             cx = -length / 2 + pitch * (k + 0.5) + float(rng.uniform(-0.25, 0.25)) * (pitch - along)
         cy = -depth / 2 + 0.01 + deep / 2 + float(rng.uniform(0, max(0.0, depth - 0.02 - deep)))
-        sz = PALLET_HEIGHT + float(rng.uniform(0.35, 1.0)) * (max_top - PALLET_HEIGHT)
+        sz = PALLET_HEIGHT + _u(rng, r.pallet_load_height) * (max_top - PALLET_HEIGHT)
         units.append((kind, L.Box(cx=cx, cy=cy, sx=along, sy=deep, sz=sz, z0=0.0, yaw=0.0), None))
     if r.pallet_overhang[1] > 0:      # drawn only by recipes that use it: the others keep their scenes
         units = _overhang(rng, r, units, length)
@@ -502,12 +502,18 @@ class _Builder:
         else:
             self.collected(si, [b for _, b in items], x0, y0)
 
+    def level_density(self, mine: bool) -> float:
+        """One level's load density: box_density's draw, raised by `neighbour_fill` in every bay
+        but the considered one (`mine`)."""
+        d, f = _u(self.rng, self.r.box_density), self.r.neighbour_fill
+        return d if mine or f == 0 else f + (1 - f) * d
+
     def shelf_items(self, boards, length, depth, x0, y0, shelf_infos=None) -> None:
         """Cartons and crates straight on every level of a shelving-like bay (shelving, wire and
         boltless units): each level's density and stack height drawn, then `fill_shelf`."""
         r = self.r
         for si, (z_top, _h, max_top) in enumerate(boards):
-            density = _u(self.rng, r.box_density)
+            density = self.level_density(shelf_infos is not None)
             stack_max = _ui(self.rng, r.max_stack)
             self.place_items(fill_shelf(self.rng, r, length, depth, max_top, density, stack_max),
                              si, z_top, x0, y0, shelf_infos)
@@ -578,7 +584,7 @@ class _Builder:
                 self.add((x0, y0, z_top - 0.007), (length, depth - 0.02, 0.01), "deck", SEM["shelf"], tint=(1, 1, 1))
         shelf_of = (lambda si: si) if shelf_infos is not None else (lambda si: -1)
         for si, (z_top, _h, max_top) in enumerate(boards):
-            density = _u(self.rng, r.box_density)
+            density = self.level_density(shelf_infos is not None)
             if deck and z_top > 0 and self.rng.uniform() < DECK_LOOSE:
                 # cartons and crates straight on the wire deck, as on shelving
                 self.place_items(fill_shelf(self.rng, r, length, depth, max_top, density, _ui(self.rng, r.max_stack)),
@@ -610,7 +616,8 @@ class _Builder:
             self.add((x0, y0 + depth / 2 + 0.003, (z_lo + top) / 2), (length, 0.006, top - z_lo), "board",
                      SEM["rack"], tint=tint)
         for si, (z_top, _h, max_top) in enumerate(boards):
-            self.place_items(fill_cube_row(self.rng, r, columns, cell, panel, depth, max_top, _u(self.rng, r.box_density)),
+            self.place_items(fill_cube_row(self.rng, r, columns, cell, panel, depth, max_top,
+                                           self.level_density(shelf_infos is not None)),
                              si, z_top, x0, y0, shelf_infos)
 
     def wire_unit(self, x0, y0, length, depth, boards, tint, pitch, shelf_infos=None):
