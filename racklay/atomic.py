@@ -101,14 +101,21 @@ def atomic_save_npy(path: str | os.PathLike, arr: np.ndarray, fsync: bool = True
     return atomic_write_bytes(path, npy_bytes(arr), fsync=fsync)
 
 
-def encode_png(image: np.ndarray) -> bytes:
-    """PNG bytes of an RGB (H, W, 3) uint8 or a (H, W) uint8/uint16 array. Deterministic."""
+def encode_png(image: np.ndarray, row_filter: str | None = None) -> bytes:
+    """PNG bytes of an RGB (H, W, 3) uint8 or a (H, W) uint8/uint16 array, zlib level 1.
+    Deterministic. `row_filter` None: OpenCV's adaptive row filters; "sub" (photo-like images) or
+    "up" (piecewise-constant maps: normals, ids, depth) with the RLE strategy, as WareSynth writes
+    its files: 1.5-4x faster to encode, at most ~40 % larger."""
     import cv2
 
     arr = np.asarray(image)
     if arr.ndim == 3:
         arr = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
-    ok, buf = cv2.imencode(".png", arr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    params = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    if row_filter is not None:
+        filters = {"sub": cv2.IMWRITE_PNG_FILTER_SUB, "up": cv2.IMWRITE_PNG_FILTER_UP}
+        params += [cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE, cv2.IMWRITE_PNG_FILTER, filters[row_filter]]
+    ok, buf = cv2.imencode(".png", arr, params)
     if not ok:
         raise ValueError("could not encode PNG")
     return buf.tobytes()

@@ -38,7 +38,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[])
     args = ap.parse_args(argv)
 
-    from racklay.synth.generate import STAGES, WORKER_LP_THREADS, generate_dataset
+    from racklay.synth.generate import STAGES, generate_dataset, lp_threads_for
     from racklay.synth.recipe import load_recipe
 
     recipe = load_recipe(args.recipe, args.set)
@@ -53,8 +53,8 @@ def main(argv=None) -> int:
                            progress=True)
     wall = time.perf_counter() - t0
     load1 = os.getloadavg()
-    lp = args.lp_threads if args.lp_threads is not None else WORKER_LP_THREADS if args.workers > 1 else \
-        os.environ.get("LP_NUM_THREADS", "llvmpipe's default")
+    lp = lp_threads_for(args.lp_threads, args.workers)
+    lp = lp if lp is not None else os.environ.get("LP_NUM_THREADS", "llvmpipe's default")
     ru = resource.getrusage(resource.RUSAGE_CHILDREN), resource.getrusage(resource.RUSAGE_SELF)
     cpu = sum(r.ru_utime + r.ru_stime for r in ru)
     n = len(res.generated)
