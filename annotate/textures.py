@@ -103,8 +103,9 @@ def export_textures(project: Project, out: str | os.PathLike, split_of: dict[str
             continue
         names.append((name, ann))
     if not names:
+        known = f" (the split file names: {', '.join(sorted(set(split_of.values())))})" if split else ""
         raise ValueError(f"{project.root}: no photo with status {', '.join(only_status)}"
-                         + (f" in split {split!r}" if split else ""))
+                         + (f" in split {split!r}{known}" if split else ""))
     prefix = texture_prefixes([name for name, _ in names])
     left = {"boxes too small": 0, "tiles too small or outside the photo": 0}
     n = 0

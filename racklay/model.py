@@ -36,9 +36,10 @@ Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3,
 - `fast`: `light`'s layers (the same tensors) with its last conv3x3-BN-ReLU and 1x1 head run at
   the 1/2-input resolution of the last stage; only the 3·R logits are resized to S x S (bilinear,
   as segmentation heads do). At the release size (160x256 in, 256 out) that conv is 10x cheaper,
-  the decoder ~3x faster and the network 1.13-1.22x faster on CPU (docs/benchmarks.md). Its tensors are `light`'s, so a `light`
-  checkpoint initialises it (`SAME_TENSOR_DECODERS`); it then needs fine-tuning, because the
-  conv sees a wider context than it did at S x S.
+  the decoder ~3x faster and the network 1.13-1.22x faster on CPU
+  (docs/results/2026-11-22-to-28-speed-log.md). Its tensors are `light`'s, so a `light` checkpoint
+  initialises it (`SAME_TENSOR_DECODERS`); it then needs fine-tuning, because the conv sees a
+  wider context than it did at S x S.
 
 The encoder uses torchvision's ResNet-18 parameter names (conv1, bn1, layer1.0.conv1, ...; no fc)
 so a user's local torchvision weight file loads with `load_imagenet_weights`.
@@ -75,6 +76,9 @@ HEAD_PRIOR_LOGITS = (0.0, -2.3, -3.7)
 
 
 class BasicBlock(nn.Module):
+    #: (conv, batch norm) pairs whose norm runs right after the conv (`fold_batchnorm`)
+    BN_FOLDS = (("conv1", "bn1"), ("conv2", "bn2"))
+
     def __init__(self, cin: int, cout: int, stride: int = 1):
         super().__init__()
         self.conv1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
@@ -97,6 +101,7 @@ class ResNet18Encoder(nn.Module):
     (64, 64, 128, 256, 512 channels)."""
 
     channels = (64, 64, 128, 256, 512)
+    BN_FOLDS = (("conv1", "bn1"),)
 
     def __init__(self):
         super().__init__()
@@ -153,6 +158,8 @@ class MBConv(nn.Module):
     """EfficientNet-Lite inverted residual: 1x1 expand, kxk depthwise, 1x1 project, ReLU6, no
     squeeze-excitation. Parameter names follow the released weight file."""
 
+    BN_FOLDS = (("_expand_conv", "_bn0"), ("_depthwise_conv", "_bn1"), ("_project_conv", "_bn2"))
+
     def __init__(self, cin: int, cout: int, expand: int, k: int, stride: int):
         super().__init__()
         mid = cin * expand
@@ -192,6 +199,7 @@ class EfficientNetLite0Encoder(nn.Module):
     weights)."""
 
     channels = (16, 24, 40, 112, 1280)
+    BN_FOLDS = (("_conv_stem", "_bn0"), ("_conv_head", "_bn1"))
 
     def __init__(self, with_classifier: bool = False):
         super().__init__()
@@ -746,6 +754,44 @@ def build_model(cfg: ModelConfig, imagenet_weights: str | os.PathLike | None = N
     return net
 
 
+_CONVS, _NORMS = (nn.Conv1d, nn.Conv2d), (nn.BatchNorm1d, nn.BatchNorm2d)
+
+
+@torch.no_grad()
+def fold_batchnorm(model: nn.Module) -> int:
+    """For inference only: fold every batch norm that runs right after a convolution (the pairs
+    a class lists in `BN_FOLDS`, and adjacent conv, norm in an `nn.Sequential`) into that
+    convolution's weight and bias, and put an identity in the norm's place. The model computes
+    what it computed (to float rounding: ~1e-3 in the release model's logits, the same argmax)
+    with one memory pass fewer per norm: `racklay predict` 1.12x faster on a 2-core Zen 3
+    (docs/benchmarks.md, "Folded batch norms"). The model must be in eval mode (its norms then
+    use their running statistics); train a folded model and its norms are gone, so only
+    inference paths call this (`racklay.predict.Predictor`). Returns how many norms it folded."""
+    if model.training:
+        raise ValueError("fold_batchnorm is for a model in eval mode (call .eval() first)")
+    n = 0
+    for mod in list(model.modules()):
+        pairs = list(getattr(mod, "BN_FOLDS", ()))
+        if isinstance(mod, nn.Sequential):
+            kids = list(mod.named_children())
+            pairs += [(a, b) for (a, ca), (b, cb) in zip(kids, kids[1:])
+                      if isinstance(ca, _CONVS) and isinstance(cb, _NORMS)]
+        for c_name, n_name in pairs:
+            conv, bn = getattr(mod, c_name, None), getattr(mod, n_name, None)
+            if not (isinstance(conv, _CONVS) and isinstance(bn, _NORMS)) or bn.running_var is None:
+                continue
+            scale = bn.running_var.add(bn.eps).rsqrt()
+            if bn.affine:
+                scale = scale * bn.weight
+            shift = -bn.running_mean * scale + (bn.bias if bn.affine else 0.0)
+            conv.weight.mul_(scale.to(conv.weight.dtype).view(-1, *([1] * (conv.weight.dim() - 1))))
+            bias = shift if conv.bias is None else conv.bias * scale + shift
+            conv.bias = nn.Parameter(bias.to(conv.weight.dtype), requires_grad=False)
+            setattr(mod, n_name, nn.Identity())
+            n += 1
+    return n
+
+
 def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
 
@@ -753,4 +799,4 @@ def count_parameters(module: nn.Module) -> int:
 __all__ = ["ModelConfig", "RackLayNet", "tie_views", "Discriminators", "PatchDiscriminator", "ResNet18Encoder",
            "EfficientNetLite0Encoder", "load_lite0_weights", "lite0_weights_path", "ENCODERS",
            "PaperDecoder", "LightDecoder", "FastDecoder", "ColumnsDecoder", "StructDecoder", "GROWABLE_DECODERS", "SAME_TENSOR_DECODERS", "grown_tensor_names", "load_imagenet_weights", "build_model",
-           "DECODERS", "count_parameters"]
+           "DECODERS", "count_parameters", "fold_batchnorm"]

@@ -55,7 +55,7 @@ def test_textures_take_only_the_split_asked_and_leave_nothing_on_failure(tmp_pat
     assert sorted({p.name.split("_")[0] for p in (tmp_path / "train").iterdir()}) == ["p0"]
     with pytest.raises(ValueError, match="needs --split-file"):
         export_textures(proj, tmp_path / "x", split="train")
-    with pytest.raises(ValueError, match="no photo with status done, approved in split 'val'"):
+    with pytest.raises(ValueError, match=r"no photo with status done, approved in split 'val' \(the split file names: train\)"):
         export_textures(proj, tmp_path / "x", split_of={"p0.png": "train"}, split="val")
     # a rack that cannot be rebuilt names its annotation file, and no folder is left behind
     ann = proj.read_annotation("p1.png")

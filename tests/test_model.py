@@ -433,3 +433,41 @@ def test_flip_averaging_predicts_a_mirror_image_as_the_mirror_of_the_prediction(
     from racklay.predict import Predictor
     with pytest.raises(ValueError, match="flip averaging is for the torch backend"):
         Predictor("model.onnx", flip_average=True)
+
+
+@pytest.mark.parametrize("encoder,decoder", [("efficientnet-lite0", "struct"), ("resnet18", "paper"),
+                                             ("resnet18", "light"), ("resnet18", "fast"), ("resnet18", "columns")])
+def test_folding_batch_norms_keeps_the_prediction_and_leaves_no_norm(encoder, decoder, tmp_path):
+    """`fold_batchnorm` (what `racklay predict` runs) folds every batch norm of every encoder and
+    decoder into the convolution before it: no norm left, the same layouts (norms with
+    non-trivial statistics, so a missed or wrong fold shows), and it refuses a model in training."""
+    from racklay.model import fold_batchnorm
+    from racklay.predict import Predictor
+
+    cfg = ModelConfig(R=2, image_size=(64, 128), layout_size=LAY, decoder=decoder, encoder=encoder,
+                      struct_fine=decoder == "struct", struct_gap=decoder == "struct")
+    net = RackLayNet(cfg)
+    g = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, (torch.nn.BatchNorm1d, torch.nn.BatchNorm2d)):
+                m.running_mean.copy_(0.3 * torch.randn(m.num_features, generator=g))
+                m.running_var.copy_(0.5 + torch.rand(m.num_features, generator=g))
+                m.weight.copy_(1 + 0.3 * torch.randn(m.num_features, generator=g))
+                m.bias.copy_(0.2 * torch.randn(m.num_features, generator=g))
+    n_norms = sum(isinstance(m, (torch.nn.BatchNorm1d, torch.nn.BatchNorm2d)) for m in net.modules())
+    with pytest.raises(ValueError, match="eval mode"):
+        fold_batchnorm(net)
+    net.eval()
+    save_checkpoint(tmp_path / "m.safetensors", net, cfg)
+    x = torch.randn(2, 3, 64, 128, generator=g)
+    with torch.no_grad():
+        before = net(x)
+        assert fold_batchnorm(net) == n_norms > 0
+        after = net(x)
+    assert not any(isinstance(m, (torch.nn.BatchNorm1d, torch.nn.BatchNorm2d)) for m in net.modules())
+    for v in before:        # float rounding only: random nets' logits reach ~100
+        assert (before[v] - after[v]).abs().max() <= 1e-5 * before[v].abs().max(), v
+        assert (before[v].argmax(2) == after[v].argmax(2)).float().mean() > 0.999, v
+    pred = Predictor(tmp_path / "m.safetensors")
+    assert not any(isinstance(m, (torch.nn.BatchNorm1d, torch.nn.BatchNorm2d)) for m in pred.model.modules())

@@ -6,7 +6,10 @@ the authors' `paper` decoder) at the shipped input and layout size and the same 
         [--flip-average]
 
 Both models run both views, in the memory format given (default channels_last, as `racklay
-predict` runs a model; `--memory-format contiguous` gives the default PyTorch layout); the
+predict` runs a model; `--memory-format contiguous` gives the default PyTorch layout) and with
+their batch norms folded into the convolutions, as `racklay predict` runs a model
+(`racklay.model.fold_batchnorm`; a row gives the shipped model as trained, what folding buys;
+`--unfolded` runs both as trained); the
 reference is randomly initialised (weights do not change the cost). With a `fast`-decoder model
 the same weights also run as `light` (what the decoder arrangement buys). The shipped model's
 encoder also runs alone: reference / encoder is the ceiling of the ratio for any decoder on that
@@ -46,6 +49,9 @@ def main(argv=None) -> int:
     ap.add_argument("--flip-average", action="store_true",
                     help="also time the shipped model with test-time flip averaging (`racklay predict "
                          "--flip-average`: the photo and its mirror image in one batch): what its accuracy costs")
+    ap.add_argument("--unfolded", action="store_true",
+                    help="run both models with their batch norms as trained (default: folded into the convolutions, "
+                         "as racklay predict runs a model)")
     add_batch_arg(ap, ": one photo at a time, as the target is stated; larger batches spread the per-layer "
                       "overhead that dominates the struct decoder at batch 1")
     add_common_args(ap, rounds=3, calls=5, warmup=2)
@@ -54,7 +60,7 @@ def main(argv=None) -> int:
     import torch
 
     from racklay.checkpoint import load_model
-    from racklay.model import RackLayNet
+    from racklay.model import RackLayNet, fold_batchnorm
     from racklay.precision import resolve_precision
     from racklay.release import resolve_weights
 
@@ -73,6 +79,10 @@ def main(argv=None) -> int:
         flipped = load_model(resolve_weights(args.weights))[0].eval()
         flipped.set_flip_average(True)
         models["shipped, flip-averaged"] = flipped
+    if not args.unfolded:   # (onnxruntime folds the norms of a graph itself either way)
+        for m in models.values():
+            fold_batchnorm(m)
+        models["shipped, batch norms as trained"] = load_model(resolve_weights(args.weights))[0].eval()
     ort_runners = {}
     if args.onnx:   # what `racklay predict --backend onnx` runs
         from racklay.onnx import export_onnx_bytes, onnx_session
@@ -113,6 +123,7 @@ def main(argv=None) -> int:
     if ort_names:
         rows += [row(ort_names[0]), row(ort_names[1]), ratio(ort_names[1], ort_names[0], "**reference / shipped, onnxruntime**")]
     print(f"\nbatch {args.batch} (times per call), both views, input {w}x{h} -> layouts {cfg.layout_size}, {prec}, {args.memory_format}, "
+          f"batch norms {'as trained' if args.unfolded else 'folded'}, "
           f"{args.rounds}x{args.calls} interleaved calls per model (target: reference >= 3x slower):")
     print(markdown_table(["model", "wall ms median (min)", "CPU ms median"], rows))
     return 0
