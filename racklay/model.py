@@ -487,10 +487,10 @@ class StructDecoder(nn.Module):
             d = torch.einsum("nrhw,nchw->nrcw", att4, f4).reshape(N * R, -1, W)
             up = F.interpolate(cols.reshape(N * R, C, W8), size=W, mode="linear", align_corners=False)
             cols = (up + self.detail(torch.cat([d, up], 1))).reshape(N, R, C, W)
-        pres, log_len, log_ext, centre, log_half, log_win = self.shelf_head(g).float().unbind(-1)
+        head = self.shelf_head(g).float()
+        pres, log_len, log_ext, _, _, log_win = head.unbind(-1)
         t = (torch.arange(T, device=x.device, dtype=torch.float32) + 0.5) / T    # positions along the shelf
-        half = torch.exp(log_half).clamp(0.02, 4.0)
-        mu = (0.5 + centre).unsqueeze(-1) + (2 * t - 1) * half.unsqueeze(-1)    # (N, R, T) image widths
+        mu = position_columns(head, T)                                           # (N, R, T) image widths
         u = (torch.arange(W, device=x.device, dtype=torch.float32) + 0.5) / W
         win = torch.exp(log_win).clamp(0.25, 8.0).unsqueeze(-1).unsqueeze(-1) / W8   # in 1/8 columns
         w = (-0.5 * ((u - mu.unsqueeze(-1)) / win) ** 2).softmax(-1)             # (N, R, T, W)
@@ -541,6 +541,16 @@ class StructDecoder(nn.Module):
         if self.gap:
             self.gap_head.weight.zero_()
             self.gap_head.bias.fill_(-6.0)
+
+
+def position_columns(shelf_head_out: torch.Tensor, T: int) -> torch.Tensor:
+    """Where along the image a struct decoder reads each shelf's T positions: (..., 6) outputs of
+    its `shelf_head` (presence, log length, log extent, centre, log half-width, log window) ->
+    (..., T) image columns in image widths (0 = the left edge, 1 = the right; a shelf may reach
+    outside the frame): the shelf's centre in the image plus (2t - 1) times its half-width."""
+    t = (torch.arange(T, device=shelf_head_out.device, dtype=torch.float32) + 0.5) / T
+    centre, half = shelf_head_out[..., 3].float(), torch.exp(shelf_head_out[..., 4].float()).clamp(0.02, 4.0)
+    return (0.5 + centre).unsqueeze(-1) + (2 * t - 1) * half.unsqueeze(-1)
 
 
 def _conv1d_bn_relu(cin: int, cout: int, k: int) -> nn.Sequential:

@@ -471,3 +471,16 @@ def test_folding_batch_norms_keeps_the_prediction_and_leaves_no_norm(encoder, de
         assert (before[v].argmax(2) == after[v].argmax(2)).float().mean() > 0.999, v
     pred = Predictor(tmp_path / "m.safetensors")
     assert not any(isinstance(m, (torch.nn.BatchNorm1d, torch.nn.BatchNorm2d)) for m in pred.model.modules())
+
+
+def test_position_columns_span_the_placed_shelf():
+    """`position_columns`: a shelf centred in the image with half-width 0.5 reads its T positions
+    at their centres from the left edge to the right edge; moving the centre shifts every column."""
+    import math
+
+    from racklay.model import position_columns
+
+    head = torch.tensor([[0.0, 0.0, 0.0, 0.0, math.log(0.5), 0.0], [0.0, 0.0, 0.0, 0.25, math.log(0.5), 0.0]])
+    cols = position_columns(head, 4)
+    assert torch.allclose(cols[0], torch.tensor([0.125, 0.375, 0.625, 0.875]))
+    assert torch.allclose(cols[1], cols[0] + 0.25)
