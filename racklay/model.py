@@ -773,8 +773,8 @@ def fold_batchnorm(model: nn.Module) -> int:
     a class lists in `BN_FOLDS`, and adjacent conv, norm in an `nn.Sequential`) into that
     convolution's weight and bias, and put an identity in the norm's place. The model computes
     what it computed (to float rounding: ~1e-3 in the release model's logits, the same argmax)
-    with one memory pass fewer per norm: `racklay predict` 1.12x faster on a 2-core Zen 3
-    (docs/benchmarks.md, "Folded batch norms"). The model must be in eval mode (its norms then
+    with one memory pass fewer per norm: the release model 1.06-1.16x faster on a 2-core Zen 3
+    in fp32 (docs/benchmarks.md, "Folded batch norms"). The model must be in eval mode (its norms then
     use their running statistics); train a folded model and its norms are gone, so only
     inference paths call this (`racklay.predict.Predictor`). Returns how many norms it folded."""
     if model.training:
