@@ -119,9 +119,9 @@ def main(argv=None) -> int:
         meta = ds.root.read_meta(sid) or {}
         if meta.get("source") != "annotate":
             raise SystemExit(f"{ds.root.meta_path(sid)}: not exported from an annotate project (no source photo)")
-        ann_path = args.project / "annotations" / f"{meta['source_image']}.json"
-        scene = G.build_scene(load_annotation(ann_path), settings)
-        W, H = load_annotation(ann_path)["image_size"]
+        ann = load_annotation(args.project / "annotations" / f"{meta['source_image']}.json")
+        scene = G.build_scene(ann, settings)
+        W, H = ann["image_size"]
         st = pred.structures(batch["image"])["front"]
         gap = st["gap"][0].float().numpy()
         T = gap.shape[-1]
