@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.accuracy.slot_contrast import luminance
 from bench.accuracy.structure_ab import rank_auc
 from bench.accuracy.synth_coverage import run_spans
 
@@ -43,14 +44,14 @@ LABEL_ROW = 0.3
 CUE_ROWS = (0.05, 0.6)
 
 
-def luminance(batch_image):
-    """(N, H, W) luminance in [0, 1] of an ImageNet-normalised batch."""
+def batch_luminance(batch_image):
+    """(N, H, W) luminance in [0, 1] of an ImageNet-normalised batch (`slot_contrast.luminance`)."""
     import torch
 
-    mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
-    std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
-    x = batch_image.float() * std + mean
-    return 0.299 * x[:, 0] + 0.587 * x[:, 1] + 0.114 * x[:, 2]
+    from racklay.torchdata import IMAGENET_MEAN, IMAGENET_STD
+
+    rgb = batch_image.float().numpy().transpose(0, 2, 3, 1) * IMAGENET_STD + IMAGENET_MEAN
+    return torch.from_numpy(luminance(rgb))
 
 
 def model_darkness(lum, att_logits, cols):
@@ -83,8 +84,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from annotate import geometry as G
-    from annotate.schema import load_annotation, load_settings
-    from racklay.data import read_image
+    from annotate.schema import pixel_aspect
+    from annotate.store import Project
     from racklay.evaluate import split_dataset
     from racklay.model import position_columns
     from racklay.predict import Predictor
@@ -95,7 +96,7 @@ def main(argv=None) -> int:
     pred = Predictor(str(resolve_weights(args.weights)), precision="auto")
     if pred.model is None or pred.cfg.decoder != "struct" or not pred.cfg.struct_gap or "front" not in pred.views:
         ap.error(f"{pred.weights}: needs a struct model with a gap output and a front view")
-    settings = load_settings(args.project / "project.json")
+    project = Project(args.project, create=False)
     dec = pred.model.decoders["front"]
     cap = {}
     hooks = [dec.shelf_head.register_forward_hook(lambda m, i, o: cap.__setitem__("head", o.detach())),
@@ -119,14 +120,14 @@ def main(argv=None) -> int:
         meta = ds.root.read_meta(sid) or {}
         if meta.get("source") != "annotate":
             raise SystemExit(f"{ds.root.meta_path(sid)}: not exported from an annotate project (no source photo)")
-        ann = load_annotation(args.project / "annotations" / f"{meta['source_image']}.json")
-        scene = G.build_scene(ann, settings)
+        ann = project.load(meta["source_image"])
+        scene = G.build_scene(ann, project.settings)
         W, H = ann["image_size"]
         st = pred.structures(batch["image"])["front"]
         gap = st["gap"][0].float().numpy()
         T = gap.shape[-1]
         cols = position_columns(cap["head"][0], T).numpy()                          # (R, T)
-        dark = model_darkness(luminance(batch["image"])[0], cap["att"][0], cols)
+        dark = model_darkness(batch_luminance(batch["image"])[0], cap["att"][0], cols)
         truth = truth_structure("front", batch["front"].long(), pred.grid.extent, T)
         tgap = (gap_positions(truth["box"]) & truth["presence"].unsqueeze(-1))[0].numpy()
         tbox = truth["box"][0].numpy()
@@ -138,32 +139,37 @@ def main(argv=None) -> int:
             if len(runs) < 2:
                 continue
             v0, clear = scene.shelf_v[r], scene.clear[r]
-            to_x = lambda u: scene.plane.to_image([[u, v0 + LABEL_ROW * clear]])[0, 0] / W   # noqa: E731
 
-            def inside(x, spans):
-                return any(min(to_x(a), to_x(b)) <= x <= max(to_x(a), to_x(b)) for a, b in spans)
+            def to_x(us):
+                """Image x (image widths) of rack positions `us` (metres) at the label's row."""
+                us = np.asarray(us, np.float64).ravel()
+                return scene.plane.to_image(np.c_[us, np.full(len(us), v0 + LABEL_ROW * clear)])[:, 0] / W
 
-            is_gap = np.array([inside(x, gaps) for x in cols[r]])
-            is_box = np.array([inside(x, runs) for x in cols[r]]) & ~is_gap
+            def inside(xs, spans):
+                ends_x = to_x(np.ravel(spans)).reshape(-1, 2)
+                lo, hi = ends_x.min(1), ends_x.max(1)
+                return ((xs[:, None] >= lo) & (xs[:, None] <= hi)).any(1)
+
+            is_gap = inside(cols[r], gaps)
+            is_box = inside(cols[r], runs) & ~is_gap
             add("in the image", gap[r], is_gap, is_box)
             add("darkness cue, model's positions", dark[r], is_gap, is_box)
-            ends.append((abs(cols[r][0] - to_x(0.0)), abs(cols[r][-1] - to_x(scene.width))))
+            left, right = to_x([0.0, scene.width])
+            ends.append((abs(cols[r][0] - left), abs(cols[r][-1] - right)))
             # the cue at the labelled geometry, every 1 cm along the shelf
-            if photo is None:
-                img = read_image(args.project / meta["source_image"])
-                photo = (0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]) / 255.0
-                if photo.shape[:2] != (H, W):      # a squeezed photo: the annotation's pixels are as shown
-                    import cv2
-
-                    photo = cv2.resize(photo.astype(np.float32), (W, H), interpolation=cv2.INTER_AREA)
+            if photo is None:      # as the labeller saw it: a squeezed photo at its aspect as taken
+                rgb = G.restore_aspect(project.read_image(meta["source_image"]), pixel_aspect(project.settings))
+                if rgb.shape[:2] != (H, W):
+                    raise SystemExit(f"{project.annotation_path(meta['source_image'])}: labelled on a "
+                                     f"{W}x{H} photo, the photo is {rgb.shape[1]}x{rgb.shape[0]}")
+                photo = luminance(rgb) / 255.0
             us = np.arange(runs[0][0], runs[-1][1], 0.01)
-            val = np.full(len(us), np.nan)
-            for k, u in enumerate(us):
-                p = scene.plane.to_image([[u, v0 + CUE_ROWS[0] * clear], [u, v0 + CUE_ROWS[1] * clear]])
-                xs, ys = np.linspace(p[0, 0], p[1, 0], 24), np.linspace(p[0, 1], p[1, 1], 24)
-                ok = (xs >= 0) & (xs < W) & (ys >= 0) & (ys < H)
-                if ok.sum() >= 4:
-                    val[k] = photo[ys[ok].astype(int), xs[ok].astype(int)].mean()
+            p0, p1 = (scene.plane.to_image(np.c_[us, np.full(len(us), v0 + f * clear)]) for f in CUE_ROWS)
+            xs, ys = np.linspace(p0[:, 0], p1[:, 0], 24, axis=1), np.linspace(p0[:, 1], p1[:, 1], 24, axis=1)
+            ok = (xs >= 0) & (xs < W) & (ys >= 0) & (ys < H)                        # (len(us), 24)
+            px = photo[np.where(ok, ys, 0).astype(int), np.where(ok, xs, 0).astype(int)]
+            n_ok = ok.sum(1)
+            val = np.where(n_ok >= 4, (px * ok).sum(1) / np.maximum(n_ok, 1), np.nan)
             u_gap = np.array([any(a < u < b for a, b in gaps) for u in us])
             u_box = np.array([any(a <= u <= b for a, b in runs) for u in us]) & ~u_gap
             if np.isfinite(val).any():

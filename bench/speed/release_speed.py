@@ -19,6 +19,7 @@ table gives median (min) wall ms and median process CPU ms. Prints numbers only.
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 from dataclasses import replace
 
@@ -80,9 +81,10 @@ def main(argv=None) -> int:
         flipped.set_flip_average(True)
         models["shipped, flip-averaged"] = flipped
     if not args.unfolded:   # (onnxruntime folds the norms of a graph itself either way)
+        as_trained = copy.deepcopy(shipped)
         for m in models.values():
             fold_batchnorm(m)
-        models["shipped, batch norms as trained"] = load_model(resolve_weights(args.weights))[0].eval()
+        models["shipped, batch norms as trained"] = as_trained
     ort_runners = {}
     if args.onnx:   # what `racklay predict --backend onnx` runs
         from racklay.onnx import export_onnx_bytes, onnx_session
