@@ -168,6 +168,7 @@ def _sample_meta(project: Project, name: str, ann: dict, scene: G.Scene) -> dict
             "status": ann["status"], "rack": {k: ann["rack"][k] for k in ("width", "height", "depth", "preset")},
             "shelf_heights_m": [round(v, 4) for v in scene.shelf_v],
             "clear_heights_m": [round(v, 4) for v in scene.clear],
+            "level_spans": [[round(x, 4) for x in span] for span in scene.level_spans(ann["image_size"][0])],
             "boxes": [{"id": b.id, "shelf": b.shelf, "x0": round(L.u_to_x(b.u0, scene.width), 4),
                        "x1": round(L.u_to_x(b.u1, scene.width), 4), "z0": round(b.z0, 4),
                        "height": round(b.v1 - b.v0, 4), "depth": round(b.depth, 4),

@@ -118,6 +118,12 @@ class MetricBox:
     z0: float = 0.0  # height of its bottom above the shelf's board
 
 
+#: the height, as a fraction of a level's clear height above its board, at which `Scene.level_spans`
+#: reads the rack's ends: low in the level, where its loads stand (the rack's front face is a
+#: trapezoid in a photo taken from below or above, so the span depends on the height)
+SPAN_AT_CLEAR_HEIGHT = 0.3
+
+
 @dataclass
 class Scene:
     plane: RackPlane
@@ -144,6 +150,18 @@ class Scene:
             y0 = L.offset_to_y(b.front_offset, self.depth)
             out.append(L.Box(cx=L.u_to_x((b.u0 + b.u1) / 2, self.width), cy=y0 + b.depth / 2,
                              sx=b.u1 - b.u0, sy=b.depth, sz=b.v1 - b.v0, z0=b.z0))
+        return out
+
+    def level_spans(self, image_width: float, at: float = SPAN_AT_CLEAR_HEIGHT) -> list[list[float]]:
+        """Where each level (bottom-up) lies across the photo: the image x of the rack's left and
+        right ends at `at` of the level's clear height above its board, in image widths (0 the
+        left edge, 1 the right; outside [0, 1] where the rack leaves the frame), left end first.
+        A struct model reads each shelf from such a span (`racklay.structure.placement_loss`)."""
+        out = []
+        for v, c in zip(self.shelf_v, self.clear):
+            h = v + at * c
+            xs = self.plane.to_image([[0.0, h], [self.width, h]])[:, 0] / float(image_width)
+            out.append([float(xs.min()), float(xs.max())])
         return out
 
     def layouts(self, R: int, grid: L.Grid) -> tuple[np.ndarray, np.ndarray]:

@@ -14,6 +14,8 @@ Every top- and front-view layout channel is handed to albumentations as a mask, 
 albumentations applies to the image is the flip applied to the layouts: there is no hand-written
 flip. The photometric transforms and the letterbox are image-only, so layouts never change
 value: the layouts are metric, shelf-centred grids, and padding the photo changes no shelf.
+Each level's span across the image (`spans`, image widths; placement supervision) is moved with
+the image: mirrored by the flip (x -> 1 - x, ends swapped) and squeezed by the letterbox.
 
 Layouts are D×D metric grids and photos are not, so `Compose(..., is_check_shapes=False)`:
 albumentations 2.0.8 flips each mask by its own width (x -> -x in the shelf frame, exactly
@@ -96,7 +98,11 @@ def _camera_transforms():
 
 
 class Augment:
-    """Callable `(image uint8 HxWx3, {view: (R, S, S) uint8}) -> (image, layouts)`."""
+    """Callable `(image uint8 HxWx3, {view: (R, S, S) uint8}) -> (image, layouts)`, or with
+    `spans=` (R, 2) level spans in image widths -> `(image, layouts, spans)`."""
+
+    #: moves level spans with the image (`racklay.torchdata.RackLayDataset(spans=True)`)
+    maps_spans = True
 
     def __init__(self, seed: int | None = 0, config: AugmentConfig | None = None):
         import albumentations as A
@@ -136,7 +142,7 @@ class Augment:
         self.compose.set_random_seed(s)
         self._rng = np.random.default_rng(s)
 
-    def __call__(self, image: np.ndarray, layouts: dict[str, np.ndarray]):
+    def __call__(self, image: np.ndarray, layouts: dict[str, np.ndarray], spans: np.ndarray | None = None):
         self._reseed_in_worker()
         image = np.ascontiguousarray(image)
         if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
@@ -157,12 +163,19 @@ class Augment:
             res[v] = np.stack([np.asarray(m) for m in got[i:i + R]]).astype(stacks[v].dtype, copy=False) if R else stacks[v]
             i += R
         img = out["image"]
+        if spans is not None:
+            spans = np.asarray(spans, np.float32)
+            if any(name == "HorizontalFlip" for name, _ in self.last_applied):
+                spans = 1.0 - spans[:, ::-1]
         c = self.config
         if c.letterbox_p > 0 and self._rng.random() < c.letterbox_p:
-            from .torchdata import squeeze_letterbox
+            from .torchdata import padded_columns, squeeze_letterbox, squeeze_width
 
-            img = squeeze_letterbox(img, float(self._rng.uniform(c.letterbox_min, 1.0)))
-        return img, res
+            keep = float(self._rng.uniform(c.letterbox_min, 1.0))
+            if spans is not None:
+                spans = padded_columns(spans, squeeze_width(img.shape[1], keep), img.shape[1])
+            img = squeeze_letterbox(img, keep)
+        return (img, res) if spans is None else (img, res, np.ascontiguousarray(spans))
 
     def describe(self) -> dict:
         name = "strong (paper + camera set" + (" + letterbox" if self.config.letterbox_p else "") + ")" \

@@ -357,6 +357,11 @@ class TrainConfig:
     gap_loss_weight: float = option(
         1.0, "--decoder struct with --struct-gap: weight of the gap output's own loss (is each position a gap "
              "between two boxes), relative to the rest of the structure loss (default {default})", lo=0, keep=True)
+    placement_weight: float = option(
+        0.0, "--decoder struct: weight of an L1 loss on where each shelf is read in the image (its centre and "
+             "log half-width) against the labelled rack's span at that level, on training samples whose meta has "
+             "level_spans (photos exported by annotate); renders without spans are not supervised (default "
+             "{default}: off)", lo=0, keep=True)
     disc_weight: float = option(0.01, "adversarial weight lambda (default {default})", lo=0, keep=True)
     disc_start: int = option(5, "first epoch (0-based) with adversarial terms (default {default})", lo=0, keep=True)
     disc_lr: float = option(1e-4, "discriminator learning rate (default {default})", gt=0, keep=True)
@@ -400,6 +405,8 @@ class TrainConfig:
         if self.schedule == "time" and self.max_minutes is None:
             raise ValueError("schedule time decays over the time budget: give max_minutes too")
         self.model_config()  # validates views, sizes, R and the struct options together
+        if self.placement_weight and self.decoder != "struct":
+            raise ValueError(f"placement_weight needs the struct decoder, got {self.decoder!r}")
         if self.name is not None and (not self.name.strip() or self.name in (".", "..")
                                       or any(c in self.name for c in "/\\")):
             raise ValueError(f"name must be a folder name inside --out (no '/', '\\', '.' or '..'), got {self.name!r}")

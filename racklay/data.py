@@ -6,7 +6,9 @@ Layout of a dataset root (exactly what the authors' downloads look like)::
       Images/000000.png              RGB image (.png; .jpg/.jpeg also read)
       topLayouts/top000000.npy       (R, D, D) uint8, values 0 / 115 / 255
       frontLayouts/front000000.npy   (R, D, D) uint8, values 0 / 115 / 255
-      meta/000000.json               optional per-image metadata (WareSynth extras)
+      meta/000000.json               optional per-image metadata (WareSynth extras; photos
+                                     exported by annotate: the source photo, the labelled
+                                     geometry and `level_spans`, see `level_spans`)
       splits/train.txt val.txt test.txt   one entry per line
 
 Either layout folder may be absent (a view-specific dataset). A split entry is an image path
@@ -387,6 +389,10 @@ class RackLayRoot:
                  if p.is_file()]
         return common_layout_shape(paths)
 
+    def read_level_spans(self, sid: str, R: int) -> np.ndarray:
+        """Sample `sid`'s labelled level spans (`level_spans`); all NaN without any."""
+        return level_spans(self.read_meta(sid), R, str(self.meta_path(sid)))
+
     def read_meta(self, sid: str) -> dict | None:
         p = self.meta_path(sid)
         if not p.exists():
@@ -419,6 +425,34 @@ class RackLayRoot:
         check_split_name(name)
         lines = [f"{IMAGES_DIR}/{sid}.png" for sid in ids]
         return atomic_write_text(self.split_path(name), "\n".join(lines) + ("\n" if lines else ""))
+
+
+#: the meta key of each level's span across the image (`level_spans`)
+LEVEL_SPANS_KEY = "level_spans"
+
+
+def level_spans(meta: dict | None, R: int, source: str = "meta") -> np.ndarray:
+    """A sample's labelled span of each of its first R levels across the image, (R, 2) float32:
+    the image x of the rack's left and right ends (low in each level), in image widths (0 the left
+    edge, 1 the right; beyond [0, 1] where the rack leaves the frame), NaN for a level without one.
+    Read from meta["level_spans"], a list of [left, right] per level bottom-up (`annotate export`
+    writes it from the labelled rack); a malformed entry is a DataError naming `source`."""
+    out = np.full((R, 2), np.nan, np.float32)
+    raw = (meta or {}).get(LEVEL_SPANS_KEY)
+    if raw is None:
+        return out
+    if not isinstance(raw, list):
+        raise DataError(f"{source}: {LEVEL_SPANS_KEY} must be a list of [left, right] per level, got {type(raw).__name__}")
+    for r, span in enumerate(raw[:R]):
+        if span is None:
+            continue
+        ok = (isinstance(span, list) and len(span) == 2
+              and all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in span))
+        if not ok or not span[0] < span[1]:
+            raise DataError(f"{source}: {LEVEL_SPANS_KEY}[{r}] must be [left, right] image widths with left < right, "
+                            f"got {span!r}")
+        out[r] = span
+    return out
 
 
 def check_split_name(name: str) -> str:

@@ -56,7 +56,15 @@ import torch.nn.functional as F
 
 from .config import DECODERS, ENCODERS, ModelConfig
 from .layout import NUM_CLASSES
-from .structure import DEFAULT_T, DEFAULT_TAU_PX, HARD_TAU_PX, rasterize, rescale_structure
+from .structure import (
+    DEFAULT_T,
+    DEFAULT_TAU_PX,
+    HARD_TAU_PX,
+    MAX_HALF_WIDTH,
+    MIN_HALF_WIDTH,
+    rasterize,
+    rescale_structure,
+)
 
 #: a checkpoint with decoder K can initialise a model with decoder V when (K, V) is listed: V is K
 #: plus branches whose last layer starts at zero, so the grown model computes what K computed
@@ -488,9 +496,10 @@ class StructDecoder(nn.Module):
             up = F.interpolate(cols.reshape(N * R, C, W8), size=W, mode="linear", align_corners=False)
             cols = (up + self.detail(torch.cat([d, up], 1))).reshape(N, R, C, W)
         head = self.shelf_head(g).float()
-        pres, log_len, log_ext, _, _, log_win = head.unbind(-1)
+        pres, log_len, log_ext, centre, log_half, log_win = head.unbind(-1)
+        half = torch.exp(log_half).clamp(MIN_HALF_WIDTH, MAX_HALF_WIDTH)
         t = (torch.arange(T, device=x.device, dtype=torch.float32) + 0.5) / T    # positions along the shelf
-        mu = position_columns(head, T)                                           # (N, R, T) image widths
+        mu = position_columns(centre, half, T)                                   # (N, R, T) image widths
         u = (torch.arange(W, device=x.device, dtype=torch.float32) + 0.5) / W
         win = torch.exp(log_win).clamp(0.25, 8.0).unsqueeze(-1).unsqueeze(-1) / W8   # in 1/8 columns
         w = (-0.5 * ((u - mu.unsqueeze(-1)) / win) ** 2).softmax(-1)             # (N, R, T, W)
@@ -502,7 +511,7 @@ class StructDecoder(nn.Module):
         h = self.pos_seq(seq.reshape(N * R, -1, T))
         out = self.pos_head(h).float().reshape(N, R, -1, T)
         st = {"presence": pres, "length": torch.exp(log_len.clamp(-4, 3)), "extent": torch.exp(log_ext.clamp(-4, 3)),
-              "box": out[:, :, 0]}
+              "centre": centre, "half": half, "box": out[:, :, 0]}
         if self.gap:
             st["gap"] = self.gap_head(h).float().reshape(N, R, T)
             st["box_raw"] = st["box"]
@@ -543,14 +552,14 @@ class StructDecoder(nn.Module):
             self.gap_head.bias.fill_(-6.0)
 
 
-def position_columns(shelf_head_out: torch.Tensor, T: int) -> torch.Tensor:
-    """Where along the image a struct decoder reads each shelf's T positions: (..., 6) outputs of
-    its `shelf_head` (presence, log length, log extent, centre, log half-width, log window) ->
-    (..., T) image columns in image widths (0 = the left edge, 1 = the right; a shelf may reach
-    outside the frame): the shelf's centre in the image plus (2t - 1) times its half-width."""
-    t = (torch.arange(T, device=shelf_head_out.device, dtype=torch.float32) + 0.5) / T
-    centre, half = shelf_head_out[..., 3].float(), torch.exp(shelf_head_out[..., 4].float()).clamp(0.02, 4.0)
-    return (0.5 + centre).unsqueeze(-1) + (2 * t - 1) * half.unsqueeze(-1)
+def position_columns(centre: torch.Tensor, half: torch.Tensor, T: int) -> torch.Tensor:
+    """Where along the image a struct decoder reads each shelf's T positions: the shelf's
+    placement in the image (its structure's "centre", image widths from the image's centre, and
+    "half", its half-width in image widths; (...)) -> (..., T) image columns in image widths (0 =
+    the left edge, 1 = the right; a shelf may reach outside the frame): the shelf's centre plus
+    (2t - 1) times its half-width at each position's t."""
+    t = (torch.arange(T, device=centre.device, dtype=torch.float32) + 0.5) / T
+    return (0.5 + centre.float()).unsqueeze(-1) + (2 * t - 1) * half.float().unsqueeze(-1)
 
 
 def _conv1d_bn_relu(cin: int, cout: int, k: int) -> nn.Sequential:
@@ -659,20 +668,24 @@ class RackLayNet(nn.Module):
 def flip_average_structure(st: dict, n: int, cut_gaps: bool = True) -> dict:
     """The structures of a batch of 2n images whose last n are the first n mirrored left-right
     (`RackLayNet.set_flip_average`) -> the n averaged structures. A mirror image shows the shelf
-    from x -> -x, so its per-position fields (N, R, T) are reversed along the shelf; then presence,
-    box and gap logits and the shape fractions are averaged, length and extent geometrically, and
-    the gap cut is redone on the averaged fields."""
+    from x -> -x, so its per-position fields (N, R, T) are reversed along the shelf and its placement
+    centre is negated (the image's x -> 1 - x); then presence, box and gap logits, the shape
+    fractions and the centre are averaged, length, extent and half-width geometrically, and the
+    gap cut is redone on the averaged fields."""
     a = {k: t[:n] for k, t in st.items()}
     b = {k: t[n:].flip(-1) if t.dim() == 3 else t[n:] for k, t in st.items()}   # (N, R, T): along the shelf
+    if "centre" in b:
+        b["centre"] = -b["centre"]                                               # placed from x -> 1 - x
     return average_structures(a, b, tuple(st), cut_gaps)
 
 
 def average_structures(a: dict, b: dict, keys, cut_gaps: bool = True) -> dict:
-    """The mean of two estimates of the same structure fields `keys`: lengths and extents
-    geometrically, everything else (presence, box and gap logits, shape fractions) arithmetically;
+    """The mean of two estimates of the same structure fields `keys`: lengths, extents and
+    half-widths geometrically, everything else (presence, box and gap logits, shape fractions,
+    placement centre) arithmetically;
     with a gap output the box logit is the cut of the averaged raw box and gap logits
     (`cut_at_gaps`), not the average of two cuts."""
-    out = {k: torch.exp((a[k].log() + b[k].log()) / 2) if k in ("length", "extent") else (a[k] + b[k]) / 2
+    out = {k: torch.exp((a[k].log() + b[k].log()) / 2) if k in ("length", "extent", "half") else (a[k] + b[k]) / 2
            for k in keys}
     if "gap" in out:
         out["box"] = cut_at_gaps(out["box_raw"], out["gap"]) if cut_gaps else out["box_raw"]

@@ -13,6 +13,11 @@ Per shelf channel and view (the layout convention of racklay.layout; grid of S p
   `box`: a box occupies that position; front view: `height`, the box top above the board as a
   fraction of E (boxes stand on the board); top view: `near`, `far`, the box's depth interval as
   fractions of E measured from the board's front edge.
+- the struct decoder's structures also carry the shelf's placement in the image, where it reads
+  the shelf: `centre` (image widths from the image's centre) and `half` (half-width, image
+  widths), one per shelf per view. The truth's is the labelled rack's span at each level
+  (`racklay.data.level_spans`: photos exported by annotate have it), supervised by
+  `structure_loss`'s `placement_weight`.
 
 Shape (the per-position fractions) does not depend on the shelf's metric size; scale is L and E.
 A known dimension (a shelf length) therefore fixes the scale without touching the shape.
@@ -190,8 +195,28 @@ def gap_positions(box: torch.Tensor) -> torch.Tensor:
 GAP_POS_WEIGHT = 5.0
 
 
+#: the half-width a struct decoder may give a shelf in the image, in image widths (a shelf across
+#: 4 % of the image to one 8 times as wide as the image)
+MIN_HALF_WIDTH, MAX_HALF_WIDTH = 0.02, 4.0
+
+
+def placement_loss(st: dict, spans: torch.Tensor, present: torch.Tensor) -> torch.Tensor | None:
+    """L1 of a struct decoder's placement (`centre`, log `half`) against the labelled span of each
+    shelf in the image (`spans` (N, R, 2): left and right end in image widths, NaN where no span is
+    known), over the shelves `present` (N, R) that have a span; None when none has."""
+    spans = spans.to(st["centre"].device, torch.float32)
+    ok = torch.isfinite(spans).all(-1) & present
+    if not ok.any():
+        return None
+    centre = spans.mean(-1) - 0.5
+    half = ((spans[..., 1] - spans[..., 0]) / 2).clamp(MIN_HALF_WIDTH, MAX_HALF_WIDTH)
+    return ((st["centre"].float() - centre).abs()[ok].mean()
+            + (st["half"].float().log() - half.log()).abs()[ok].mean())
+
+
 def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, gap_weight: float = 1.0,
-                   gap_loss_weight: float = 1.0) -> torch.Tensor:
+                   gap_loss_weight: float = 1.0, spans: torch.Tensor | None = None,
+                   placement_weight: float = 0.0) -> torch.Tensor:
     """Direct supervision of a predicted structure with the truth's: BCE on shelf presence; for
     shelves that exist, L1 of log length and log extent (scale) and, per position, BCE on box and
     L1 of the box fractions where a box is (shape, sampled at the true length). `gap_weight`
@@ -199,13 +224,22 @@ def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, ga
     positions of a 2.3 m shelf, so without it bridging two boxes costs the loss next to nothing.
     A structure with a gap output (`StructDecoder(gap=True)`: "gap" and "box_raw") has its box BCE
     on the box logit before the cut and a BCE of its own on the gap logit at `gap_positions`
-    (positives weighted `GAP_POS_WEIGHT`), weighted by `gap_loss_weight`."""
+    (positives weighted `GAP_POS_WEIGHT`), weighted by `gap_loss_weight`. With `spans` (each
+    shelf's labelled span in the image, see `placement_loss`) and `placement_weight` > 0 the
+    shelf's placement in the image is supervised too (a shelf read from the wrong image columns
+    sees the wrong boxes, however well it reads them)."""
     T = st["box"].shape[-1]
     tr = truth_structure(view, layouts, extent, T)
     pres = tr["presence"]
     loss = F.binary_cross_entropy_with_logits(st["presence"].float(), pres.float())
     if not pres.any():
         return loss
+    if placement_weight and spans is not None:
+        if "centre" not in st:
+            raise ValueError("placement supervision needs a structure with a placement (the struct decoder's)")
+        pl = placement_loss(st, spans, pres)
+        if pl is not None:
+            loss = loss + placement_weight * pl
     res = extent / layouts.shape[-1]
     for k in ("length", "extent"):
         loss = loss + (st[k].float()[pres].clamp_min(res).log() - tr[k][pres].clamp_min(res).log()).abs().mean()
@@ -234,4 +268,4 @@ def rescale_structure(st: dict, length: float | torch.Tensor) -> dict:
 
 
 __all__ = ["DEFAULT_T", "DEFAULT_TAU_PX", "HARD_TAU_PX", "NUM_CLASSES", "pixel_centres", "sample_positions", "rasterize",
-           "truth_structure", "gap_positions", "GAP_POS_WEIGHT", "structure_loss", "rescale_structure"]
+           "truth_structure", "gap_positions", "GAP_POS_WEIGHT", "MIN_HALF_WIDTH", "MAX_HALF_WIDTH", "placement_loss", "structure_loss", "rescale_structure"]

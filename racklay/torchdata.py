@@ -2,10 +2,16 @@
 
 Each item is a dict: `image` float32 (3, H, W), ImageNet-normalised; `top` and/or `front`
 uint8 (R, S, S) class ids at the model's layout size S (nearest-neighbour resize at pixel
-centres, see `racklay.layout.resize_layouts`); `id` the sample id.
+centres, see `racklay.layout.resize_layouts`); `id` the sample id; with `spans=True`, `spans`
+float32 (R, 2): each level's labelled span across the input image in image widths, NaN where
+the sample has none (`racklay.data.level_spans`), moved with the image by letterboxing and by
+the transform.
 
 `transform(image_uint8_hwc, layouts: dict[view -> (R, S, S) uint8]) -> (image, layouts)` runs
 on the uint8 arrays before normalisation (transfer's albumentations pipeline plugs in here).
+With `spans=True` it is called as `transform(image, layouts, spans=spans)` and returns
+`(image, layouts, spans)`; a transform that can move spans says so with `maps_spans = True`
+(`racklay.augment.Augment` does).
 With `cache=True` decoded, resized uint8 arrays are kept in memory: on 2 CPU cores decoding
 PNGs every epoch costs real time.
 """
@@ -57,26 +63,43 @@ def _pad_to(image: np.ndarray, h: int, w: int) -> np.ndarray:
     return out
 
 
+def letterbox_fit(ih: int, iw: int, size, letterbox: bool = True) -> tuple[int, int]:
+    """The (height, width) a photo of (ih, iw) pixels is resized to inside the model input `size`:
+    the input itself (stretched) without `letterbox` or at about the input's aspect, else the
+    largest size of the photo's aspect that fits (the rest is padding, centred)."""
+    h, w = _hw(size)
+    if not letterbox or abs(math.log((iw / ih) / (w / h))) <= LETTERBOX_TOLERANCE:   # about the same aspect
+        return h, w
+    scale = min(h / ih, w / iw)
+    return min(h, max(1, round(ih * scale))), min(w, max(1, round(iw * scale)))
+
+
+def padded_columns(x: np.ndarray, inner_w: int, w: int) -> np.ndarray:
+    """Image x in widths of an image `inner_w` pixels wide -> in widths of the `w`-pixel canvas
+    `_pad_to` centres it on."""
+    return ((w - inner_w) // 2 + np.asarray(x, np.float32) * inner_w) / w
+
+
 def prepare_image(image: np.ndarray, size, letterbox: bool = False) -> np.ndarray:
     """Resize an RGB uint8 image to the model input size (H, W) with area/linear filtering.
     With `letterbox`, a photo of another aspect keeps its aspect and is padded (PAD_RGB) to the
     input instead of being stretched, as models trained with letterbox augmentation expect."""
     h, w = _hw(size)
-    if not letterbox:
-        return _resize(image, h, w)
-    ih, iw = image.shape[:2]
-    if abs(math.log((iw / ih) / (w / h))) <= LETTERBOX_TOLERANCE:   # about the same aspect: resize
-        return _resize(image, h, w)
-    scale = min(h / ih, w / iw)
-    nh, nw = min(h, max(1, round(ih * scale))), min(w, max(1, round(iw * scale)))
-    return _pad_to(_resize(image, nh, nw), h, w)
+    nh, nw = letterbox_fit(*image.shape[:2], (h, w), letterbox)
+    img = _resize(image, nh, nw)
+    return img if (nh, nw) == (h, w) else _pad_to(img, h, w)
+
+
+def squeeze_width(w: int, keep: float) -> int:
+    """The width `squeeze_letterbox` squeezes a `w`-pixel image to."""
+    return max(1, min(w, round(w * keep)))
 
 
 def squeeze_letterbox(image: np.ndarray, keep: float) -> np.ndarray:
     """Training-time letterbox: squeeze an input-size image to `keep` of its width and pad it
     back (what `prepare_image(letterbox=True)` does to a narrower photo)."""
     h, w = image.shape[:2]
-    nw = max(1, min(w, round(w * keep)))
+    nw = squeeze_width(w, keep)
     return image if nw == w else _pad_to(_resize(image, h, nw), h, w)
 
 
@@ -104,7 +127,10 @@ class RackLayDataset(Dataset):
                  layout_size: int = TrainConfig.layout_size,
                  views: Sequence[str] = ("top", "front"), R: int | None = None,
                  transform: Callable | None = None, cache: bool = False, ids: Sequence[str] | None = None,
-                 letterbox: bool = False):
+                 letterbox: bool = False, spans: bool = False):
+        if spans and transform is not None and not getattr(transform, "maps_spans", False):
+            raise ValueError(f"{type(transform).__name__}: this transform cannot move the level spans with the image "
+                             "(placement supervision needs racklay.augment.Augment)")
         self.root = RackLayRoot(root)
         self.ids = list(ids) if ids is not None else self.root.resolve(split)
         present = self.root.views()
@@ -119,6 +145,7 @@ class RackLayDataset(Dataset):
         self.transform = transform
         self.cache = cache
         self.letterbox = letterbox
+        self.spans = spans
         self._cache: dict[int, tuple] = {}
 
     def __len__(self) -> int:
@@ -133,20 +160,38 @@ class RackLayDataset(Dataset):
         return {v: L.resize_layouts(self.root.read_layouts(v, self.ids[i], R=self.R), self.layout_size)
                 for v in self.views}
 
-    def load_raw(self, i: int) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """uint8 image at the input size and class-id layouts at the layout size."""
+    def prepared_spans(self, i: int, image_hw: tuple[int, int], R: int) -> np.ndarray:
+        """Sample i's level spans (R, 2) on the input image, for a photo of `image_hw` pixels: the
+        labelled spans moved by the letterbox padding (`letterbox_fit`)."""
+        sp = self.root.read_level_spans(self.ids[i], R)
+        w = self.image_size[1]
+        nw = letterbox_fit(*image_hw, self.image_size, self.letterbox)[1]
+        return sp if nw == w else padded_columns(sp, nw, w)
+
+    def load_raw(self, i: int) -> tuple:
+        """uint8 image at the input size and class-id layouts at the layout size (and, with
+        `spans`, the level spans on that image)."""
         if self.cache and i in self._cache:
             return self._cache[i]
-        img, lays = self.prepared_image(i), self.prepared_layouts(i)
+        raw = self.root.read_image(self.ids[i])
+        img, lays = prepare_image(raw, self.image_size, self.letterbox), self.prepared_layouts(i)
+        out = (img, lays)
+        if self.spans:
+            out += (self.prepared_spans(i, raw.shape[:2], next(iter(lays.values())).shape[0]),)
         if self.cache:
-            self._cache[i] = (img, lays)
-        return img, lays
+            self._cache[i] = out
+        return out
 
     def __getitem__(self, i: int) -> dict:
-        img, lays = self.load_raw(i)
+        img, lays, *spans = self.load_raw(i)
         if self.transform is not None:
-            img, lays = self.transform(img, dict(lays))
+            if self.spans:
+                img, lays, spans[0] = self.transform(img, dict(lays), spans=spans[0])
+            else:
+                img, lays = self.transform(img, dict(lays))
         item = {"image": image_to_tensor(img), "id": self.ids[i]}
+        if self.spans:
+            item["spans"] = torch.from_numpy(np.ascontiguousarray(spans[0], dtype=np.float32))
         for v, arr in lays.items():
             # uint8 class ids (the model's loss takes them as int64 on its device): 8x less to pass
             # from loader workers to the training process and to a GPU than int64
@@ -167,7 +212,7 @@ class ReplayMix(Dataset):
         if len(pool) == 0:
             raise ValueError(f"{pool.root.root}: the replay set is empty")
         self.real, self.pool, self.seed = real, pool, int(seed)
-        self.pool.transform = real.transform
+        self.pool.transform, self.pool.spans = real.transform, real.spans
         self.n_real = len(real)
         self.n_replay = min(len(pool), max(1, round(ratio * self.n_real)))
         self._perm: tuple[int, np.ndarray] | None = None

@@ -421,6 +421,21 @@ def check_run_data(cfg: TrainConfig, run_dir: Path, train_ids, val_ids) -> dict:
     return passed
 
 
+def check_level_spans(ds) -> None:
+    """Placement supervision needs labelled level spans (`racklay.data.level_spans`): every
+    sample's are read (a malformed one names its file) and a training set without any fails here,
+    before the first step; how many samples have them is said."""
+    import numpy as np
+
+    from .data import DataError
+
+    n = sum(bool(np.isfinite(ds.root.read_level_spans(sid, ds.R)).any()) for sid in ds.ids)
+    if not n:
+        raise DataError(f"{ds.root.root}: --placement-weight needs level_spans in the training samples' meta "
+                        f"(photos exported by annotate export have them) and none of {len(ds.ids)} has")
+    print(f"placement supervision: {n} of {len(ds.ids)} training samples have labelled level spans", flush=True)
+
+
 def make_loaders(cfg: TrainConfig, transform, dist: Dist, run_dir: Path):
     """(training dataset, its loader, the loader's batch sampler, validation loader (rank 0 only), the
     record of checked files), after `check_run_data`."""
@@ -433,7 +448,9 @@ def make_loaders(cfg: TrainConfig, transform, dist: Dist, run_dir: Path):
         from .augment import make_augment
         transform = make_augment(cfg.augment, seed=cfg.seed, letterbox=cfg.letterbox)
     kw["letterbox"] = cfg.letterbox
-    train_ds = RackLayDataset(cfg.data, ids=train_ids, transform=transform, **kw)
+    train_ds = RackLayDataset(cfg.data, ids=train_ids, transform=transform, spans=cfg.placement_weight > 0, **kw)
+    if cfg.placement_weight:
+        check_level_spans(train_ds)
     if cfg.replay:
         pool = RackLayDataset(cfg.replay, ids=replay_ids(cfg), **{**kw, "cache": False})
         train_ds = ReplayMix(train_ds, pool, cfg.replay_ratio, seed=cfg.seed)
@@ -508,8 +525,9 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
     sl = {}
     if structured and cfg.struct_weight:
         extent = run.mcfg.extent
-        sl["struct"] = sum(structure_loss(v, structs[v], targets[v], extent, cfg.gap_weight, cfg.gap_loss_weight)
-                            for v in cfg.views)
+        spans = batch.get("spans") if cfg.placement_weight else None
+        sl["struct"] = sum(structure_loss(v, structs[v], targets[v], extent, cfg.gap_weight, cfg.gap_loss_weight,
+                                          spans, cfg.placement_weight) for v in cfg.views)
         loss = loss + cfg.label_weight * cfg.struct_weight * sl["struct"]
     kd = {}
     if run.teacher is not None:

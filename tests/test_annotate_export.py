@@ -49,6 +49,11 @@ def test_export_check_data_clean(tmp_path, capsys):
             assert iou(got[i] == L.BOX, t[i] == L.BOX) >= 0.9
     meta = ds.read_meta("000001")
     assert meta["source_image"] == "p1.png" and len(meta["shelf_heights_m"]) == 3
+    # each level's span across the photo, for placement supervision: the frontal camera's view of
+    # the 2 m rack at 3.2 m (f = 520 px on a 640-px photo) spans 325 px, centred
+    spans = ds.read_level_spans("000001", 4)
+    np.testing.assert_allclose(spans[:3], [[0.5 - 325 / 1280, 0.5 + 325 / 1280]] * 3, atol=1e-3)
+    assert np.isnan(spans[3]).all()
     # same seed, same split; a non-empty output folder is refused
     rc = annotate_main(["export", str(proj.root), "--out", str(out)])
     assert rc == 2 and "not empty" in capsys.readouterr().err

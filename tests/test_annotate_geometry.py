@@ -125,6 +125,20 @@ def test_back_projection_round_trip():
     np.testing.assert_allclose(line, cam.project([[0, 0, BOARDS[1]], [W, 0, BOARDS[1]]]), atol=1e-6)
 
 
+@pytest.mark.parametrize("cam", [Camera([1.0, -3.2, 1.0], [1.0, 0, 1.0]), Camera([3.4, -2.0, 0.4], [1.0, 0.0, 1.1])],
+                         ids=["frontal", "oblique-right-low"])
+def test_level_spans_are_the_racks_ends_in_the_photo(cam):
+    """Each level's span (what placement supervision trains on) is where the camera sees the
+    rack's left and right ends at 30 % of the level's clear height, in image widths; from below and
+    to the side the rack is a trapezoid, so the levels' spans differ."""
+    scene = G.build_scene(clicks(cam), SETTINGS)
+    spans = np.array(scene.level_spans(640))
+    clear = [BOARDS[1] - BOARDS[0], BOARDS[2] - BOARDS[1], H - BOARDS[2]]
+    want = [np.sort(cam.project([[0, 0, b + 0.3 * c], [W, 0, b + 0.3 * c]])[:, 0]) / 640 for b, c in zip(BOARDS, clear)]
+    np.testing.assert_allclose(spans, want, atol=1e-6)
+    assert (spans[:, 0] < spans[:, 1]).all()
+
+
 def test_front_components_to_proposals_round_trip():
     """Predicted layouts = the true ones -> proposals whose rectangles match the true boxes."""
     cam = Camera([1.0, -3.2, 1.0], [1.0, 0, 1.0])

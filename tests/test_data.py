@@ -262,3 +262,22 @@ def test_npy_bytes_are_what_np_save_writes(tmp_path):
         assert np.array_equal(np.load(p), a)
     with pytest.raises(ValueError):
         npy_bytes(np.array([{"x": 1}], dtype=object))
+
+
+def test_level_spans_are_read_strictly_from_the_meta(tmp_path):
+    """A sample's level spans (placement supervision): the first R levels' [left, right] from
+    meta/level_spans, NaN for a level without one or a sample without meta; a malformed entry is
+    one error naming the meta file and the entry, never a silently skipped level."""
+    ds = RackLayRoot(tmp_path / "ds")
+    ds.write_sample("a", meta={"level_spans": [[0.1, 0.9], None, [-0.2, 1.3], [0.3, 0.7], [0.0, 1.0]]})
+    sp = ds.read_level_spans("a", 4)
+    assert sp.shape == (4, 2) and sp.dtype == np.float32
+    np.testing.assert_allclose(sp[[0, 2, 3]], [[0.1, 0.9], [-0.2, 1.3], [0.3, 0.7]])
+    assert np.isnan(sp[1]).all()
+    assert np.isnan(ds.read_level_spans("none", 4)).all()
+    for bad, what in (([[0.9, 0.1]], r"level_spans\[0\]"), ([[0.1, 0.5], [0.2, "x"]], r"level_spans\[1\]"),
+                      ([[0.1, float("nan")]], r"level_spans\[0\]"), ({"0": [0, 1]}, "must be a list")):
+        ds.write_sample("b", meta={"level_spans": bad})
+        with pytest.raises(DataError, match=what) as e:
+            ds.read_level_spans("b", 4)
+        assert str(ds.meta_path("b")) in str(e.value)

@@ -422,6 +422,9 @@ def test_flip_averaging_predicts_a_mirror_image_as_the_mirror_of_the_prediction(
             for v in ("top", "front"):
                 assert torch.allclose(sa[v]["box"], sb[v]["box"].flip(-1), atol=1e-5)
                 assert torch.allclose(sa[v]["length"], sb[v]["length"], rtol=1e-5)
+                # the shelf's placement in the mirror image is mirrored: centre x -> -x, same half-width
+                assert torch.allclose(sa[v]["centre"], -sb[v]["centre"], atol=1e-5)
+                assert torch.allclose(sa[v]["half"], sb[v]["half"], rtol=1e-5)
         else:
             a, b = net(x), net(x.flip(-1))
         for v in ("top", "front"):
@@ -476,11 +479,8 @@ def test_folding_batch_norms_keeps_the_prediction_and_leaves_no_norm(encoder, de
 def test_position_columns_span_the_placed_shelf():
     """`position_columns`: a shelf centred in the image with half-width 0.5 reads its T positions
     at their centres from the left edge to the right edge; moving the centre shifts every column."""
-    import math
-
     from racklay.model import position_columns
 
-    head = torch.tensor([[0.0, 0.0, 0.0, 0.0, math.log(0.5), 0.0], [0.0, 0.0, 0.0, 0.25, math.log(0.5), 0.0]])
-    cols = position_columns(head, 4)
+    cols = position_columns(torch.tensor([0.0, 0.25]), torch.tensor([0.5, 0.5]), 4)
     assert torch.allclose(cols[0], torch.tensor([0.125, 0.375, 0.625, 0.875]))
     assert torch.allclose(cols[1], cols[0] + 0.25)

@@ -92,6 +92,36 @@ def test_structure_loss_is_small_for_the_truth_and_large_for_a_wrong_scale():
         assert structure_loss(view, wrong, lay, EXT) > good + 0.5
 
 
+def test_placement_loss_pulls_each_labelled_shelf_to_its_span_in_the_image():
+    """Placement supervision: L1 of the centre and the log half-width against each shelf's
+    labelled span, only on shelves that exist and have a span (a render without one, NaN, and an
+    absent shelf cost nothing and get no gradient); `placement_weight` scales it inside
+    `structure_loss`, 0 leaves the loss as it was; a structure without a placement is refused."""
+    import math
+
+    from racklay.structure import placement_loss
+
+    _, front = _two_box_shelf()
+    lay = torch.from_numpy(front)[None].long()                     # shelves 0 and 1 present, 2 absent
+    st = _as_prediction(truth_structure("front", lay, EXT))
+    centre = torch.tensor([[0.1, 0.3, -0.2]], requires_grad=True)
+    st["centre"], st["half"] = centre, torch.tensor([[0.4, 0.4, 0.4]])
+    nan = float("nan")
+    spans = torch.tensor([[[0.2, 0.8], [nan, nan], [0.0, 1.0]]])   # shelf 0 centred, half-width 0.3
+    want = 0.1 + abs(math.log(0.4) - math.log(0.3))
+    assert placement_loss(st, spans, torch.tensor([[True, True, False]])).item() == pytest.approx(want, rel=1e-5)
+    assert placement_loss(st, spans, torch.tensor([[False, True, False]])) is None   # no present shelf has a span
+    base = structure_loss("front", st, lay, EXT, spans=spans)                     # weight 0: unchanged
+    assert base.item() == pytest.approx(structure_loss("front", st, lay, EXT).item())
+    with_it = structure_loss("front", st, lay, EXT, spans=spans, placement_weight=2.0)
+    assert (with_it - base).item() == pytest.approx(2 * want, rel=1e-4)
+    with_it.backward()
+    assert centre.grad[0, 0] > 0 and centre.grad[0, 1] == 0 and centre.grad[0, 2] == 0
+    del st["centre"]
+    with pytest.raises(ValueError, match="placement"):
+        structure_loss("front", st, lay, EXT, spans=spans, placement_weight=1.0)
+
+
 def test_gap_weight_makes_bridging_two_boxes_cost_more():
     """The gaps between boxes are the empty positions with a box on either side; with
     `gap_weight` > 1 a prediction that bridges two boxes (one box run) costs more than with the

@@ -38,8 +38,6 @@ from bench.accuracy.slot_contrast import luminance
 from bench.accuracy.structure_ab import rank_auc
 from bench.accuracy.synth_coverage import run_spans
 
-#: the label is read at this share of a level's clear height (loads stand on the board)
-LABEL_ROW = 0.3
 #: the darkness cue at the labelled geometry pools the rows from the board to this share
 CUE_ROWS = (0.05, 0.6)
 
@@ -99,8 +97,7 @@ def main(argv=None) -> int:
     project = Project(args.project, create=False)
     dec = pred.model.decoders["front"]
     cap = {}
-    hooks = [dec.shelf_head.register_forward_hook(lambda m, i, o: cap.__setitem__("head", o.detach())),
-             dec.row_att.register_forward_hook(lambda m, i, o: cap.__setitem__("att", o.detach()))]
+    hooks = [dec.row_att.register_forward_hook(lambda m, i, o: cap.__setitem__("att", o.detach()))]
     _, _, ds = split_dataset(pred, args.data, args.split)
     arms = ("per position", "in the image", "darkness cue, model's positions", "darkness cue, labelled geometry")
     pooled = {k: ([], []) for k in arms}
@@ -126,7 +123,7 @@ def main(argv=None) -> int:
         st = pred.structures(batch["image"])["front"]
         gap = st["gap"][0].float().numpy()
         T = gap.shape[-1]
-        cols = position_columns(cap["head"][0], T).numpy()                          # (R, T)
+        cols = position_columns(st["centre"][0], st["half"][0], T).numpy()         # (R, T)
         dark = model_darkness(batch_luminance(batch["image"])[0], cap["att"][0], cols)
         truth = truth_structure("front", batch["front"].long(), pred.grid.extent, T)
         tgap = (gap_positions(truth["box"]) & truth["presence"].unsqueeze(-1))[0].numpy()
@@ -143,7 +140,7 @@ def main(argv=None) -> int:
             def to_x(us):
                 """Image x (image widths) of rack positions `us` (metres) at the label's row."""
                 us = np.asarray(us, np.float64).ravel()
-                return scene.plane.to_image(np.c_[us, np.full(len(us), v0 + LABEL_ROW * clear)])[:, 0] / W
+                return scene.plane.to_image(np.c_[us, np.full(len(us), v0 + G.SPAN_AT_CLEAR_HEIGHT * clear)])[:, 0] / W
 
             def inside(xs, spans):
                 ends_x = to_x(np.ravel(spans)).reshape(-1, 2)
@@ -154,7 +151,7 @@ def main(argv=None) -> int:
             is_box = inside(cols[r], runs) & ~is_gap
             add("in the image", gap[r], is_gap, is_box)
             add("darkness cue, model's positions", dark[r], is_gap, is_box)
-            left, right = to_x([0.0, scene.width])
+            left, right = scene.level_spans(W)[r]
             ends.append((abs(cols[r][0] - left), abs(cols[r][-1] - right)))
             # the cue at the labelled geometry, every 1 cm along the shelf
             if photo is None:      # as the labeller saw it: a squeezed photo at its aspect as taken
