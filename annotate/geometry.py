@@ -34,6 +34,7 @@ import numpy as np
 
 from racklay import layout as L
 from racklay.camera import PinholeCamera
+from racklay.data import SPAN_AT_CLEAR_HEIGHT
 
 
 class GeometryError(ValueError):
@@ -116,12 +117,6 @@ class MetricBox:
     front_offset: float
     shelf: int | None
     z0: float = 0.0  # height of its bottom above the shelf's board
-
-
-#: the height, as a fraction of a level's clear height above its board, at which `Scene.level_spans`
-#: reads the rack's ends: low in the level, where its loads stand (the rack's front face is a
-#: trapezoid in a photo taken from below or above, so the span depends on the height)
-SPAN_AT_CLEAR_HEIGHT = 0.3
 
 
 @dataclass

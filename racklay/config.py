@@ -360,8 +360,8 @@ class TrainConfig:
     placement_weight: float = option(
         0.0, "--decoder struct: weight of an L1 loss on where each shelf is read in the image (its centre and "
              "log half-width) against the labelled rack's span at that level, on training samples whose meta has "
-             "level_spans (photos exported by annotate); renders without spans are not supervised (default "
-             "{default}: off)", lo=0, keep=True)
+             "level_spans (photos exported by annotate, renders of racklay synth); samples without are not "
+             "supervised (default {default}: off)", lo=0, keep=True)
     disc_weight: float = option(0.01, "adversarial weight lambda (default {default})", lo=0, keep=True)
     disc_start: int = option(5, "first epoch (0-based) with adversarial terms (default {default})", lo=0, keep=True)
     disc_lr: float = option(1e-4, "discriminator learning rate (default {default})", gt=0, keep=True)

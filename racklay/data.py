@@ -429,14 +429,20 @@ class RackLayRoot:
 
 #: the meta key of each level's span across the image (`level_spans`)
 LEVEL_SPANS_KEY = "level_spans"
+#: the height, as a fraction of a level's clear height above its board, at which a level's span
+#: is read: low in the level, where its loads stand (a rack's front face is a trapezoid in a photo
+#: taken from below or above, so the span depends on the height). `annotate export` and WareSynth
+#: both write spans at this height.
+SPAN_AT_CLEAR_HEIGHT = 0.3
 
 
 def level_spans(meta: dict | None, R: int, source: str = "meta") -> np.ndarray:
     """A sample's labelled span of each of its first R levels across the image, (R, 2) float32:
     the image x of the rack's left and right ends (low in each level), in image widths (0 the left
     edge, 1 the right; beyond [0, 1] where the rack leaves the frame), NaN for a level without one.
-    Read from meta["level_spans"], a list of [left, right] per level bottom-up (`annotate export`
-    writes it from the labelled rack); a malformed entry is a DataError naming `source`."""
+    Read from meta["level_spans"], a list of [left, right] (or null) per level bottom-up, read at
+    `SPAN_AT_CLEAR_HEIGHT` (`annotate export` writes it from the labelled rack, WareSynth from its
+    camera); a malformed entry is a DataError naming `source`."""
     out = np.full((R, 2), np.nan, np.float32)
     raw = (meta or {}).get(LEVEL_SPANS_KEY)
     if raw is None:

@@ -432,7 +432,7 @@ def check_level_spans(ds) -> None:
     n = sum(bool(np.isfinite(ds.root.read_level_spans(sid, ds.R)).any()) for sid in ds.ids)
     if not n:
         raise DataError(f"{ds.root.root}: --placement-weight needs level_spans in the training samples' meta "
-                        f"(photos exported by annotate export have them) and none of {len(ds.ids)} has")
+                        f"(photos exported by annotate export and renders of racklay synth have them) and none of {len(ds.ids)} has")
     print(f"placement supervision: {n} of {len(ds.ids)} training samples have labelled level spans", flush=True)
 
 

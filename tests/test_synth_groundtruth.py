@@ -725,3 +725,32 @@ def test_row_extent_continues_the_shelves_into_the_neighbouring_bays():
                     col = int(g.x_to_col((lo + hi) / 2 - centre))
                     assert (front[k][:, col] == L.BOX).any()
     assert across >= 3 and alone >= 2
+
+
+@pytest.mark.parametrize("extent", ["bay", "frame", "row"])
+def test_level_spans_are_where_the_image_shows_the_shelf_the_layouts_draw(extent):
+    """Placement supervision on renders (meta level_spans, as annotate export writes a labelled
+    photo's): per layout channel the image x of the drawn shelf's front ends, left first; the
+    middle of that front edge is seen between them; where the frame cuts the bay ('frame', 'row')
+    the layouts draw it as far as the image shows it, so the span reaches the image's edge there."""
+    from racklay.synth.groundtruth import level_spans
+
+    r = load_recipe("mixed", {"layout_extent": extent})
+    cut = 0
+    for index in range(16):
+        scene = sample_scene(r, 2, index)
+        spans = level_spans(scene)
+        assert len(spans) == len(scene.visible)
+        cam, d = scene.camera, scene.rack_depth
+        for k, ((shelf, _), sp) in enumerate(zip(scene.layout_inputs(), spans)):
+            assert sp is not None and sp[0] < sp[1]
+            x0, x1 = scene.layout_window or (-shelf.length / 2, shelf.length / 2)
+            z = scene.shelves[scene.visible[k]].board_top + 0.3 * shelf.clear_height
+            mid = cam.image_points([[(x0 + x1) / 2, -d / 2, z]])[0][0, 0] / cam.width
+            assert sp[0] < mid < sp[1]
+            if scene.layout_window is not None:
+                cut += 1
+                assert min(abs(sp[0]), abs(sp[1] - 1)) < 0.08, (index, sp)   # the image's edge
+            else:
+                assert extent == "bay" or (sp[0] > -0.02 and sp[1] < 1.02), (index, sp)   # seen whole
+    assert extent == "bay" or cut > 0

@@ -84,6 +84,7 @@ def main(argv=None) -> int:
     from annotate import geometry as G
     from annotate.schema import pixel_aspect
     from annotate.store import Project
+    from racklay.data import SPAN_AT_CLEAR_HEIGHT
     from racklay.evaluate import split_dataset
     from racklay.model import position_columns
     from racklay.predict import Predictor
@@ -140,7 +141,7 @@ def main(argv=None) -> int:
             def to_x(us):
                 """Image x (image widths) of rack positions `us` (metres) at the label's row."""
                 us = np.asarray(us, np.float64).ravel()
-                return scene.plane.to_image(np.c_[us, np.full(len(us), v0 + G.SPAN_AT_CLEAR_HEIGHT * clear)])[:, 0] / W
+                return scene.plane.to_image(np.c_[us, np.full(len(us), v0 + SPAN_AT_CLEAR_HEIGHT * clear)])[:, 0] / W
 
             def inside(xs, spans):
                 ends_x = to_x(np.ravel(spans)).reshape(-1, 2)

@@ -447,7 +447,8 @@ def relayout_dataset(src: str | os.PathLike, out: str | os.PathLike, overrides: 
     source's files (hard links where the file system allows, else copies). Resumes like
     generate_dataset; splits and COCO files are rebuilt at the end."""
     from ..atomic import atomic_write_json
-    from .groundtruth import grid_meta, layout_meta, scene_layouts
+    from ..data import LEVEL_SPANS_KEY
+    from .groundtruth import grid_meta, layout_meta, level_spans, scene_layouts
     from .recipe import RecipeError, parse_override
     from .scene import sample_scene
 
@@ -516,6 +517,7 @@ def relayout_dataset(src: str | os.PathLike, out: str | os.PathLike, overrides: 
                 atomic_save_npy(o_root.layout_path(view, sid), L.encode(arr), fsync=False)
             meta["rack"].update(layout_meta(scene))
             meta["grid"] = grid_meta(grid, recipe)
+            meta[LEVEL_SPANS_KEY] = level_spans(scene)      # they follow what the layouts draw
             atomic_write_json(o_root.meta_path(sid), meta, indent=None, fsync=False)   # last: marks it finished
             res.generated.append(i)
             if bar:

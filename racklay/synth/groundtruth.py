@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from .. import layout as L
+from ..data import LEVEL_SPANS_KEY, SPAN_AT_CLEAR_HEIGHT
 from .effects import distort_points
 from .scene import CATEGORY_NAMES, SEMANTIC_CLASSES, Scene, cuboid_corners
 
@@ -157,6 +158,29 @@ def layout_meta(scene: Scene) -> dict:
         [None if h is None else round(h, 6) for h in scene.layout_heights]}
 
 
+def level_spans(scene: Scene, at: float = SPAN_AT_CLEAR_HEIGHT) -> list:
+    """Per layout channel (visible shelf, lowest first): where the image shows the shelf the
+    layouts draw, [left, right] image x of its front edge's ends at `at` of its drawn clear height,
+    in image widths (beyond [0, 1] where it leaves the frame; lens distortion applied where the
+    lens model holds, the pinhole's extrapolation beyond), as `annotate export` writes a labelled
+    photo's (racklay.data.level_spans); None for a level with an end behind the camera. The ends
+    are the drawn part's: the layout window's, else the row's or the bay's."""
+    cam, depth = scene.camera, scene.rack_depth
+    out = []
+    for k, (shelf, _) in enumerate(scene.layout_inputs()):
+        x0, x1 = scene.layout_window if scene.layout_window is not None else (-shelf.length / 2, shelf.length / 2)
+        z = scene.shelves[scene.visible[k]].board_top + at * shelf.clear_height
+        uv, zc = cam.project_z([[x0, -depth / 2, z], [x1, -depth / 2, z]])
+        if (zc <= 0.05).any():
+            out.append(None)
+            continue
+        r2 = ((uv[:, 0] - cam.K[0, 2]) / cam.K[0, 0]) ** 2 + ((uv[:, 1] - cam.K[1, 2]) / cam.K[1, 1]) ** 2
+        lens = 1 + 3 * cam.k1 * r2 > 0                    # where the distorted radius still grows
+        xs = np.where(lens, distort_points(cam.K, cam.k1, uv)[:, 0], uv[:, 0]) / cam.width
+        out.append([round(float(xs.min()), 5), round(float(xs.max()), 5)])
+    return out
+
+
 def scene_meta(scene: Scene, recipe, grid: L.Grid, objects: list[dict]) -> dict:
     cam = scene.camera
     shelves = scene.shelves
@@ -177,6 +201,8 @@ def scene_meta(scene: Scene, recipe, grid: L.Grid, objects: list[dict]) -> dict:
         # per layout channel (lowest visible shelf first): inter-shelf height, like WareSynth's height*.npy
         "shelf_heights": _r([shelves[i].clear_height for i in scene.visible], 6),
         "shelf_board_tops": _r([shelves[i].board_top for i in scene.visible], 6),
+        # per layout channel: [left, right] of the drawn shelf across the image (image widths)
+        LEVEL_SPANS_KEY: level_spans(scene),
         "background": scene.background, "occupancy_map": scene.occupancy,
         "lights": [{"position": _r(l.position, 4), "color": _r(l.color, 4), "intensity": round(l.intensity, 4)}
                    for l in scene.lights], "ambient": round(scene.ambient, 4),
