@@ -213,8 +213,8 @@ class Predictor:
 
     def structures(self, x) -> dict:
         """A struct model's structures {view: {field: (N, R[, T]) tensor}} (`racklay.structure`:
-        presence, length, extent, per-position box and sizes, gap) for a normalised batch, at the
-        predictor's precision (torch backend)."""
+        presence, length, extent, placement in the image, per-position box and sizes, gap) for a
+        normalised batch, at the predictor's precision (torch backend)."""
         if self.model is None or self.cfg.decoder != "struct":
             raise ValueError(f"{self.weights or 'the model'}: structures need a struct model on the torch backend "
                              f"(this one: {self.cfg.decoder} decoder, {self.backend})")

@@ -15,9 +15,9 @@ Per shelf channel and view (the layout convention of racklay.layout; grid of S p
   fractions of E measured from the board's front edge.
 - the struct decoder's structures also carry the shelf's placement in the image, where it reads
   the shelf: `centre` (image widths from the image's centre) and `half` (half-width, image
-  widths), one per shelf per view. The truth's is the labelled rack's span at each level
-  (`racklay.data.level_spans`: photos exported by annotate have it), supervised by
-  `structure_loss`'s `placement_weight`.
+  widths), one per shelf per view. The truth's is the rack's span across the image at each level
+  (`racklay.data.level_spans`: photos exported by annotate and WareSynth renders have it),
+  supervised by `structure_loss`'s `placement_weight`.
 
 Shape (the per-position fractions) does not depend on the shelf's metric size; scale is L and E.
 A known dimension (a shelf length) therefore fixes the scale without touching the shape.
