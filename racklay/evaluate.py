@@ -26,10 +26,11 @@ def _predictor(weights, backend: str, threads: int | None):
     return Predictor(weights, backend=backend, threads=threads)
 
 
-def split_dataset(pred, data, split: str | None, limit: int | None = None):
+def split_dataset(pred, data, split: str | None, limit: int | None = None, spans: bool = False):
     """The (root, views, RackLayDataset) a model is scored on: `split` of the dataset at `data`
     (its first `limit` ids), the model's views that the dataset has, at the model's input and
-    layout sizes. One-line errors name the folder, or the weights when the model's R does not fit."""
+    layout sizes (with `spans`, each item's level spans on the model's input too). One-line errors
+    name the folder, or the weights when the model's R does not fit."""
     from .data import RackLayRoot
     from .torchdata import RackLayDataset
 
@@ -50,7 +51,7 @@ def split_dataset(pred, data, split: str | None, limit: int | None = None):
         raise ValueError(f"{model}: the model predicts R={pred.R} shelves but the layouts in {root.root} "
                          f"have R={ref[0]}; use a model trained for R={ref[0]}")
     ds = RackLayDataset(root.root, ids=ids, image_size=pred.image_size, layout_size=pred.layout_size, views=views,
-                        R=pred.R, letterbox=pred.cfg.letterbox)
+                        R=pred.R, letterbox=pred.cfg.letterbox, spans=spans)
     return root, views, ds
 
 
