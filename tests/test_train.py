@@ -689,8 +689,8 @@ def test_placement_weight_trains_where_each_shelf_is_read(tmp_path, toy):
     """--placement-weight: on samples whose meta has level spans the struct decoder's shelf
     placement moves to the labelled span (here all shelves at [0.55, 0.95] of the image, far from
     the start's centred 0.8 of it: the error falls below 0.4 of the start's in 16 steps, where a
-    run without it stays at the start's); the run says how many samples have spans. A set without any, or a decoder without a placement, is refused
-    before the first step."""
+    run without it stays at the start's); the run says how many samples have spans. A set without
+    any, or a decoder without a placement, is refused before the first step."""
     from racklay.torchdata import RackLayDataset
 
     src = RackLayRoot(toy)
