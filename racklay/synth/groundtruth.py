@@ -10,7 +10,7 @@ import numpy as np
 from .. import layout as L
 from ..data import LEVEL_SPANS_KEY, SPAN_AT_CLEAR_HEIGHT
 from .effects import distort_points
-from .scene import CATEGORY_NAMES, SEMANTIC_CLASSES, Scene, cuboid_corners
+from .scene import CATEGORY_NAMES, IN_FRONT_M, SEMANTIC_CLASSES, Scene, cuboid_corners
 
 
 def scene_layouts(scene: Scene, grid: L.Grid, R: int) -> tuple[np.ndarray, np.ndarray]:
@@ -171,12 +171,10 @@ def level_spans(scene: Scene, at: float = SPAN_AT_CLEAR_HEIGHT) -> list:
         x0, x1 = scene.layout_window if scene.layout_window is not None else (-shelf.length / 2, shelf.length / 2)
         z = scene.shelves[scene.visible[k]].board_top + at * shelf.clear_height
         uv, zc = cam.project_z([[x0, -depth / 2, z], [x1, -depth / 2, z]])
-        if (zc <= 0.05).any():
+        if (zc <= IN_FRONT_M).any():
             out.append(None)
             continue
-        r2 = ((uv[:, 0] - cam.K[0, 2]) / cam.K[0, 0]) ** 2 + ((uv[:, 1] - cam.K[1, 2]) / cam.K[1, 1]) ** 2
-        lens = 1 + 3 * cam.k1 * r2 > 0                    # where the distorted radius still grows
-        xs = np.where(lens, distort_points(cam.K, cam.k1, uv)[:, 0], uv[:, 0]) / cam.width
+        xs = np.where(cam.lens_holds(uv), distort_points(cam.K, cam.k1, uv)[:, 0], uv[:, 0]) / cam.width
         out.append([round(float(xs.min()), 5), round(float(xs.max()), 5)])
     return out
 

@@ -139,6 +139,13 @@ class Camera(PinholeCamera):
         uv, z = self.project_z(pts)
         return distort_points(self.K, self.k1, uv), z
 
+    def lens_holds(self, uv: np.ndarray) -> np.ndarray:
+        """Where the distortion model holds for undistorted pixels `uv` (N, 2): barrel distortion
+        folds points far outside the image back into it, so only the part of the lens where the
+        distorted radius still grows with the true one, r (1 + k1 r²), counts."""
+        r2 = ((uv[:, 0] - self.K[0, 2]) / self.K[0, 0]) ** 2 + ((uv[:, 1] - self.K[1, 2]) / self.K[1, 1]) ** 2
+        return 1 + 3 * self.k1 * r2 > 0
+
 
 @dataclass
 class Light:
@@ -1043,14 +1050,16 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
                  layout_heights=heights, layout_row=layout_row, row_boxes=row_boxes)
 
 
+#: a world point counts as seen only this far (metres, along the optical axis) in front of the camera
+IN_FRONT_M = 0.05
+
+
 def _in_image(cam: Camera, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Whether the image's columns and rows show world points (N, 3), lens distortion included.
-    Barrel distortion folds points far outside the image back into it: only the part of the
-    lens where the distorted radius still grows with the true one, r (1 + k1 r²), counts."""
+    """Whether the image's columns and rows show world points (N, 3), lens distortion included
+    (where its model holds: `Camera.lens_holds`), at least `IN_FRONT_M` in front of the camera."""
     uv, zc = cam.project_z(pts)
-    r2 = ((uv[:, 0] - cam.K[0, 2]) / cam.K[0, 0]) ** 2 + ((uv[:, 1] - cam.K[1, 2]) / cam.K[1, 1]) ** 2
+    ok = (zc > IN_FRONT_M) & cam.lens_holds(uv)
     uv = distort_points(cam.K, cam.k1, uv)
-    ok = (zc > 0.05) & (1 + 3 * cam.k1 * r2 > 0)
     return ok & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width), ok & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
 
 
