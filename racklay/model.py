@@ -495,8 +495,7 @@ class StructDecoder(nn.Module):
             d = torch.einsum("nrhw,nchw->nrcw", att4, f4).reshape(N * R, -1, W)
             up = F.interpolate(cols.reshape(N * R, C, W8), size=W, mode="linear", align_corners=False)
             cols = (up + self.detail(torch.cat([d, up], 1))).reshape(N, R, C, W)
-        head = self.shelf_head(g).float()
-        pres, log_len, log_ext, centre, log_half, log_win = head.unbind(-1)
+        pres, log_len, log_ext, centre, log_half, log_win = self.shelf_head(g).float().unbind(-1)
         half = torch.exp(log_half).clamp(MIN_HALF_WIDTH, MAX_HALF_WIDTH)
         t = (torch.arange(T, device=x.device, dtype=torch.float32) + 0.5) / T    # positions along the shelf
         mu = position_columns(centre, half, T)                                   # (N, R, T) image widths

@@ -425,8 +425,6 @@ def check_level_spans(ds) -> None:
     """Placement supervision needs labelled level spans (`racklay.data.level_spans`): every
     sample's are read (a malformed one names its file) and a training set without any fails here,
     before the first step; how many samples have them is said."""
-    import numpy as np
-
     from .data import DataError
 
     n = sum(bool(np.isfinite(ds.root.read_level_spans(sid, ds.R)).any()) for sid in ds.ids)
