@@ -145,7 +145,7 @@ def check_fields(obj) -> None:
             v = tuple(v)
         m = _meta(f)
         if m.get("path") and v:
-            v = os.path.abspath(os.fspath(v))
+            v = tuple(os.path.abspath(os.fspath(x)) for x in v) if base == "tuple" else os.path.abspath(os.fspath(v))
         object.__setattr__(obj, f.name, v)      # frozen dataclasses too
         if m.get("choices") is not None and v not in m["choices"]:
             raise ValueError(f"{f.name} must be one of {m['choices']}, got {v!r}")
@@ -266,9 +266,11 @@ class TrainConfig:
     train_fraction: float = option(
         1.0, "use this reproducible fraction of the training split (learning curves; default {default})",
         gt=0, hi=1, keep=True)
-    replay: str | None = option(
+    replay: str | tuple | None = option(
         None, "synthetic RackLay root mixed into every epoch (its train split): a fine-tune on a few real "
-              "photos keeps seeing renders and does not forget them", metavar="ROOT", path=True, keep=True)
+              "photos keeps seeing renders and does not forget them; repeat the flag to pool several sets "
+              "(their train splits drawn from as one pool, in the order given)", metavar="ROOT", path=True,
+        keep=True, action="append")
     replay_ratio: float = option(
         1.0, "with --replay: replay images per training image and epoch, drawn afresh each epoch "
              "(default {default})", gt=0, keep=True)
@@ -396,6 +398,9 @@ class TrainConfig:
 
     def __post_init__(self):
         check_fields(self)
+        if isinstance(self.replay, str):   # one root (and run configs written before pools): a pool of one
+            self.replay = (self.replay,)
+        self.replay = self.replay or None
         self.class_weights = tuple(float(w) for w in self.class_weights)
         if len(self.class_weights) != len(CLASS_NAMES):
             raise ValueError(f"class_weights needs {len(CLASS_NAMES)} values, got {list(self.class_weights)}")

@@ -201,20 +201,25 @@ class RackLayDataset(Dataset):
 
 class ReplayMix(Dataset):
     """A small (real) training set plus synthetic *replay*: every epoch holds all of `real` and
-    `round(ratio x len(real))` samples of `pool` (a large synthetic set), drawn afresh each epoch
-    from (seed, epoch), so a fine-tune on a few dozen photos keeps seeing the renders the model
-    learnt from and does not forget them. Items are addressed as `item(i, epoch)`; indices
-    below `len(real)` are the real samples. Both parts run the real set's transform."""
+    `round(ratio x len(real))` samples of `pool` (a large synthetic set, or several pooled in the
+    order given: one index over all their samples), drawn afresh each epoch from (seed, epoch), so
+    a fine-tune on a few dozen photos keeps seeing the renders the model learnt from and does not
+    forget them. Items are addressed as `item(i, epoch)`; indices below `len(real)` are the real
+    samples. Both parts run the real set's transform."""
 
-    def __init__(self, real: RackLayDataset, pool: RackLayDataset, ratio: float, seed: int = 0):
+    def __init__(self, real: RackLayDataset, pool: RackLayDataset | Sequence[RackLayDataset], ratio: float,
+                 seed: int = 0):
         if not ratio > 0:
             raise ValueError(f"replay ratio must be > 0, got {ratio}")
-        if len(pool) == 0:
-            raise ValueError(f"{pool.root.root}: the replay set is empty")
-        self.real, self.pool, self.seed = real, pool, int(seed)
-        self.pool.transform, self.pool.spans = real.transform, real.spans
+        self.pools = [pool] if isinstance(pool, RackLayDataset) else list(pool)
+        for p in self.pools:
+            if len(p) == 0:
+                raise ValueError(f"{p.root.root}: the replay set is empty")
+            p.transform, p.spans = real.transform, real.spans
+        self.real, self.seed = real, int(seed)
+        self._ends = np.cumsum([len(p) for p in self.pools])
         self.n_real = len(real)
-        self.n_replay = min(len(pool), max(1, round(ratio * self.n_real)))
+        self.n_replay = min(int(self._ends[-1]), max(1, round(ratio * self.n_real)))
         self._perm: tuple[int, np.ndarray] | None = None
 
     @property
@@ -224,20 +229,29 @@ class ReplayMix(Dataset):
     def __len__(self) -> int:
         return self.n_real + self.n_replay
 
+    def _locate(self, j: int) -> tuple[RackLayDataset, int]:
+        """Pool index j -> (the set holding it, its index there)."""
+        k = int(np.searchsorted(self._ends, j, side="right"))
+        return self.pools[k], j - (int(self._ends[k - 1]) if k else 0)
+
     def replay_ids(self, epoch: int) -> list[str]:
-        """The pool samples of epoch `epoch`, in order."""
-        return [self.pool.ids[j] for j in self._draw(epoch)]
+        """The pool samples of epoch `epoch`, in order (with several sets: `root:id`)."""
+        located = (self._locate(int(j)) for j in self._draw(epoch))
+        if len(self.pools) == 1:
+            return [p.ids[i] for p, i in located]
+        return [f"{p.root.root}:{p.ids[i]}" for p, i in located]
 
     def _draw(self, epoch: int) -> np.ndarray:
         if self._perm is None or self._perm[0] != epoch:
             rng = np.random.default_rng([self.seed, int(epoch), 0x5E1A])
-            self._perm = (epoch, rng.choice(len(self.pool), self.n_replay, replace=False))
+            self._perm = (epoch, rng.choice(int(self._ends[-1]), self.n_replay, replace=False))
         return self._perm[1]
 
     def item(self, i: int, epoch: int) -> dict:
         if i < self.n_real:
             return self.real[i]
-        return self.pool[int(self._draw(epoch)[i - self.n_real])]
+        p, k = self._locate(int(self._draw(epoch)[i - self.n_real]))
+        return p[k]
 
     def __getitem__(self, i: int) -> dict:
         return self.item(i, 0)

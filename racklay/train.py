@@ -114,19 +114,23 @@ def split_ids(cfg: TrainConfig) -> tuple[list[str], list[str]]:
     return train, val
 
 
-def replay_ids(cfg: TrainConfig) -> list[str]:
-    """The pool of `--replay`: the replay root's train split (all its samples if it has no split
-    files). Its R must match the run's; its layouts are resized to the layout size like the data's."""
+def replay_ids(cfg: TrainConfig) -> list[list[str]]:
+    """The pool of `--replay`, per replay root: its train split (all its samples if it has no
+    split files). Each root's R must match the run's; its layouts are resized to the layout size
+    like the data's."""
     from .data import RackLayRoot
 
-    root = RackLayRoot(cfg.replay).require("replay dataset")
-    ids = root.resolve("train" if "train" in root.splits() else None)
-    if not ids:
-        raise ValueError(f"{root.root}: replay dataset has no samples")
-    shape = root.layout_shape(ids[:50])
-    if shape is not None and shape[0] != cfg.R:
-        raise ValueError(f"{root.root}: replay layouts have R={shape[0]} shelves, the run has R={cfg.R}")
-    return ids
+    pools = []
+    for path in cfg.replay:
+        root = RackLayRoot(path).require("replay dataset")
+        ids = root.resolve("train" if "train" in root.splits() else None)
+        if not ids:
+            raise ValueError(f"{root.root}: replay dataset has no samples")
+        shape = root.layout_shape(ids[:50])
+        if shape is not None and shape[0] != cfg.R:
+            raise ValueError(f"{root.root}: replay layouts have R={shape[0]} shelves, the run has R={cfg.R}")
+        pools.append(ids)
+    return pools
 
 
 @torch.no_grad()
@@ -450,8 +454,8 @@ def make_loaders(cfg: TrainConfig, transform, dist: Dist, run_dir: Path):
     if cfg.placement_weight:
         check_level_spans(train_ds)
     if cfg.replay:
-        pool = RackLayDataset(cfg.replay, ids=replay_ids(cfg), **{**kw, "cache": False})
-        train_ds = ReplayMix(train_ds, pool, cfg.replay_ratio, seed=cfg.seed)
+        pools = [RackLayDataset(path, ids=ids, **{**kw, "cache": False}) for path, ids in zip(cfg.replay, replay_ids(cfg))]
+        train_ds = ReplayMix(train_ds, pools, cfg.replay_ratio, seed=cfg.seed)
     val_ds = RackLayDataset(cfg.data, ids=val_ids, **kw) if dist.main else None
     batches = Batches()
     pin = dist.device.type == "cuda"   # page-locked batches: the copy to the GPU overlaps the step
@@ -468,7 +472,7 @@ def start_run_dir(run: Run, n_train: int, n_val: int, n_replay: int = 0) -> None
     run.dir.mkdir(parents=True, exist_ok=True)
     write_config(run.dir, cfg)
     hw = mcfg.input_hw
-    replay = f" + {n_replay} replay from {cfg.replay} (new each epoch)" if n_replay else ""
+    replay = f" + {n_replay} replay from {' + '.join(cfg.replay)} (new each epoch)" if n_replay else ""
     print(f"{mcfg.variant()} ({cfg.encoder} encoder, {cfg.decoder}{' + 1/4 detail' if cfg.struct_fine else ''}{' + gap output' if cfg.struct_gap else ''} decoder), {n_train} train{replay} / "
           f"{n_val} val images, {hw[1]}x{hw[0]}->{cfg.layout_size}, {'bf16' if run.bf16 else 'fp32'}, "
           f"{run.dist.world} process(es) on {run.dist.device}, "

@@ -477,14 +477,32 @@ def test_replay_mixes_fresh_synthetic_samples_into_every_epoch(tmp_path, toy):
     again = ReplayMix(RackLayDataset(real.root, "train", **kw), RackLayDataset(toy, ids=pool_ids, **kw), 2.0, seed=1)
     assert again.replay_ids(1) == e1
     with pytest.raises(ValueError, match="ratio"):
-        ReplayMix(mix.real, mix.pool, 0)
+        ReplayMix(mix.real, mix.pools, 0)
+    # several replay sets pool into one index, in the order given: one set's draws are unchanged
+    # by the pooling, and every drawn sample is read from the set that holds it
+    from racklay.toy import build_toy_dataset
+
+    other = build_toy_dataset(tmp_path / "other", n=6, seed=3, R=4, D=64).root
+    other_ids = RackLayRoot(other).split_ids("train")
+    both = ReplayMix(RackLayDataset(real.root, "train", **kw), [RackLayDataset(toy, ids=pool_ids, **kw),
+                     RackLayDataset(other, ids=other_ids, **kw)], 3.0, seed=1)
+    assert len(both) == 3 + 9
+    drawn = both.replay_ids(0)
+    assert len(set(drawn)) == 9 and {d.rsplit(":", 1)[0] for d in drawn} == {str(RackLayRoot(toy).root),
+                                                                             str(RackLayRoot(other).root)}
+    assert [f"{both.item(3 + k, 0)['id']}" for k in range(9)] == [d.rsplit(":", 1)[1] for d in drawn]
 
     cfg = TrainConfig(data=str(real.root), out=str(tmp_path), name="rp", replay=str(toy), replay_ratio=2.0,
                       epochs=1, disc=False, patience=None, checkpoint_every=0, **TINY)
     run = train(cfg)
-    assert TrainConfig.from_yaml(run / "config.yaml").replay == str(toy)
+    assert TrainConfig.from_yaml(run / "config.yaml").replay == (str(toy),)
     assert len(_rows(run)) == 1
-    from racklay.toy import build_toy_dataset
+    # the flag repeats: both sets pooled, said in the run's first line
+    r = _cli(*_tiny_flags(real.root, tmp_path, "rp3"), "--replay", str(toy), "--replay", str(other), "--epochs", "1",
+             "--replay-ratio", "2")
+    assert r.returncode == 0, r.stderr
+    assert f"replay from {RackLayRoot(toy).root} + {RackLayRoot(other).root}" in r.stdout
+    assert TrainConfig.from_yaml(tmp_path / "rp3" / "config.yaml").replay == (str(toy), str(other))
 
     two = build_toy_dataset(tmp_path / "two", n=4, seed=2, R=2, D=64).root
     r = _cli(*_tiny_flags(real.root, tmp_path, "rp2"), "--replay", str(two), "--epochs", "1")

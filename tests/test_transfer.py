@@ -390,8 +390,8 @@ def test_finetune_keeps_the_loss_the_checkpoint_was_trained_with(tiny_data, tmp_
 
 
 def test_finetune_cli_mixes_synthetic_replay(tiny_data, tmp_path, monkeypatch):
-    """`transfer finetune --replay ROOT --replay-ratio 0.5` reaches the trainer; without the flags
-    the fine-tune has no replay (TrainConfig's default)."""
+    """`transfer finetune --replay ROOT --replay-ratio 0.5` reaches the trainer (the flag repeats
+    to pool several sets); without the flags the fine-tune has no replay (TrainConfig's default)."""
     import racklay.train as rt
     from racklay.checkpoint import save_checkpoint
     from racklay.model import ModelConfig, build_model
@@ -405,8 +405,10 @@ def test_finetune_cli_mixes_synthetic_replay(tiny_data, tmp_path, monkeypatch):
     base = ["finetune", "--init", str(init), "--real", str(tiny_data / "real"), "--out", str(tmp_path / "ft")]
     assert main(base + ["--replay", str(tiny_data / "syn"), "--replay-ratio", "0.5"]) == 0
     assert main(base) == 0
-    assert (seen[0].replay, seen[0].replay_ratio) == (str(tiny_data / "syn"), 0.5)
+    assert main(base + ["--replay", str(tiny_data / "syn"), "--replay", str(tiny_data / "real")]) == 0
+    assert (seen[0].replay, seen[0].replay_ratio) == ((str(tiny_data / "syn"),), 0.5)
     assert seen[1].replay is None
+    assert seen[2].replay == (str(tiny_data / "syn"), str(tiny_data / "real"))   # several sets pool
 
 
 def test_compare_settings_keep_run_defining_training_options_only():

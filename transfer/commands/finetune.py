@@ -48,7 +48,7 @@ def register(sub) -> None:
     add_flags(p.add_argument_group("synthetic replay"), TrainConfig, ["replay", "replay_ratio"], default=None, helps={
         "replay": "synthetic RackLay root (e.g. the release set, or `racklay synth` output) whose train split "
                   "is mixed into every epoch, so a fine-tune on a few dozen photos does not forget the "
-                  "renders (docs/transfer.md)"})
+                  "renders (docs/transfer.md); repeat the flag to pool several sets"})
     p.set_defaults(func=run)
 
 
@@ -59,8 +59,8 @@ def run(args) -> int:
 
     # the data first: a wrong path is one line at once, not after the model has loaded
     require_split(args.real, args.train_split, "real")
-    if args.replay is not None:
-        RackLayRoot(args.replay).require("replay dataset")
+    for path in args.replay or ():
+        RackLayRoot(path).require("replay dataset")
     if args.fraction is not None and not 0 < args.fraction <= 1:
         raise ValueError(f"--fraction must be in (0, 1], got {args.fraction}")
     from racklay.release import weights_for_cli
