@@ -13,8 +13,8 @@ from importlib import resources
 from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
-RELEASE_NAME = "racklay-lite0-struct-v9.safetensors"
-RELEASE_SHA256 = "a049a51a8c361b5c7b196f38e0adce7b396fbd0f27de45c8f89115ff168c976f"
+RELEASE_NAME = "racklay-lite0-struct-v10.safetensors"
+RELEASE_SHA256 = "1563b3fe99d5259779d3f411667eea217067055a692d86a98fe151ef55301a80"
 WEIGHTS_DIR = Path(str(resources.files("racklay") / "weights"))   # package data
 
 _verified: set[str] = set()

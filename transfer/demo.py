@@ -1,6 +1,6 @@
 """The one-command demo of the toolkit's main job, starting from the shipped model.
 
-On a fresh machine with no GPU and nothing downloaded (about 6-11 minutes on 2 cores; docs/model-card.md, Demo timing):
+On a fresh machine with no GPU and nothing downloaded (about 5-11 minutes on 2 cores; docs/model-card.md, Demo timing):
 
 1. the shipped model (WareSynth renders, then labelled photos of other sites than the test
    split's; docs/model-card.md) predicts

@@ -38,7 +38,7 @@ DESCRIPTION = ("The toolkit's main job end to end, starting from the shipped mod
                "real photos, NOT real data), run a reduced `transfer "
                "compare` (synthetic only = the shipped model / real only / shipped model fine-tuned; 1 seed) and "
                "print the paper's Table 2 with the fine-tune's gain, plus the bar chart and learning curve. "
-               "About 6-11 minutes on 2 CPU cores (measured: docs/model-card.md, Demo timing); each training "
+               "About 5-11 minutes on 2 CPU cores (measured: docs/model-card.md, Demo timing); each training "
                "run has a time budget. Prints where every output went. With --toy instead: build a small schematic "
                "dataset with the layout module, validate it with check-data, score a degraded copy of its "
                "layouts against the truth, and write a paper-style figure (seconds, no training).")
