@@ -23,6 +23,7 @@ def test_msaa_changes_only_the_rgb(tmp_path):
         msaa.close()
     assert np.array_equal(maps0["instance"], maps1["instance"])
     assert np.array_equal(maps0["depth"], maps1["depth"])
+    assert np.array_equal(maps0["normals"], maps1["normals"])   # the G-buffer pass = the colour pass's G-buffer
     diff = np.any(rgb0 != rgb1, axis=-1)
     edges = np.zeros_like(diff)
     inst = maps0["instance"]
@@ -289,3 +290,24 @@ def test_two_renderers_in_one_process_each_draw_their_own_frame(tmp_path):
         first.close()
     assert np.array_equal(after, alone) and np.array_equal(again, alone)
     assert not np.array_equal(other, alone)
+
+
+def test_sensor_noise_is_a_function_of_its_seed_with_the_asked_spread(monkeypatch):
+    from racklay.synth import effects
+
+    a, b = effects.gaussian_noise((120, 200, 3), 5), effects.gaussian_noise((120, 200, 3), 5)
+    c = effects.gaussian_noise((120, 200, 3), 6)
+    assert a.dtype == np.float32 and np.array_equal(a, b) and not np.array_equal(a, c)
+    assert abs(float(a.std()) - 1) < 0.02 and abs(float(a.mean())) < 0.02
+    a[0, 0, 0] = 1e6   # the caller's copy: the bank stays as it was
+    assert np.array_equal(effects.gaussian_noise((120, 200, 3), 5)[1:], b[1:])
+    monkeypatch.setattr(effects, "NOISE_BANK_SIZE", 1000)
+    effects._noise_bank.cache_clear()
+    try:   # larger than the bank: drawn afresh, still by the seed
+        big = effects.gaussian_noise((40, 40), 5)
+        assert np.array_equal(big, effects.gaussian_noise((40, 40), 5)) and abs(float(big.std()) - 1) < 0.1
+    finally:
+        effects._noise_bank.cache_clear()
+    img = np.full((60, 80, 3), 128, np.uint8)
+    out = effects.photometric(img, {"noise_std": 6.0, "noise_seed": 1}).astype(np.float32) - 128
+    assert 5.0 < float(out.std()) < 7.0

@@ -3,9 +3,11 @@ image and exact per-pixel maps (instance ids, camera-frame depth and normals).
 
 Backend `GLRenderer`: moderngl on a headless EGL context (Mesa llvmpipe on CPU here; a GPU
 where one exists). All solids are instanced unit cubes / cylinders: one draw call per pass.
-Passes: shadow map from the main light; a G-buffer pass (no anti-aliasing, so ids, depth and
-normals are exact at pixel centres); the colour pass (textured Lambert + Blinn-Phong, 1 shadowed
-key light + up to 7 point lights + ambient, MSAA-resolved).
+Passes: shadow map from the main light; a depth pre-pass; the colour pass (textured Lambert +
+Blinn-Phong, 1 shadowed key light + 3 fill lights + ambient), which shades each pixel once, its
+nearest surface, and writes the G-buffer beside the colour (no anti-aliasing, so ids, depth and
+normals are exact at pixel centres). With MSAA the G-buffer is a pass of its own and the colour
+pass is multisampled and resolved.
 """
 from __future__ import annotations
 
@@ -134,30 +136,34 @@ void main() {
 }
 """
 
-GBUF_FS = """
-#version 330
+_VARYINGS_IN = """
 in vec3 v_world; in vec3 v_nworld; in vec3 v_ncam; in float v_zcam; in vec3 v_uvl; in vec3 v_tint;
 in vec4 v_mat; flat in uint v_id; in vec4 v_lpos;
-layout(location = 0) out uint f_id;
-layout(location = 1) out float f_depth;
-layout(location = 2) out vec4 f_normal;
-void main() {
+"""
+# the G-buffer's values of a fragment: instance id, camera-frame z, camera-frame normal
+_GBUF_WRITE = """
+void write_gbuffer() {
     f_id = v_id; f_depth = v_zcam;
     vec3 n = normalize(v_ncam);
     if (!gl_FrontFacing) n = -n;
     f_normal = vec4(n * 0.5 + 0.5, 1.0);
 }
 """
-
-COLOR_FS = """
+GBUF_FS = """
 #version 330
-in vec3 v_world; in vec3 v_nworld; in vec3 v_ncam; in float v_zcam; in vec3 v_uvl; in vec3 v_tint;
-in vec4 v_mat; flat in uint v_id; in vec4 v_lpos;
+""" + _VARYINGS_IN + """
+layout(location = 0) out uint f_id;
+layout(location = 1) out float f_depth;
+layout(location = 2) out vec4 f_normal;
+""" + _GBUF_WRITE + """
+void main() { write_gbuffer(); }
+"""
+
+_COLOR_FS_BODY = _VARYINGS_IN + """
 uniform sampler2DArray tex; uniform sampler2DShadow shadow_map; uniform int use_shadow;
 uniform vec3 cam_pos; uniform vec3 ambient; uniform float falloff;
 #define N_FILL 3
 uniform vec3 light_pos[4]; uniform vec3 light_col[4];
-out vec4 f_color;
 float shadow_factor(vec3 n, vec3 l) {
     if (use_shadow == 0) return 1.0;
     vec3 p = v_lpos.xyz / v_lpos.w * 0.5 + 0.5;
@@ -166,7 +172,7 @@ float shadow_factor(vec3 n, vec3 l) {
     float s = texture(shadow_map, vec3(p.xy, p.z - bias));  // bilinear PCF (2 x 2 compare)
     return 0.15 + 0.85 * s;
 }
-void main() {
+vec4 shade() {
     vec3 albedo = texture(tex, v_uvl).rgb * v_tint;
     vec3 n = normalize(v_nworld);
     if (!gl_FrontFacing) n = -n;
@@ -191,8 +197,25 @@ void main() {
         col += light_col[i] * (albedo * ndl / (1.0 + d2 / (falloff * falloff)));
     }
     col += albedo * v_mat.w;
-    f_color = vec4(clamp(col, 0.0, 1.0), 1.0);
+    return vec4(clamp(col, 0.0, 1.0), 1.0);
 }
+"""
+COLOR_FS = """
+#version 330
+""" + _COLOR_FS_BODY + """
+out vec4 f_color;
+void main() { f_color = shade(); }
+"""
+# the colour pass writing the G-buffer too (no MSAA): each visible pixel shaded once, depth from a pre-pass
+COLOR_GBUF_FS = """
+#version 330
+""" + _COLOR_FS_BODY + """
+layout(location = 0) out vec4 f_color;
+layout(location = 1) out uint f_id;
+layout(location = 2) out float f_depth;
+layout(location = 3) out vec4 f_normal;
+""" + _GBUF_WRITE + """
+void main() { f_color = shade(); write_gbuffer(); }
 """
 
 
@@ -216,38 +239,44 @@ def perspective(fovy, aspect, near, far) -> np.ndarray:
                      [0, 0, (far + near) / (near - far), 2 * far * near / (near - far)], [0, 0, -1, 0]])
 
 
-def frustum_keep(scene: Scene, cam, margin: float = 1.5) -> np.ndarray:
-    """Boolean per object: its bounding sphere comes within `margin` metres of the camera's
-    view frustum (objects farther out can neither be seen nor shadow what is seen, given the
-    key light sits above the camera's corridor)."""
+def frustum_slack(scene: Scene, cam) -> np.ndarray:
+    """Per object, how far (metres) its bounding sphere lies outside the camera's view frustum:
+    <= 0 where it reaches into the view (it may be seen), > 0 where it cannot be seen."""
     c = np.array([o.center for o in scene.objects], np.float64)
     rad = 0.5 * np.linalg.norm(np.array([o.size for o in scene.objects], np.float64), axis=1)
     pc = cam.to_cam(c)
     K = cam.K
-    keep = pc[:, 2] > -rad - margin
+    out = -pc[:, 2] - rad   # behind the camera
     for a, axis, sign in (((cam.width - K[0, 2]) / K[0, 0], 0, 1), (K[0, 2] / K[0, 0], 0, -1),
                           ((cam.height - K[1, 2]) / K[1, 1], 1, 1), (K[1, 2] / K[1, 1], 1, -1)):
         d = (sign * pc[:, axis] - a * pc[:, 2]) / np.sqrt(1 + a * a)
-        keep &= d <= rad + margin
-    return keep
+        out = np.maximum(out, d - rad)
+    return out
 
 
-def instance_array(scene: Scene, bank: TextureBank, cam=None) -> tuple[np.ndarray, np.ndarray]:
-    """Per-instance attributes (N, 17) float32 for boxes and cylinders (two arrays), for the
-    objects near the view frustum of `cam`."""
-    rows_box, rows_cyl = [], []
-    keep = frustum_keep(scene, cam if cam is not None else scene.camera)
+#: objects whose bounding sphere comes within this many metres of the view frustum cast shadows
+#: (farther ones can neither be seen nor shadow what is seen, given the key light sits above the
+#: camera's corridor); only those reaching into the frustum are drawn by the camera's passes
+SHADOW_MARGIN_M = 1.5
+
+
+def instance_array(scene: Scene, bank: TextureBank, cam=None) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """Per-instance attributes (N, 17) float32 for boxes and cylinders (two arrays) of the objects
+    within SHADOW_MARGIN_M of the view frustum of `cam`, those that reach into it first, and how
+    many of each array reach into it (what the camera's passes draw; the shadow pass draws all)."""
+    cam = cam if cam is not None else scene.camera
+    slack = frustum_slack(scene, cam).tolist()
+    rows = ([], []), ([], [])   # (in view, shadow casters only) per shape
     for i, o in enumerate(scene.objects):
-        if not keep[i] or o.shape == "none":
+        if slack[i] > SHADOW_MARGIN_M or o.shape == "none":
             continue
         m = bank.materials[o.material]
         side = m.side[i % len(m.side)]
         top = m.top[i % len(m.top)]
         row = (*o.center, *o.size, o.yaw, *o.tint, side, top, m.uv_tile, m.specular, m.shininess, m.emissive, i + 1)
-        (rows_cyl if o.shape == "cylinder" else rows_box).append(row)
-    a = np.array(rows_box, np.float32).reshape(-1, 17)
-    b = np.array(rows_cyl, np.float32).reshape(-1, 17)
-    return a, b
+        rows[o.shape == "cylinder"][slack[i] > 0.0].append(row)
+    arrays = [np.array(seen + rest, np.float32).reshape(-1, 17) for seen, rest in rows]
+    return arrays[0], arrays[1], [len(seen) for seen, _ in rows]
 
 
 class GLRenderer:
@@ -294,10 +323,17 @@ class GLRenderer:
         self.gbuf_fbo = ctx.framebuffer(color_attachments=[self.id_tex, self.z_tex, self.n_tex], depth_attachment=gdepth)
         # colour (MSAA + resolve)
         self.msaa = msaa if msaa and msaa > 1 else 0
-        # without MSAA the colour pass reuses the G-buffer's depth (no overdraw shading)
-        self.color_out = ctx.framebuffer(color_attachments=[ctx.renderbuffer((width, height), 4)],
-                                         depth_attachment=gdepth if not (msaa and msaa > 1) else
-                                         ctx.depth_renderbuffer((width, height)))
+        color_rb = ctx.renderbuffer((width, height), 4)
+        self.color_out = ctx.framebuffer(color_attachments=[color_rb],
+                                         depth_attachment=gdepth if not self.msaa else ctx.depth_renderbuffer((width, height)))
+        if not self.msaa:
+            # without MSAA: a depth pre-pass, then colour and G-buffer written by one pass that
+            # shades each pixel once (its nearest surface), sharing the G-buffer's depth
+            self.prepass_prog = ctx.program(vertex_shader=CAM_VS, fragment_shader=SHADOW_FS)
+            self.merged_prog = ctx.program(vertex_shader=CAM_VS, fragment_shader=COLOR_GBUF_FS)
+            self.prepass_fbo = ctx.framebuffer(depth_attachment=gdepth)
+            self.merged_fbo = ctx.framebuffer(color_attachments=[color_rb, self.id_tex, self.z_tex, self.n_tex],
+                                              depth_attachment=gdepth)
         if self.msaa:
             self.color_ms = ctx.framebuffer(
                 color_attachments=[ctx.renderbuffer((width, height), 4, samples=self.msaa)],
@@ -349,9 +385,11 @@ class GLRenderer:
         x0, y0, x1, y1 = region
         drawn = (0, 0, self.W, self.H) if scene.occlusion > 0 else (x0, y0, x1, y1)
         gl_box = (drawn[0], self.H - drawn[3], drawn[2] - drawn[0], drawn[3] - drawn[1])   # GL rows bottom up
-        for fbo in (self.gbuf_fbo, self.color_ms, self.color_out):
+        merged = not self.msaa
+        fbos = (self.gbuf_fbo, self.color_ms, self.color_out) + ((self.prepass_fbo, self.merged_fbo) if merged else ())
+        for fbo in fbos:
             fbo.scissor = gl_box
-        boxes, cyls = instance_array(scene, self.bank, cam)
+        boxes, cyls, in_view = instance_array(scene, self.bank, cam)
         if max(len(boxes), len(cyls)) > self.capacity:
             raise ValueError(f"scene has {len(boxes)} solids, renderer capacity is {self.capacity}")
         counts = []
@@ -379,19 +417,25 @@ class GLRenderer:
         K = cam.K
         proj = (2 * K[0, 0] / self.W, 2 * K[0, 2] / self.W - 1, 2 * K[1, 1] / self.H, 1 - 2 * K[1, 2] / self.H)
         Rwc = cam.R.astype(np.float32)
-        for prog in (self.gbuf_prog, self.color_prog, self.depth_prog):
+        progs = (self.prepass_prog, self.merged_prog) if merged else (self.gbuf_prog, self.color_prog, self.depth_prog)
+        for prog in progs:
             prog["Rwc"].write(Rwc.T.tobytes())  # GLSL mat3 is column-major
             prog["twc"].value = tuple(float(v) for v in cam.t)
             prog["proj"].value = tuple(float(v) for v in proj)
             prog["nf"].value = (NEAR, FAR)
             if "light_vp" in prog._members:
                 prog["light_vp"].write(light_vp32)
-        # 2) G-buffer
+        # 2) G-buffer: with MSAA a pass of its own (exact, not anti-aliased); without, its depth
+        # only (the pass below writes ids, depth and normals beside the colour)
         self.gbuf_fbo.use()
         self.gbuf_fbo.clear(0, 0, 0, 0, depth=1.0)
-        self._draw(self.gbuf_prog, counts)
+        if merged:
+            self.prepass_fbo.use()
+            self._draw(self.prepass_prog, in_view)
+        else:
+            self._draw(self.gbuf_prog, in_view)
         # 3) colour
-        p = self.color_prog
+        p = self.merged_prog if merged else self.color_prog
         _set(p, "tex", 0)
         _set(p, "shadow_map", 1)
         _set(p, "use_shadow", use_shadow)
@@ -415,13 +459,15 @@ class GLRenderer:
             self.color_ms.depth_mask = True
             self.color_ms.use()
             self.color_ms.clear(0.1, 0.1, 0.11, 1.0, depth=1.0)
-            self._draw(self.depth_prog, counts)
+            self._draw(self.depth_prog, in_view)
         self.color_ms.depth_mask = False   # (glClear leaves a masked depth buffer alone)
         self.color_ms.use()
-        if not self.msaa:
+        if merged:
             self.color_ms.clear(0.1, 0.1, 0.11, 1.0)
+            self.merged_fbo.depth_mask = False
+            self.merged_fbo.use()
         ctx.depth_func = "<="
-        self._draw(p, counts)
+        self._draw(p, in_view)
         ctx.depth_func = "<"
         if self.msaa:
             ctx.copy_framebuffer(self.color_out, self.color_ms)
