@@ -264,6 +264,36 @@ def test_npy_bytes_are_what_np_save_writes(tmp_path):
         npy_bytes(np.array([{"x": 1}], dtype=object))
 
 
+@pytest.mark.parametrize("row_filter", ["sub", "up", None])
+def test_png_files_decode_to_the_written_pixels_in_every_reader(row_filter):
+    """WareSynth's PNGs (one row filter, its own deflate) and the adaptive ones must read back
+    exactly, 8- and 16-bit, grey and RGB, with OpenCV (the loaders) and Pillow (the annotator)."""
+    import io
+
+    import cv2
+    from PIL import Image
+
+    from racklay.atomic import encode_png
+
+    rng = np.random.default_rng(1)
+    arrays = [rng.integers(0, 256, (37, 53, 3), dtype=np.uint8), rng.integers(0, 256, (9, 4), dtype=np.uint8),
+              rng.integers(0, 65536, (21, 17), dtype=np.uint16), np.full((1, 1, 3), 200, np.uint8),
+              np.arange(12, dtype=np.uint16).reshape(3, 4)[:, ::-1]]   # a view, not contiguous
+    for a in arrays:
+        data = encode_png(a, row_filter)
+        back = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if a.ndim == 3:
+            back = cv2.cvtColor(back, cv2.COLOR_BGR2RGB)
+        assert back.dtype == a.dtype and np.array_equal(back, a), (a.dtype, a.shape)
+        assert np.array_equal(np.asarray(Image.open(io.BytesIO(data))).astype(a.dtype), a)
+    for bad in (np.zeros((4, 4), np.float32), np.zeros((4, 4, 4), np.uint8), np.zeros((0, 3), np.uint8)):
+        with pytest.raises(ValueError, match="encode_png"):
+            encode_png(bad, row_filter)
+    if row_filter:
+        with pytest.raises(ValueError, match="row_filter"):
+            encode_png(arrays[0], "paeth")
+
+
 def test_level_spans_are_read_strictly_from_the_meta(tmp_path):
     """A sample's level spans (placement supervision): the first R levels' [left, right] from
     meta/level_spans, NaN for a level without one or a sample without meta; a malformed entry is
