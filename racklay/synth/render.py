@@ -334,12 +334,11 @@ class GLRenderer:
             self.prepass_fbo = ctx.framebuffer(depth_attachment=gdepth)
             self.merged_fbo = ctx.framebuffer(color_attachments=[color_rb, self.id_tex, self.z_tex, self.n_tex],
                                               depth_attachment=gdepth)
-        if self.msaa:
+            self.color_ms = self.color_out
+        else:
             self.color_ms = ctx.framebuffer(
                 color_attachments=[ctx.renderbuffer((width, height), 4, samples=self.msaa)],
                 depth_attachment=ctx.depth_renderbuffer((width, height), samples=self.msaa))
-        else:
-            self.color_ms = self.color_out
 
     def _vaos(self, prog):
         """One VAO per mesh for `prog` (cached); attributes the program does not use are skipped."""
