@@ -101,15 +101,6 @@ SHADOW_VS = _VS_COMMON + """
 uniform mat4 light_vp;
 void main() { gl_Position = light_vp * vec4(world_pos(), 1.0); }
 """
-DEPTH_VS = _VS_COMMON + """
-uniform mat3 Rwc; uniform vec3 twc; uniform vec4 proj; uniform vec2 nf;
-void main() {
-    vec3 pc = Rwc * world_pos() + twc;
-    float n = nf.x, f = nf.y;
-    gl_Position = vec4(proj.x * pc.x + proj.y * pc.z, -proj.z * pc.y + proj.w * pc.z,
-                       (pc.z * (f + n) - 2.0 * f * n) / (f - n), pc.z);
-}
-"""
 SHADOW_FS = """
 #version 330
 void main() {}
@@ -298,9 +289,8 @@ class GLRenderer:
         self.tex.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
         self.tex.repeat_x = self.tex.repeat_y = True
         self.shadow_prog = ctx.program(vertex_shader=SHADOW_VS, fragment_shader=SHADOW_FS)
-        self.gbuf_prog = ctx.program(vertex_shader=CAM_VS, fragment_shader=GBUF_FS)
-        self.color_prog = ctx.program(vertex_shader=CAM_VS, fragment_shader=COLOR_FS)
-        self.depth_prog = ctx.program(vertex_shader=DEPTH_VS, fragment_shader=SHADOW_FS)
+        # the depth pre-pass: the camera passes' own vertex shader, so its depth is the one they test against
+        self.depth_prog = ctx.program(vertex_shader=CAM_VS, fragment_shader=SHADOW_FS)
         self.meshes = []
         for verts, idx in (cube_mesh(), cylinder_mesh()):
             self.meshes.append((ctx.buffer(verts.tobytes()), ctx.buffer(idx.tobytes()), len(idx)))
@@ -329,13 +319,14 @@ class GLRenderer:
         if not self.msaa:
             # without MSAA: a depth pre-pass, then colour and G-buffer written by one pass that
             # shades each pixel once (its nearest surface), sharing the G-buffer's depth
-            self.prepass_prog = ctx.program(vertex_shader=CAM_VS, fragment_shader=SHADOW_FS)
             self.merged_prog = ctx.program(vertex_shader=CAM_VS, fragment_shader=COLOR_GBUF_FS)
             self.prepass_fbo = ctx.framebuffer(depth_attachment=gdepth)
             self.merged_fbo = ctx.framebuffer(color_attachments=[color_rb, self.id_tex, self.z_tex, self.n_tex],
                                               depth_attachment=gdepth)
             self.color_ms = self.color_out
         else:
+            self.gbuf_prog = ctx.program(vertex_shader=CAM_VS, fragment_shader=GBUF_FS)
+            self.color_prog = ctx.program(vertex_shader=CAM_VS, fragment_shader=COLOR_FS)
             self.color_ms = ctx.framebuffer(
                 color_attachments=[ctx.renderbuffer((width, height), 4, samples=self.msaa)],
                 depth_attachment=ctx.depth_renderbuffer((width, height), samples=self.msaa))
@@ -416,7 +407,7 @@ class GLRenderer:
         K = cam.K
         proj = (2 * K[0, 0] / self.W, 2 * K[0, 2] / self.W - 1, 2 * K[1, 1] / self.H, 1 - 2 * K[1, 2] / self.H)
         Rwc = cam.R.astype(np.float32)
-        progs = (self.prepass_prog, self.merged_prog) if merged else (self.gbuf_prog, self.color_prog, self.depth_prog)
+        progs = (self.depth_prog, self.merged_prog) if merged else (self.gbuf_prog, self.color_prog, self.depth_prog)
         for prog in progs:
             prog["Rwc"].write(Rwc.T.tobytes())  # GLSL mat3 is column-major
             prog["twc"].value = tuple(float(v) for v in cam.t)
@@ -430,7 +421,7 @@ class GLRenderer:
         self.gbuf_fbo.clear(0, 0, 0, 0, depth=1.0)
         if merged:
             self.prepass_fbo.use()
-            self._draw(self.prepass_prog, in_view)
+            self._draw(self.depth_prog, in_view)
         else:
             self._draw(self.gbuf_prog, in_view)
         # 3) colour
