@@ -5,7 +5,10 @@ from __future__ import annotations
 import io
 import json
 import os
+import struct
 import tempfile
+import zlib
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -107,8 +110,9 @@ def encode_png(image: np.ndarray, row_filter: str | None = None) -> bytes:
     images) or "up" (piecewise-constant maps: normals, ids, depth): that one filter on every row
     and a fast deflate (`_png_fixed_filter`), as WareSynth writes its files."""
     arr = np.asarray(image)
-    if arr.dtype not in (np.uint8, np.uint16) or not (arr.ndim == 2 or (arr.ndim == 3 and arr.shape[2] == 3)) \
-            or arr.dtype == np.uint16 and arr.ndim == 3 or 0 in arr.shape:
+    rgb8 = arr.dtype == np.uint8 and arr.ndim == 3 and arr.shape[2] == 3
+    grey = arr.dtype in (np.uint8, np.uint16) and arr.ndim == 2
+    if not (rgb8 or grey) or 0 in arr.shape:
         raise ValueError(f"encode_png: need an (H, W, 3) uint8 or (H, W) uint8/uint16 array, got {arr.dtype} {arr.shape}")
     if row_filter is not None:
         return _png_fixed_filter(arr, row_filter)
@@ -126,22 +130,25 @@ def encode_png(image: np.ndarray, row_filter: str | None = None) -> bytes:
 _PNG_FILTERS = {"sub": 1, "up": 2}
 
 
-def _deflate(data: bytes) -> bytes:
-    """zlib stream of `data` at level 1: ISA-L's deflate (the `isal` package, 3-5x zlib's
-    speed) where it is installed, else the standard library's."""
+@cache
+def _deflate_module():
+    """ISA-L's zlib-compatible deflate (the `isal` package, 3-5x zlib's speed) where it is
+    installed, else the standard library's (a platform without isal wheels: same pixels, slower)."""
     try:
-        from isal import isal_zlib as z
-    except ImportError:   # a platform without isal wheels: same pixels, slower
-        import zlib as z
-    return z.compress(data, 1)
+        from isal import isal_zlib
+        return isal_zlib
+    except ImportError:
+        return zlib
+
+
+def _deflate(data: bytes) -> bytes:
+    """zlib stream of `data` at level 1 (`_deflate_module`)."""
+    return _deflate_module().compress(data, 1)
 
 
 def _png_fixed_filter(arr: np.ndarray, row_filter: str) -> bytes:
     """A PNG with one row filter ("sub": each byte minus the one a pixel to its left, "up": minus
     the one above) on every row, filtered with numpy, deflated by `_deflate`."""
-    import struct
-    import zlib
-
     if row_filter not in _PNG_FILTERS:
         raise ValueError(f"row_filter {row_filter!r}: expected one of {sorted(_PNG_FILTERS)} or None")
     H, W = arr.shape[:2]
