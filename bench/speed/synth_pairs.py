@@ -21,7 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from bench.common import REPO
+from bench.common import REPO, markdown_table
 
 
 def drop_caches() -> bool:
@@ -88,10 +88,10 @@ def main(argv=None) -> int:
     print(f"\nWareSynth throughput, baseline {rev[:7]} vs this checkout ({head}), "
           f"{args.n} images x {args.workers} workers per run, runs alternated"
           + ("" if args.no_drop_caches or dropped else " (page cache not dropped: not root)"))
-    print("\n| recipe | pair | baseline images/min (CPU ms) | current images/min (CPU ms) | current / baseline |")
-    print("|---|---|---|---|---|")
-    for recipe, k, (b, bc), (c, cc) in rows:
-        print(f"| {recipe} | {k} | {b:.0f} ({bc:.0f}) | {c:.0f} ({cc:.0f}) | {c / b:.2f}x |")
+    print("\n" + markdown_table(
+        ["recipe", "pair", "baseline images/min (CPU ms)", "current images/min (CPU ms)", "current / baseline"],
+        [[recipe, k, f"{b:.0f} ({bc:.0f})", f"{c:.0f} ({cc:.0f})", f"{c / b:.2f}x"]
+         for recipe, k, (b, bc), (c, cc) in rows]))
     for recipe in recipes:
         ratios = [c[0] / b[0] for r, _, b, c in rows if r == recipe]
         print(f"{recipe}: median ratio {statistics.median(ratios):.2f}x over {len(ratios)} pair(s)")
