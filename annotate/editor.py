@@ -15,11 +15,12 @@ import json
 import math
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from racklay import layout as L
+from racklay.data import luminance
 from racklay.reasoning import ReasoningConfig
 
 from . import draw as D
@@ -50,11 +51,15 @@ class Tool:
         self.project = project
         self.predictor = predictor
         self.user = user
-        #: how the model's layouts are read into box proposals (racklay.reasoning's knobs)
-        self.reasoning = ReasoningConfig()
+        #: how the model's layouts are read into box proposals (racklay.reasoning's knobs); no cut
+        #: where a box region's top steps: the photo's gaps cut better (docs/annotate.md, measured)
+        self.reasoning = replace(ReasoningConfig(), split_step_m=0.0)
+        #: how a proposal is cut where the photo shows a gap along it (depth 0: never)
+        self.gap_split = G.GapSplit()
         self._images: OrderedDict[str, np.ndarray] = OrderedDict()
         self._photo_b64: OrderedDict[str, str] = OrderedDict()
         self._preds: OrderedDict[str, dict] = OrderedDict()
+        self._luma: OrderedDict[str, np.ndarray] = OrderedDict()
         self._derived: OrderedDict[str, _Derived] = OrderedDict()
         self._lock = threading.RLock()
         self._history: dict[str, tuple] = {}     # undo history waiting to be written, per photo
@@ -824,9 +829,23 @@ class Tool:
                     self._preds.popitem(last=False)
             return self._preds[name]
 
+    def luma(self, name: str) -> np.ndarray:
+        """The photo's luminance (uint8, H x W) as the labeller sees it (a squeezed photo
+        un-squeezed, the rack plane's pixels): what the proposals' gap cut reads."""
+        with self._lock:
+            if name not in self._luma:
+                rgb = G.restore_aspect(self.image(name), S.pixel_aspect(self.project.settings))
+                self._luma[name] = np.clip(luminance(rgb) + 0.5, 0, 255).astype(np.uint8)
+                while len(self._luma) > 8:
+                    self._luma.popitem(last=False)
+            self._luma.move_to_end(name)
+            return self._luma[name]
+
     def refresh_proposals(self, ann: S.Annotation) -> str:
         """Recompute the model's box proposals for the current corners and shelves (skipping
-        those that overlap a box already there or one the labeller rejected)."""
+        those that overlap a box already there or one the labeller rejected): the stacks the rack
+        reasoning reads in the model's layouts, each cut where the photo shows a gap along it
+        (`gap_split`, geometry.split_at_dark_gaps)."""
         scene = self.scene(ann)
         if scene is None:
             ann["proposals"] = []
@@ -848,9 +867,17 @@ class Tool:
             ann["proposals"] = []
             return f"no model proposals: {e}"
         probs = pred.get("probs", {}).get("front")
-        props = G.front_box_rects(pred["front"], pred.get("top"), pred["grid"], scene.shelf_v, scene.width,
-                                  scene.depth, probs_box=None if probs is None else probs[:, L.BOX],
-                                  tops=[v + c for v, c in zip(scene.shelf_v, scene.clear)], cfg=self.reasoning)
+
+        def read(front, top):
+            return G.front_box_rects(front, top, pred["grid"], scene.shelf_v, scene.width, scene.depth,
+                                     probs_box=None if probs is None else probs[:, L.BOX],
+                                     tops=[v + c for v, c in zip(scene.shelf_v, scene.clear)], cfg=self.reasoning)
+
+        props = read(pred["front"], pred.get("top"))
+        gaps = G.photo_gaps(props, self.luma(ann["image"]), scene.plane, self.gap_split) if self.gap_split.depth else []
+        if gaps:     # one proposal per load: the layouts cut where the photo shows a gap, read again
+            props = read(*(None if v is None else G.cut_box_columns(v, pred["grid"], scene.width, gaps)
+                           for v in (pred["front"], pred.get("top"))))
         have = [(b.shelf, (b.u0, b.u1, b.v0, b.v1)) for b in scene.boxes]
         rejected = [(int(r[0]), tuple(r[1:])) for r in ann.get("rejected", [])]
         out = []

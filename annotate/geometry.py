@@ -34,6 +34,7 @@ import numpy as np
 
 from racklay import layout as L
 from racklay.camera import PinholeCamera
+from racklay.config import check_fields, option
 from racklay.data import SPAN_AT_CLEAR_HEIGHT
 
 
@@ -444,6 +445,117 @@ def front_box_rects(front: np.ndarray, top: np.ndarray | None, grid: L.Grid, she
             out.append(Proposal(i, float(u0), float(u1), float(v0), float(v1), depth, off, score))
     return out
 
+
+
+@dataclass
+class GapSplit:
+    """How a model proposal is cut where the photo shows a gap along it (`split_at_dark_gaps`).
+    The gap between two loads is a narrow dark slot in the photo (the shadowed space between
+    them, the rack's back); the model often reads the loads as one run. Declared with
+    racklay.config.option, so each default is written once."""
+
+    depth: float = option(0.3, "cut where the photo along the proposal is darker than the light on both sides "
+                               "within close_m by at least this share of its median luminance; 0: never cut "
+                               "(default {default})", lo=0)
+    close_m: float = option(0.3, "widest dark slot that counts as a gap, metres: darker stretches wider than "
+                                 "this are a dark load, not a gap (default {default})", gt=0)
+    min_part_m: float = option(0.2, "narrowest load a cut may leave on either side, metres (default {default})",
+                               lo=0)
+    rows: tuple = option((0.05, 0.6), "the band of the proposal's height the cue is read in, as fractions from "
+                                      "its bottom (loads' lower parts: their tops may be cut by the next board)")
+    step_m: float = option(0.01, "the cue is read every this many metres along the rack (default {default})", gt=0)
+
+    def __post_init__(self):
+        check_fields(self)
+        lo, hi = self.rows
+        if not 0 <= lo < hi <= 1:
+            raise ValueError(f"option 'rows': expected 0 <= bottom < top <= 1, got {self.rows!r}")
+
+
+#: image rows sampled across a proposal's band at each position along the rack
+_CUE_ROWS = 16
+
+
+def plane_profile(luma: np.ndarray, plane: RackPlane, u0: float, u1: float, v0: float, v1: float,
+                  rows: tuple = (0.0, 1.0), step: float = 0.01, n_rows: int = _CUE_ROWS):
+    """The photo's luminance along the rack: positions u every `step` metres in [u0, u1) and, at
+    each, the mean of `luma` (H, W) over `n_rows` points of the plane from v0 + rows[0] (v1 - v0) to
+    v0 + rows[1] (v1 - v0) (nearest pixel; NaN where fewer than a quarter of them are in the photo).
+    Returns (u, value), each (n,)."""
+    H, W = luma.shape
+    us = np.arange(u0 + step / 2, u1, step)
+    fs = np.linspace(v0 + rows[0] * (v1 - v0), v0 + rows[1] * (v1 - v0), n_rows)
+    pts = plane.to_image(np.stack(np.broadcast_arrays(us[:, None], fs[None, :]), -1).reshape(-1, 2))
+    xs, ys = pts[:, 0].reshape(len(us), n_rows), pts[:, 1].reshape(len(us), n_rows)
+    ok = (xs >= 0) & (xs < W) & (ys >= 0) & (ys < H)
+    px = luma[np.where(ok, ys, 0).astype(int), np.where(ok, xs, 0).astype(int)]
+    n = ok.sum(1)
+    val = np.where(n >= n_rows / 4, (px * ok).sum(1) / np.maximum(n, 1), np.nan)
+    return us, val
+
+
+def split_at_dark_gaps(p: Proposal, luma: np.ndarray, plane: RackPlane, cfg: GapSplit | None = None,
+                       max_cuts: int = 3) -> list[Proposal]:
+    """`p` cut where the photo shows a gap along it: the photo's luminance along the proposal's
+    band (`plane_profile`), its black top-hat (grey closing over `cfg.close_m` minus the profile,
+    over the profile's median: how much darker than the light on both sides a narrow slot is); at
+    the strongest slot at least `cfg.depth` deep that leaves `cfg.min_part_m` on both sides, the
+    proposal becomes two, the slot (where it is at least half as deep) left between them; each
+    part again, up to `max_cuts` deep. `p` unchanged where no slot is deep enough or the photo
+    does not show most of it. Measured on the labelled photos: docs/annotate.md."""
+    from dataclasses import replace
+
+    from scipy.ndimage import grey_closing
+
+    cfg = cfg or GapSplit()
+    if not cfg.depth or max_cuts <= 0 or p.u1 - p.u0 < 2 * cfg.min_part_m:
+        return [p]
+    us, val = plane_profile(luma, plane, p.u0, p.u1, p.v0, p.v1, cfg.rows, cfg.step_m)
+    if not len(us) or np.isnan(val).mean() > 0.3:
+        return [p]
+    val = np.where(np.isnan(val), np.nanmedian(val), val)
+    k = max(3, int(round(cfg.close_m / cfg.step_m)) | 1)
+    slot = (grey_closing(val, size=k, mode="nearest") - val) / max(float(np.median(val)), 1e-6)
+    inner = (us - p.u0 >= cfg.min_part_m) & (p.u1 - us >= cfg.min_part_m)
+    j = int(np.argmax(np.where(inner, slot, -np.inf)))
+    if not inner[j] or slot[j] < cfg.depth:
+        return [p]
+    lo, hi = j, j
+    while lo > 0 and slot[lo - 1] >= slot[j] / 2:
+        lo -= 1
+    while hi < len(us) - 1 and slot[hi + 1] >= slot[j] / 2:
+        hi += 1
+    half = cfg.step_m / 2
+    left = replace(p, u1=float(max(us[lo] - half, p.u0 + cfg.min_part_m)))
+    right = replace(p, u0=float(min(us[hi] + half, p.u1 - cfg.min_part_m)))
+    return (split_at_dark_gaps(left, luma, plane, cfg, max_cuts - 1)
+            + split_at_dark_gaps(right, luma, plane, cfg, max_cuts - 1))
+
+
+def photo_gaps(props: list[Proposal], luma: np.ndarray, plane: RackPlane,
+               cfg: GapSplit | None = None) -> list[tuple[int, float, float]]:
+    """Where the photo shows a gap inside a proposal (`split_at_dark_gaps`): (shelf, u0, u1) of
+    every stretch left between the parts of a proposal it cuts."""
+    out = []
+    for p in props:
+        parts = split_at_dark_gaps(p, luma, plane, cfg)
+        out += [(p.shelf, a.u1, b.u0) for a, b in zip(parts, parts[1:])]
+    return out
+
+
+def cut_box_columns(layouts: np.ndarray, grid: L.Grid, width: float, gaps) -> np.ndarray:
+    """A copy of a view's layout stack (R, D, D) with the box pixels of each gap (shelf, u0, u1)
+    (rack plane, metres: the columns whose centre x = u - width / 2 lies in [u0, u1)) made free
+    shelf space, as a gap between two loads is drawn: the rack reasoning then reads the loads on
+    either side as stacks of their own, each with its own height."""
+    out = layouts.copy()
+    x = grid.centers()
+    for shelf, u0, u1 in gaps:
+        if shelf < len(out):
+            cols = (x >= L.u_to_x(u0, width)) & (x < L.u_to_x(u1, width))
+            ch = out[shelf]
+            ch[:, cols] = np.where(ch[:, cols] == L.BOX, L.SHELF, ch[:, cols])
+    return out
 
 def proposal_to_box(plane: RackPlane, p: Proposal, box_id: int) -> dict:
     """A proposal as a box annotation dict (pixel corners bottom-left / top-right)."""

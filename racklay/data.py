@@ -247,6 +247,15 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     return decode_image(np.fromfile(str(path), dtype=np.uint8), str(path), info)
 
 
+#: ITU-R BT.601 luma weights of R, G, B
+LUMA_WEIGHTS = np.array([0.299, 0.587, 0.114], np.float32)
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """Luma (BT.601) of an RGB image (..., 3) as float32, in the image's own units (0-255 for
+    uint8): what the annotator's gap cue and the benchmarks' contrast measures read."""
+    return rgb[..., :3].astype(np.float32) @ LUMA_WEIGHTS
+
 def _png_complete(data: np.ndarray) -> bool:
     tail = data[-12:].tobytes()
     return b"IEND" in tail

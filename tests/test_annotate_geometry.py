@@ -193,6 +193,47 @@ def test_touching_stacks_are_proposed_one_by_one():
     np.testing.assert_allclose([p.v1 - p.v0 for p in props], [0.25, 0.5], atol=GRID.res)
 
 
+
+#: a frontal 2 x 2 m rack filling a 640 x 640 photo: 320 px a metre, u = x / 320, v = 2 - y / 320
+FRONTAL = G.RackPlane.from_corners([[0, 0], [640, 0], [640, 640], [0, 640]], 2.0, 2.0)
+
+
+def _photo_with_slots(*slots, light=200, dark=60):
+    """Luminance of that photo: light, with dark stretches (u0, u1) over the whole height."""
+    luma = np.full((640, 640), light, np.uint8)
+    for u0, u1 in slots:
+        luma[:, int(round(u0 * 320)):int(round(u1 * 320))] = dark
+    return luma
+
+
+def test_a_proposal_is_cut_where_the_photo_shows_a_gap():
+    """One proposal over two loads with a dark 8 cm slot between them in the photo becomes two,
+    the slot left between them; over three loads, three; each keeps its heights, depth and offset."""
+    p = G.Proposal(0, 0.30, 1.70, 0.10, 0.60, 0.5, 0.02, 0.9)
+    two = G.split_at_dark_gaps(p, _photo_with_slots((0.96, 1.04)), FRONTAL)
+    assert len(two) == 2
+    np.testing.assert_allclose([(q.u0, q.u1) for q in two], [(0.30, 0.96), (1.04, 1.70)], atol=0.011)
+    assert all((q.shelf, q.v0, q.v1, q.depth, q.front_offset, q.score) == (0, 0.10, 0.60, 0.5, 0.02, 0.9) for q in two)
+    three = G.split_at_dark_gaps(p, _photo_with_slots((0.75, 0.80), (1.20, 1.30)), FRONTAL)
+    np.testing.assert_allclose([(q.u0, q.u1) for q in three], [(0.30, 0.75), (0.80, 1.20), (1.30, 1.70)], atol=0.011)
+
+
+def test_no_cut_without_a_narrow_deep_slot():
+    """A photo that is even along the proposal, a dark stretch wider than close_m (a dark load, not
+    a gap), a slot too shallow, one closer than min_part_m to an end, a proposal too narrow to
+    halve, and a cut switched off (depth 0): the proposal stays as it is."""
+    p = G.Proposal(0, 0.30, 1.70, 0.10, 0.60, None, 0.0)
+    for luma, cfg in [(_photo_with_slots(), None), (_photo_with_slots((0.8, 1.3)), None),
+                      (_photo_with_slots((0.96, 1.04), dark=170), None), (_photo_with_slots((0.35, 0.42)), None),
+                      (_photo_with_slots((0.96, 1.04)), G.GapSplit(depth=0))]:
+        assert G.split_at_dark_gaps(p, luma, FRONTAL, cfg) == [p]
+    narrow = G.Proposal(0, 0.82, 1.18, 0.10, 0.60, None, 0.0)
+    assert G.split_at_dark_gaps(narrow, _photo_with_slots((0.96, 1.04)), FRONTAL) == [narrow]
+    with pytest.raises(ValueError, match="rows"):
+        G.GapSplit(rows=(0.6, 0.2))
+    with pytest.raises(ValueError, match="close_m"):
+        G.GapSplit(close_m=0)
+
 def _one_box_scene(v0, v1, on_board=None):
     """A frontal 2 x 2 m rack filling a 640 x 640 photo (320 px a metre), boards at 0.1 and 0.75 m."""
     ann = S.new_annotation("x.png", 640, 640)

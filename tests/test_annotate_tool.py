@@ -279,6 +279,32 @@ def test_model_proposals_accept_edit_reject(proj):
     assert pred.calls == 1
 
 
+
+def test_a_proposal_over_two_loads_is_cut_at_the_gap_the_photo_shows(proj):
+    """The model reads the top shelf's 1 m load as one; the photo shows a dark slot across its
+    middle (two loads): the tool proposes the two, split at the slot, unless the cut is off."""
+    import cv2
+
+    truth = clicks(CAM)
+    plane = G.build_scene(truth, proj.settings).plane
+    rgb = np.full((480, 640, 3), 170, np.uint8)
+    slot = plane.to_image([[0.97, BOARDS[2]], [1.03, BOARDS[2]], [1.03, BOARDS[2] + 0.45], [0.97, BOARDS[2] + 0.45]])
+    cv2.fillPoly(rgb, [np.round(slot).astype(np.int32)], (40, 40, 40))
+    for depth, want in ((G.GapSplit().depth, len(BOXES) + 1), (0.0, len(BOXES))):
+        name = f"slot{depth:g}.png"
+        (proj.root / name).write_bytes(encode_png(rgb))
+        tool = Tool(proj, predictor=StandIn())
+        tool.gap_split = G.GapSplit(depth=depth)
+        st = label_by_clicks(tool, tool.open(name), dict(truth, image=name, boxes=[]))
+        scene = G.build_scene(st.ann, proj.settings)
+        top = sorted((m.u0, m.u1) for m in (G.metric_box(scene.plane, p, scene.shelf_v, 0.6, 0.6)
+                                            for p in st.ann["proposals"]) if m.shelf == 2)
+        assert len(st.ann["proposals"]) == want
+        if depth:
+            np.testing.assert_allclose(top, [(0.5, 0.97), (1.03, 1.5)], atol=0.03)
+        else:
+            np.testing.assert_allclose(top, [(0.5, 1.5)], atol=0.03)
+
 def test_done_asks_once_then_rejects_waiting_proposals(proj):
     """d while model proposals wait: the first press asks, any other action disarms it, a
     second d right after rejects them all (remembered) and marks the photo done."""

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.accuracy.slot_contrast import luminance
+from racklay.data import luminance
 from bench.accuracy.structure_ab import rank_auc
 from bench.accuracy.synth_coverage import run_spans
 

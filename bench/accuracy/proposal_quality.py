@@ -6,14 +6,16 @@
 For every labelled photo, the labeller's own rack (corners, size) and shelves are given to the
 annotation tool with no boxes, and the tool proposes boxes exactly as it does in the browser
 (`annotate.editor.Tool.refresh_proposals`: the model run on the photo as taken, its layouts scaled
-to the typed rack width, read into one rectangle per box stack by `racklay.reasoning`). The
+to the typed rack width, read into one rectangle per box stack by `racklay.reasoning`, each cut
+where the photo shows a gap along it, `annotate.geometry.split_at_dark_gaps`). The
 proposals are matched one to one (greedy, highest IoU first) with the labels' box stacks (labelled
 boxes whose footprints overlap, as `racklay.reasoning.group_stacks` groups them; one rectangle
 around each stack on the rack plane) on the same shelf: a proposal with IoU >= --iou is one a
 labeller accepts as it is.
 
 Prints, per reasoning setting (`--split-step`, repeatable; 0: regions split only at gaps, as before
-the step cut): label stacks, proposals, accepted (IoU >= --iou), precision, recall, the mean IoU of
+the step cut) and gap cut (`--gap-depth`, repeatable; 0: no cut at the photo's gaps, as before
+it): label stacks, proposals, accepted (IoU >= --iou), precision, recall, the mean IoU of
 the accepted, and the labeller's input for the boxes alone: with no model, two clicks per stack;
 with proposals, one key per accepted proposal, two clicks per stack left to draw and two keys on
 each photo where proposals are left over (`d` rejects the waiting ones after asking once); 1.5 s
@@ -69,6 +71,9 @@ def main(argv=None) -> int:
     ap.add_argument("--split-step", type=float, action="append", default=None, metavar="M",
                     help="racklay.reasoning split_step_m for reading proposals; repeat to compare (default: 0 and "
                          "the default)")
+    ap.add_argument("--gap-depth", type=float, action="append", default=None, metavar="D",
+                    help="annotate.geometry.GapSplit depth: cut proposals at the photo's gaps this deep; 0: no cut; "
+                         "repeat to compare (default: 0 and the default)")
     ap.add_argument("--iou", type=float, default=0.5, help="a proposal this close to a label stack is accepted")
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--flip-average", action="store_true",
@@ -90,13 +95,16 @@ def main(argv=None) -> int:
     weights = resolve_weights(args.weights)
     tool = Tool(proj, Predictor(weights, precision="auto", flip_average=args.flip_average))
     steps = args.split_step or [0.0, ReasoningConfig().split_step_m]
-    rows = {s: {"truth": 0, "props": 0, "ious": [], "left": 0} for s in steps}
+    depths = args.gap_depth or [0.0, G.GapSplit().depth]
+    settings = [(s, d) for s in steps for d in depths]
+    rows = {k: {"truth": 0, "props": 0, "ious": [], "left": 0} for k in settings}
     for name in names:
         ann = proj.load(name)
         scene = G.build_scene(ann, proj.settings)
         truth = label_stacks(scene)
-        for s in steps:
+        for s, d in settings:
             tool.reasoning = replace(ReasoningConfig(), split_step_m=s)
+            tool.gap_split = replace(G.GapSplit(), depth=d)
             bare = copy.deepcopy(ann)
             bare["boxes"], bare["proposals"], bare["rejected"] = [], [], []
             tool.refresh_proposals(bare)
@@ -105,7 +113,7 @@ def main(argv=None) -> int:
                 mb = G.metric_box(scene.plane, b, scene.shelf_v, scene.depth, scene.depth)
                 if mb.shelf is not None:
                     props.append((mb.shelf, (mb.u0, mb.u1, mb.v0, mb.v1)))
-            r = rows[s]
+            r = rows[s, d]
             r["truth"] += len(truth)
             r["props"] += len(props)
             ious = match(props, truth, args.iou)
@@ -113,14 +121,14 @@ def main(argv=None) -> int:
             r["left"] += len(props) > len(ious)
     print(f"{args.project}, split {args.split}: {len(names)} labelled photos; proposals of {Path(weights).name}, "
           f"accepted at IoU >= {args.iou} with a label stack\n")
-    print("| step cut | label stacks | proposals | accepted | precision | recall | mean IoU accepted "
+    print("| step cut | cut at the photo's gaps | label stacks | proposals | accepted | precision | recall | mean IoU accepted "
           "| input for the boxes, s (no model / with proposals) |")
-    print("|---|---|---|---|---|---|---|---|")
-    for s, r in rows.items():
+    print("|---|---|---|---|---|---|---|---|---|")
+    for (s, d), r in rows.items():
         acc = len(r["ious"])
         manual = 2 * CLICK_S * r["truth"]
         assisted = KEY_S * (acc + 2 * r["left"]) + 2 * CLICK_S * (r["truth"] - acc)
-        print(f"| {s:g} m | {r['truth']} | {r['props']} | {acc} | {100 * acc / max(r['props'], 1):.1f} % "
+        print(f"| {s:g} m | {f'depth {d:g}' if d else 'no'} | {r['truth']} | {r['props']} | {acc} | {100 * acc / max(r['props'], 1):.1f} % "
               f"| {100 * acc / max(r['truth'], 1):.1f} % | {sum(r['ious']) / max(acc, 1):.3f} "
               f"| {manual:.0f} / {assisted:.0f} |")
     return 0

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from racklay.data import luminance
+
 #: gaps measured: between MIN_GAP_M and MAX_GAP_M wide (narrower: loads touching; wider: an empty stretch)
 MIN_GAP_M, MAX_GAP_M, WIDE_GAP_M = 0.02, 0.40, 0.08
 #: a slot's face must cover this many image pixels to be measured
@@ -53,10 +55,6 @@ def front_gaps(front: np.ndarray, grid) -> list[tuple[float, float, float]]:
             if MIN_GAP_M <= x1 - x0 <= MAX_GAP_M:
                 out.append((x0, x1, float(grid.px_to_m(D // 2 - max(top[a], top[b])))))
     return out
-
-
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    return rgb[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
 
 
 def region_mean(Y: np.ndarray, poly: np.ndarray) -> float | None:
