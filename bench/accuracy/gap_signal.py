@@ -34,9 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-from racklay.data import luminance
 from bench.accuracy.structure_ab import rank_auc
 from bench.accuracy.synth_coverage import run_spans
+from racklay.data import luminance
 
 #: the darkness cue at the labelled geometry pools the rows from the board to this share
 CUE_ROWS = (0.05, 0.6)
