@@ -84,6 +84,7 @@ def build_app(project: Project, predictor=None, user: str | None = None):
                     gr.Number(label="split into N equal boxes (w)", elem_id="split-n", elem_classes="rl-field",
                               minimum=2, precision=0)
                     gr.Button("split the row (w)", elem_id="btn-split-row", size="sm")
+                    gr.Button("split at the photo's gaps (W)", elem_id="btn-split-gaps", size="sm")
                 with gr.Row():
                     gr.Button("on board / floats (f)", elem_id="btn-on-board", size="sm")
                     gr.Button("delete (Del)", elem_id="btn-delete", size="sm")

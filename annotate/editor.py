@@ -303,7 +303,8 @@ class Tool:
                   "next": lambda s: self.step(s, +1), "prev": lambda s: self.step(s, -1),
                   "next_unfinished": lambda s: self.step(s, +1, unfinished=True),
                   "confirm_size": self.confirm_size, "toggle_on_board": self.toggle_on_board,
-                  "size_from_box": self.size_from_box, "split_row": self.split_row}.get(a["name"])
+                  "size_from_box": self.size_from_box, "split_row": self.split_row,
+                  "split_at_gaps": self.split_at_gaps}.get(a["name"])
             if fn is None:
                 raise ValueError(f"unknown action {a['name']!r}")
             return fn(st)
@@ -734,32 +735,61 @@ class Tool:
         becomes N boxes of equal width along the rack, split in metres on the rack plane (so a
         row seen at an angle is split where its loads are, not at equal pixels). Each keeps the
         box's depth, front offset, on-board flag and source."""
-        b = self._selected_box(st)
-        n = int(st.split_n)
-        if b is None:
-            st.msg = ("accept the proposal first (a), then press w" if st.sel and st.sel[0] == "proposal"
-                      else "select the box drawn around the row first (mode 4)")
+        row = self._selected_row(st, "w")
+        if row is None:
             return st
+        b, scene, (u0, u1, v0, v1) = row
+        cuts = np.linspace(u0, u1, int(st.split_n) + 1)
+        return self._replace_box(st, b, scene, list(zip(cuts[:-1], cuts[1:])), v0, v1, "")
+
+    def split_at_gaps(self, st: Session) -> Session:
+        """`W`: the selected box drawn around a row of loads is cut where the photo shows a gap
+        between them (a narrow dark slot along it, `geometry.split_at_dark_gaps`: the same cut as
+        the model proposals'), however many loads and whatever their widths. Each part keeps the
+        box's heights, depth, front offset, on-board flag and source."""
+        row = self._selected_row(st, "W")
+        if row is None:
+            return st
+        b, scene, (u0, u1, v0, v1) = row
+        parts = G.split_at_dark_gaps(G.Proposal(0, u0, u1, v0, v1, None, 0.0), self.luma(st.name), scene.plane,
+                                     self.gap_split)
+        if len(parts) < 2:
+            st.msg = (f"no gap between loads shows along box {b['id']} in the photo: split it into N equal "
+                      f"boxes (w) or draw the loads one by one")
+            return st
+        return self._replace_box(st, b, scene, [(p.u0, p.u1) for p in parts], v0, v1, " at the photo's gaps")
+
+    def _selected_row(self, st: Session, key: str):
+        """(box, scene, (u0, u1, v0, v1) on the rack plane) of the selected box, or None with the
+        reason in st.msg."""
+        b = self._selected_box(st)
+        if b is None:
+            st.msg = (f"accept the proposal first (a), then press {key}" if st.sel and st.sel[0] == "proposal"
+                      else "select the box drawn around the row first (mode 4)")
+            return None
         scene = self.scene(st.ann)
         if scene is None:
             st.msg = "mark the rack's 4 corners and its size first"
-            return st
+            return None
         uv = scene.plane.to_plane([b["p0"], b["p1"]])
         (u0, u1), (v0, v1) = sorted(uv[:, 0]), sorted(uv[:, 1])
-        cuts = np.linspace(u0, u1, n + 1)
+        return b, scene, (float(u0), float(u1), float(v0), float(v1))
 
+    def _replace_box(self, st: Session, b: dict, scene, spans, v0: float, v1: float, how: str) -> Session:
+        """Box `b` replaced by one box per (u0, u1) of `spans` from v0 to v1 (rack plane), each with
+        b's other fields; the first selected."""
         def upd(a):
             keep = {k: v for k, v in b.items() if k not in ("id", "p0", "p1")}
             a["boxes"] = [x for x in a["boxes"] if x["id"] != b["id"]]
             made = []
-            for i in range(n):
-                p = scene.plane.to_image([[cuts[i], v0], [cuts[i + 1], v1]])
+            for s0, s1 in spans:
+                p = scene.plane.to_image([[s0, v0], [s1, v1]])
                 nb = dict(keep, id=_next_id(a["boxes"]), p0=[round(float(c), 2) for c in p[0]],
                           p1=[round(float(c), 2) for c in p[1]])
                 a["boxes"].append(nb)
                 made.append(nb["id"])
             st.sel = ["box", made[0]]
-            return f"box {b['id']} split into {n} boxes ({', '.join(map(str, made))}); box {made[0]} selected"
+            return f"box {b['id']} split{how} into {len(made)} boxes ({', '.join(map(str, made))}); box {made[0]} selected"
         return self.act(st, upd)
 
     def toggle_on_board(self, st: Session) -> Session:

@@ -39,6 +39,7 @@ SHORTCUTS = [
     ("d", "mark done (refused while the photo has warnings; while model proposals wait, d again rejects them)"),
     ("c", "confirm the rack size"), ("g", "rack size from the selected box (a reference object of the typed size)"),
     ("w", "split the selected box into N equal boxes along the rack (a row of equal loads; N under Selection)"),
+    ("W", "split the selected box where the photo shows gaps between its loads (a row of loads, any widths)"),
     ("f", "selected box: stands on its board / floats (on something)"),
     ("a / r", "accept / reject selected proposal"), ("A", "accept all proposals"),
     ("wheel, + / - / 0", "zoom at the cursor / reset; right-drag or Space+drag pans"),
@@ -52,7 +53,7 @@ BUTTONS.update({
     "btn-redo": "redo", "btn-delete": "delete", "btn-save": "save", "btn-done": "done",
     "btn-accept": "accept", "btn-reject": "reject", "btn-accept-all": "accept_all", "btn-cancel": "cancel",
     "btn-confirm-size": "confirm_size", "btn-on-board": "toggle_on_board", "btn-size-from-box": "size_from_box",
-    "btn-split-row": "split_row",
+    "btn-split-row": "split_row", "btn-split-gaps": "split_at_gaps",
     "btn-zoom-in": "view:in", "btn-zoom-out": "view:out", "btn-zoom-reset": "view:reset",
 })
 KEYMAP = {str(i + 1): f"mode:{m}" for i, m in enumerate(MODES)}
@@ -60,7 +61,7 @@ KEYMAP.update({
     "n": "next", "ArrowRight": "next", "p": "prev", "ArrowLeft": "prev", "u": "next_unfinished",
     "z": "undo", "Ctrl+z": "undo", "y": "redo", "Ctrl+y": "redo", "Ctrl+Z": "redo",
     "Delete": "delete", "Backspace": "delete", "x": "delete", "s": "save", "Ctrl+s": "save",
-    "d": "done", "c": "confirm_size", "g": "size_from_box", "w": "split_row", "f": "toggle_on_board", "a": "accept", "r": "reject", "A": "accept_all",
+    "d": "done", "c": "confirm_size", "g": "size_from_box", "w": "split_row", "W": "split_at_gaps", "f": "toggle_on_board", "a": "accept", "r": "reject", "A": "accept_all",
     "+": "view:in", "=": "view:in", "-": "view:out", "0": "view:reset", "Escape": "cancel",
 })
 #: number fields (elem_id -> action field); the page sends the text as typed when it changes

@@ -188,6 +188,38 @@ def test_a_box_around_a_row_of_equal_loads_splits_into_n_on_the_rack_plane(proj)
     assert len(proj.load("r.png")["boxes"]) == 1
 
 
+
+def test_a_box_around_a_row_splits_where_the_photo_shows_gaps(proj):
+    """One box drawn around loads of unequal widths, `W`: cut at the two dark slots the photo shows
+    between them (on the rack plane of an oblique photo), each part keeping the box's depth;
+    a photo with no slot along the box leaves it whole and says why."""
+    import cv2
+
+    truth = clicks(CAM)
+    plane = G.build_scene(truth, proj.settings).plane
+    s_, x0, x1, top = 2, 0.50, 1.50, 0.45                       # BOXES[5]'s front face
+    rgb = np.full((480, 640, 3), 170, np.uint8)
+    for g0, g1 in ((0.78, 0.82), (1.10, 1.16)):
+        q = plane.to_image([[g0, BOARDS[s_]], [g1, BOARDS[s_]], [g1, BOARDS[s_] + top], [g0, BOARDS[s_] + top]])
+        cv2.fillPoly(rgb, [np.round(q).astype(np.int32)], (30, 30, 30))
+    (proj.root / "gaps.png").write_bytes(encode_png(rgb))
+    tool = Tool(proj)
+    for name in ("r.png", "gaps.png"):
+        st = label_by_clicks(tool, tool.open(name), dict(truth, image=name, boxes=[]))
+        p = CAM.project([[x0, 0.0, BOARDS[s_]], [x1, 0.0, BOARDS[s_] + top]])
+        st.mode = "boxes"
+        st = tool.drag(st, p[0].tolist(), p[1].tolist())
+        st = tool.set_box_field(st, "depth", 0.4)
+        st = tool.apply(st, [{"kind": "act", "name": "split_at_gaps", "seq": 1}])
+        boxes = proj.load(name)["boxes"]
+        if name == "r.png":                                      # an even grey photo: no gap to cut at
+            assert len(boxes) == 1 and "no gap" in st.msg
+            continue
+        assert len(boxes) == 3 and all(b["depth"] == 0.4 for b in boxes), st.msg
+        spans = sorted((m.u0, m.u1, m.shelf) for m in G.build_scene(proj.load(name), proj.settings).boxes)
+        np.testing.assert_allclose([sp[:2] for sp in spans], [[0.50, 0.78], [0.82, 1.10], [1.16, 1.50]], atol=0.015)
+        assert {sp[2] for sp in spans} == {s_}
+
 def test_two_labellers_conflict_is_refused_with_message(proj):
     ana, ben = Tool(proj, user="ana"), Tool(proj, user="ben")
     sa, sb = ana.open("r.png"), ben.open("r.png")

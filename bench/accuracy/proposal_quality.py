@@ -19,7 +19,13 @@ it): label stacks, proposals, accepted (IoU >= --iou), precision, recall, the me
 the accepted, and the labeller's input for the boxes alone: with no model, two clicks per stack;
 with proposals, one key per accepted proposal, two clicks per stack left to draw and two keys on
 each photo where proposals are left over (`d` rejects the waiting ones after asking once); 1.5 s
-a click, 1 s a key, as in bench/speed/labelling_actions.py. Asserts nothing.
+a click, 1 s a key, as in bench/speed/labelling_actions.py.
+
+Then, without the model, the row tools: one box drawn around all the labelled stacks of each
+shelf, split into N equal boxes (`w`, N the shelf's stack count, typed) or where the photo shows
+gaps (`W`, `annotate.editor.Tool.split_at_gaps`): how many label stacks a part matches (IoU >=
+--iou) and the input for the boxes (two clicks and a key per shelf, a typed number for `w`, two
+clicks for each stack left to draw). Asserts nothing.
 """
 from __future__ import annotations
 
@@ -28,8 +34,10 @@ import copy
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from bench.common import REPO, labelled_photos
-from bench.speed.labelling_actions import CLICK_S, KEY_S
+from bench.speed.labelling_actions import CLICK_S, KEY_S, NUMBER_S
 
 
 def label_stacks(scene) -> list[tuple[int, tuple[float, float, float, float]]]:
@@ -98,6 +106,7 @@ def main(argv=None) -> int:
     depths = args.gap_depth or [0.0, G.GapSplit().depth]
     settings = [(s, d) for s in steps for d in depths]
     rows = {k: {"truth": 0, "props": 0, "ious": [], "left": 0} for k in settings}
+    row_tools = {k: {"shelves": 0, "parts": 0, "right": 0} for k in ("w", "W")}
     for name in names:
         ann = proj.load(name)
         scene = G.build_scene(ann, proj.settings)
@@ -119,6 +128,20 @@ def main(argv=None) -> int:
             ious = match(props, truth, args.iou)
             r["ious"] += ious
             r["left"] += len(props) > len(ious)
+        luma = tool.luma(name)
+        for i in sorted({sh for sh, _ in truth}):
+            ts = [(sh, t) for sh, t in truth if sh == i]
+            u0, u1 = min(t[0] for _, t in ts), max(t[1] for _, t in ts)
+            v0, v1 = min(t[2] for _, t in ts), max(t[3] for _, t in ts)
+            cuts = np.linspace(u0, u1, len(ts) + 1)
+            parts = {"w": list(zip(cuts[:-1], cuts[1:])),
+                     "W": [(q.u0, q.u1) for q in G.split_at_dark_gaps(G.Proposal(i, u0, u1, v0, v1, None, 0.0), luma,
+                                                                      scene.plane, G.GapSplit())]}
+            for k, spans in parts.items():
+                rt = row_tools[k]
+                rt["shelves"] += 1
+                rt["parts"] += len(spans)
+                rt["right"] += len(match([(i, (a, b, v0, v1)) for a, b in spans], ts, args.iou))
     print(f"{args.project}, split {args.split}: {len(names)} labelled photos; proposals of {Path(weights).name}, "
           f"accepted at IoU >= {args.iou} with a label stack\n")
     print("| step cut | cut at the photo's gaps | label stacks | proposals | accepted | precision | recall | mean IoU accepted "
@@ -131,6 +154,15 @@ def main(argv=None) -> int:
         print(f"| {s:g} m | {f'depth {d:g}' if d else 'no'} | {r['truth']} | {r['props']} | {acc} | {100 * acc / max(r['props'], 1):.1f} % "
               f"| {100 * acc / max(r['truth'], 1):.1f} % | {sum(r['ious']) / max(acc, 1):.3f} "
               f"| {manual:.0f} / {assisted:.0f} |")
+    n_truth = sum(len(label_stacks(G.build_scene(proj.load(n), proj.settings))) for n in names)
+    print(f"\nno model, one box drawn around each shelf's {n_truth} label stacks, then split:\n")
+    print("| row tool | shelves | parts | stacks right | input for the boxes, s (one by one / with the row tool) |")
+    print("|---|---|---|---|---|")
+    for k, rt in row_tools.items():
+        what = "`w`: N equal boxes, N typed" if k == "w" else "`W`: at the photo's gaps"
+        row_s = rt["shelves"] * (2 * CLICK_S + KEY_S + (NUMBER_S if k == "w" else 0))
+        print(f"| {what} | {rt['shelves']} | {rt['parts']} | {rt['right']} | {2 * CLICK_S * n_truth:.0f} / "
+              f"{row_s + 2 * CLICK_S * (n_truth - rt['right']):.0f} |")
     return 0
 
 
