@@ -220,6 +220,24 @@ def test_a_box_around_a_row_splits_where_the_photo_shows_gaps(proj):
         np.testing.assert_allclose([sp[:2] for sp in spans], [[0.50, 0.78], [0.82, 1.10], [1.16, 1.50]], atol=0.015)
         assert {sp[2] for sp in spans} == {s_}
 
+
+def test_every_key_and_button_action_is_one_the_tool_knows(proj):
+    """Each action the page's keys and buttons send (annotate.page KEYMAP, BUTTONS; modes and view
+    changes stay in the page) is applied by the tool, not refused as unknown, on a photo with
+    nothing marked yet; and every button has its element on the page."""
+    from annotate.page import BUTTONS, KEYMAP
+
+    tool = Tool(proj)
+    acts = sorted({a for a in list(KEYMAP.values()) + list(BUTTONS.values()) if ":" not in a})
+    assert {"split_row", "split_at_gaps", "accept", "done"} <= set(acts)
+    for seq, name in enumerate(acts, 1):
+        st = tool.apply(tool.open("r.png"), [{"kind": "act", "name": name, "seq": seq}])
+        assert "unknown" not in st.msg, (name, st.msg)
+    html = build_app(proj).config["components"]
+    ids = {c.get("props", {}).get("elem_id") for c in html}
+    missing = [b for b in BUTTONS if b not in ids and not b.startswith("mode-") and not b.startswith("btn-zoom")]
+    assert not missing, missing
+
 def test_two_labellers_conflict_is_refused_with_message(proj):
     ana, ben = Tool(proj, user="ana"), Tool(proj, user="ben")
     sa, sb = ana.open("r.png"), ben.open("r.png")
