@@ -446,7 +446,6 @@ def front_box_rects(front: np.ndarray, top: np.ndarray | None, grid: L.Grid, she
     return out
 
 
-
 @dataclass
 class GapSplit:
     """How a model proposal is cut where the photo shows a gap along it (`split_at_dark_gaps`).
@@ -556,6 +555,7 @@ def cut_box_columns(layouts: np.ndarray, grid: L.Grid, width: float, gaps) -> np
             ch = out[shelf]
             ch[:, cols] = np.where(ch[:, cols] == L.BOX, L.SHELF, ch[:, cols])
     return out
+
 
 def proposal_to_box(plane: RackPlane, p: Proposal, box_id: int) -> dict:
     """A proposal as a box annotation dict (pixel corners bottom-left / top-right)."""

@@ -161,13 +161,7 @@ def main(argv=None) -> int:
                     raise SystemExit(f"{project.annotation_path(meta['source_image'])}: labelled on a "
                                      f"{W}x{H} photo, the photo is {rgb.shape[1]}x{rgb.shape[0]}")
                 photo = luminance(rgb) / 255.0
-            us = np.arange(runs[0][0], runs[-1][1], 0.01)
-            p0, p1 = (scene.plane.to_image(np.c_[us, np.full(len(us), v0 + f * clear)]) for f in CUE_ROWS)
-            xs, ys = np.linspace(p0[:, 0], p1[:, 0], 24, axis=1), np.linspace(p0[:, 1], p1[:, 1], 24, axis=1)
-            ok = (xs >= 0) & (xs < W) & (ys >= 0) & (ys < H)                        # (len(us), 24)
-            px = photo[np.where(ok, ys, 0).astype(int), np.where(ok, xs, 0).astype(int)]
-            n_ok = ok.sum(1)
-            val = np.where(n_ok >= 4, (px * ok).sum(1) / np.maximum(n_ok, 1), np.nan)
+            us, val = G.plane_profile(photo, scene.plane, runs[0][0], runs[-1][1], v0, v0 + clear, CUE_ROWS)
             u_gap = np.array([any(a < u < b for a, b in gaps) for u in us])
             u_box = np.array([any(a <= u <= b for a, b in runs) for u in us]) & ~u_gap
             if np.isfinite(val).any():

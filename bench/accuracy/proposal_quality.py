@@ -107,10 +107,12 @@ def main(argv=None) -> int:
     settings = [(s, d) for s in steps for d in depths]
     rows = {k: {"truth": 0, "props": 0, "ious": [], "left": 0} for k in settings}
     row_tools = {k: {"shelves": 0, "parts": 0, "right": 0} for k in ("w", "W")}
+    n_truth = 0
     for name in names:
         ann = proj.load(name)
         scene = G.build_scene(ann, proj.settings)
         truth = label_stacks(scene)
+        n_truth += len(truth)
         for s, d in settings:
             tool.reasoning = replace(ReasoningConfig(), split_step_m=s)
             tool.gap_split = replace(G.GapSplit(), depth=d)
@@ -154,7 +156,6 @@ def main(argv=None) -> int:
         print(f"| {s:g} m | {f'depth {d:g}' if d else 'no'} | {r['truth']} | {r['props']} | {acc} | {100 * acc / max(r['props'], 1):.1f} % "
               f"| {100 * acc / max(r['truth'], 1):.1f} % | {sum(r['ious']) / max(acc, 1):.3f} "
               f"| {manual:.0f} / {assisted:.0f} |")
-    n_truth = sum(len(label_stacks(G.build_scene(proj.load(n), proj.settings))) for n in names)
     print(f"\nno model, one box drawn around each shelf's {n_truth} label stacks, then split:\n")
     print("| row tool | shelves | parts | stacks right | input for the boxes, s (one by one / with the row tool) |")
     print("|---|---|---|---|---|")
