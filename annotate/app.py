@@ -25,12 +25,16 @@ DELETE_CACHE = (60, 300)
 CONCURRENCY = dict(concurrency_limit=1, concurrency_id="annotate")
 
 
-def build_app(project: Project, predictor=None, user: str | None = None):
+def build_app(project: Project, predictor=None, user: str | None = None, gap_split=None):
+    """The gradio app over a Tool; `gap_split` (annotate.geometry.GapSplit): how proposals and `W`
+    cut at the photo's gaps (default: its defaults)."""
     import time
 
     import gradio as gr
 
     tool = Tool(project, predictor, user)
+    if gap_split is not None:
+        tool.gap_split = gap_split
     presets = [p["name"] for p in project.settings["presets"]]
 
     with gr.Blocks(title="RackLay annotate", delete_cache=DELETE_CACHE) as demo:

@@ -453,13 +453,15 @@ class GapSplit:
     them, the rack's back); the model often reads the loads as one run. Declared with
     racklay.config.option, so each default is written once."""
 
-    depth: float = option(0.3, "cut where the photo along the proposal is darker than the light on both sides "
-                               "within close_m by at least this share of its median luminance; 0: never cut "
-                               "(default {default})", lo=0)
-    close_m: float = option(0.3, "widest dark slot that counts as a gap, metres: darker stretches wider than "
-                                 "this are a dark load, not a gap (default {default})", gt=0)
+    depth: float = option(0.3, "model proposals (and W) are cut where the photo along them is darker than the "
+                               "light on both sides within the gap width by at least this share of its median "
+                               "luminance; 0: never cut (default {default})", lo=0, flags=["--gap-depth"],
+                          metavar="SHARE")
+    close_m: float = option(0.3, "gap width: the widest dark slot that counts as a gap, metres; darker stretches "
+                                 "wider than this are a dark load, not a gap (default {default})", gt=0,
+                            flags=["--gap-width"], metavar="M")
     min_part_m: float = option(0.2, "narrowest load a cut may leave on either side, metres (default {default})",
-                               lo=0)
+                               lo=0, flags=["--gap-min-part"], metavar="M")
     rows: tuple = option((0.05, 0.6), "the band of the proposal's height the cue is read in, as fractions from "
                                       "its bottom (loads' lower parts: their tops may be cut by the next board)")
     step_m: float = option(0.01, "the cue is read every this many metres along the rack (default {default})", gt=0)

@@ -89,15 +89,16 @@ def _drop_temp_dir(path: str, env_before: str | None) -> None:
 
 
 def serve(project_dir, host: str = "127.0.0.1", port: int = 7860, model: str | None = None,
-          backend: str = "torch", auth=None, block: bool = True):
+          backend: str = "torch", auth=None, block: bool = True, gap_split=None):
     """Serve the tool. `auth`: None (no login) or an annotate.auth.Authenticator (several users,
-    throttled failed logins; each save records the logged-in user)."""
+    throttled failed logins; each save records the logged-in user); `gap_split`: how proposals and
+    `W` cut at the photo's gaps (annotate.geometry.GapSplit; default its defaults)."""
     check_port(host, port)
     project = Project(project_dir)
     env_before = os.environ.get("GRADIO_TEMP_DIR")
     tmp = run_temp_dir()
     try:
-        demo = build_app(project, load_predictor(model, backend))   # gradio files go to $GRADIO_TEMP_DIR = tmp
+        demo = build_app(project, load_predictor(model, backend), gap_split=gap_split)   # gradio files go to $GRADIO_TEMP_DIR = tmp
         kw = launch_kwargs(host, port, auth.check if auth is not None else None)
         try:
             demo.launch(prevent_thread_lock=True, **kw)

@@ -57,6 +57,20 @@ def at_least(lo: int):
     return parse
 
 
+def float_at_least(lo: float):
+    """argparse type: a finite number >= lo (argparse prints the one-line usage error otherwise)."""
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not (v >= lo and v != float("inf")):
+            raise argparse.ArgumentTypeError(f"must be a number >= {lo:g}, got {text}")
+        return v
+    parse.__name__ = f"number >= {lo:g}"
+    return parse
+
+
 def positive_float(text: str) -> float:
     """argparse type: a finite number > 0."""
     try:
@@ -243,7 +257,9 @@ def _parser(f):
     if "int" in kinds:
         return at_least(m["lo"]) if m["lo"] is not None else int
     if "float" in kinds:
-        return positive_float if m["gt"] == 0 else float
+        if m["gt"] == 0:
+            return positive_float
+        return float_at_least(m["lo"]) if m["lo"] is not None and m["gt"] is None else float
     return None   # a string
 
 

@@ -432,6 +432,24 @@ def test_serve_port_out_of_range_refused(proj, port, capsys):
     assert "Traceback" not in err
 
 
+
+def test_serve_gap_cut_flags_reach_the_tool_and_bad_values_are_refused(proj, monkeypatch, capsys):
+    """`--gap-depth 0` (no cut at the photo's gaps) and `--gap-width` reach the served tool's
+    GapSplit; a negative depth is refused by argparse with one line naming the flag."""
+    import annotate.server as A
+    from annotate.cli import main as annotate_main
+
+    got = {}
+    monkeypatch.setattr(A, "serve", lambda *a, **kw: got.update(kw))
+    assert annotate_main(["serve", str(proj.root), "--no-model", "--gap-depth", "0", "--gap-width", "0.25"]) == 0
+    assert got["gap_split"] == G.GapSplit(depth=0.0, close_m=0.25)
+    assert annotate_main(["serve", str(proj.root), "--no-model"]) == 0
+    assert got["gap_split"] == G.GapSplit()
+    with pytest.raises(SystemExit) as e:
+        annotate_main(["serve", str(proj.root), "--gap-depth", "-1"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "argument --gap-depth: must be a number >= 0, got -1" in err
+
 @pytest.mark.parametrize("checked", [True, False])
 def test_serve_busy_port_one_line(proj, monkeypatch, capsys, checked):
     """A busy port is refused before the app is built, and gradio's own port error (the race

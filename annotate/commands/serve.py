@@ -35,6 +35,9 @@ def pixel_aspect_value(text: str) -> float:
 
 
 def register(sub) -> None:
+    from annotate.geometry import GapSplit
+    from racklay.config import add_flags
+
     p = sub.add_parser(
         "serve", help="open the annotation tool in the browser",
         description="Serve the annotation tool for the photos in PROJECT_DIR (a folder of .jpg/.png "
@@ -57,6 +60,8 @@ def register(sub) -> None:
     p.add_argument("--auth-file", default=None, metavar="FILE",
                    help="require a login; FILE lists the users with salted password hashes "
                         "(create it with `annotate passwd FILE USER`)")
+    g = p.add_argument_group("cutting at the photo's gaps (model proposals and W; docs/annotate.md)")
+    add_flags(g, GapSplit, ["depth", "close_m", "min_part_m"], default=None)
     # removed: it put the password on the command line (ps, shell history); kept only to say so
     p.add_argument("--auth", default=None, help=argparse.SUPPRESS)
     p.set_defaults(func=run)
@@ -64,6 +69,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from annotate.auth import Authenticator
+    from annotate.geometry import GapSplit
     from annotate.server import serve
     from racklay.commands import CLIError
 
@@ -83,5 +89,8 @@ def run(args) -> int:
         project = Project(args.project)
         project.save_settings(dict(project.settings, pixel_aspect=round(args.pixel_aspect, 6)))
         print(f"annotate: {args.project}: pixel aspect {args.pixel_aspect:.4g} saved in project.json")
-    serve(args.project, host=args.host, port=args.port, model=model, backend=args.backend, auth=auth)
+    gap_split = GapSplit(**{k: getattr(args, k) for k in ("depth", "close_m", "min_part_m")
+                            if getattr(args, k) is not None})      # the flags' bounds are checked by argparse
+    serve(args.project, host=args.host, port=args.port, model=model, backend=args.backend, auth=auth,
+          gap_split=gap_split)
     return 0
