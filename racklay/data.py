@@ -256,6 +256,7 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
     uint8): what the annotator's gap cue and the benchmarks' contrast measures read."""
     return rgb[..., :3].astype(np.float32) @ LUMA_WEIGHTS
 
+
 def _png_complete(data: np.ndarray) -> bool:
     tail = data[-12:].tobytes()
     return b"IEND" in tail
