@@ -43,31 +43,20 @@ SCHEDULES = ("steps", "time")
 # ----------------------------------------------------------------------------- value parsers
 
 
-def at_least(lo: int):
-    """argparse type: an integer >= lo (argparse prints the one-line usage error otherwise)."""
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if v < lo:
-            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {v}")
-        return v
-    parse.__name__ = f"integer >= {lo}"
-    return parse
+def at_least(lo, kind: type = int):
+    """argparse type: an integer (`kind` float: a finite number) >= lo (argparse prints the
+    one-line usage error otherwise)."""
+    word = "an integer" if kind is int else "a number"
 
-
-def float_at_least(lo: float):
-    """argparse type: a finite number >= lo (argparse prints the one-line usage error otherwise)."""
-    def parse(text: str) -> float:
+    def parse(text: str):
         try:
-            v = float(text)
+            v = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+            raise argparse.ArgumentTypeError(f"expected {word}, got {text!r}") from None
         if not (v >= lo and v != float("inf")):
-            raise argparse.ArgumentTypeError(f"must be a number >= {lo:g}, got {text}")
+            raise argparse.ArgumentTypeError(f"must be >= {lo:g}, got {text}")
         return v
-    parse.__name__ = f"number >= {lo:g}"
+    parse.__name__ = f"{'integer' if kind is int else 'number'} >= {lo:g}"
     return parse
 
 
@@ -259,7 +248,7 @@ def _parser(f):
     if "float" in kinds:
         if m["gt"] == 0:
             return positive_float
-        return float_at_least(m["lo"]) if m["lo"] is not None and m["gt"] is None else float
+        return at_least(m["lo"], float) if m["lo"] is not None and m["gt"] is None else float
     return None   # a string
 
 

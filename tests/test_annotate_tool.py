@@ -448,7 +448,7 @@ def test_serve_gap_cut_flags_reach_the_tool_and_bad_values_are_refused(proj, mon
     with pytest.raises(SystemExit) as e:
         annotate_main(["serve", str(proj.root), "--gap-depth", "-1"])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and "argument --gap-depth: must be a number >= 0, got -1" in err
+    assert e.value.code == 2 and "argument --gap-depth: must be >= 0, got -1" in err
 
 @pytest.mark.parametrize("checked", [True, False])
 def test_serve_busy_port_one_line(proj, monkeypatch, capsys, checked):
