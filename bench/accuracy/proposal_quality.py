@@ -54,6 +54,18 @@ def label_stacks(scene) -> list[tuple[int, tuple[float, float, float, float]]]:
     return out
 
 
+def tool_proposals(tool, ann, scene) -> list[tuple[int, tuple[float, float, float, float]]]:
+    """(shelf, (u0, u1, v0, v1)) of the proposals the tool makes for annotation `ann` given its
+    rack and shelves but none of its boxes (as a labeller starting the photo sees them)."""
+    from annotate.geometry import metric_box
+
+    bare = copy.deepcopy(ann)
+    bare["boxes"], bare["proposals"], bare["rejected"] = [], [], []
+    tool.refresh_proposals(bare)
+    boxes = (metric_box(scene.plane, b, scene.shelf_v, scene.depth, scene.depth) for b in bare["proposals"])
+    return [(m.shelf, (m.u0, m.u1, m.v0, m.v1)) for m in boxes if m.shelf is not None]
+
+
 def match(props, truth, iou_min: float) -> list[float]:
     """IoUs of the one-to-one matches with IoU >= iou_min (greedy, highest first, same shelf)."""
     from annotate.geometry import rect_iou
@@ -116,14 +128,7 @@ def main(argv=None) -> int:
         for s, d in settings:
             tool.reasoning = replace(ReasoningConfig(), split_step_m=s)
             tool.gap_split = replace(G.GapSplit(), depth=d)
-            bare = copy.deepcopy(ann)
-            bare["boxes"], bare["proposals"], bare["rejected"] = [], [], []
-            tool.refresh_proposals(bare)
-            props = []
-            for b in bare["proposals"]:
-                mb = G.metric_box(scene.plane, b, scene.shelf_v, scene.depth, scene.depth)
-                if mb.shelf is not None:
-                    props.append((mb.shelf, (mb.u0, mb.u1, mb.v0, mb.v1)))
+            props = tool_proposals(tool, ann, scene)
             r = rows[s, d]
             r["truth"] += len(truth)
             r["props"] += len(props)

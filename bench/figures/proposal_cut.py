@@ -12,7 +12,6 @@ labeller would accept (IoU >= 0.5 with a stack) in each panel's corner.
 from __future__ import annotations
 
 import argparse
-import copy
 import sys
 from dataclasses import replace
 
@@ -38,7 +37,7 @@ def main(argv=None) -> int:
     from annotate import schema as S
     from annotate.editor import Tool
     from annotate.store import Project
-    from bench.accuracy.proposal_quality import label_stacks, match
+    from bench.accuracy.proposal_quality import label_stacks, match, tool_proposals
     from racklay.atomic import atomic_write_bytes
     from racklay.predict import Predictor
     from racklay.reasoning import ReasoningConfig
@@ -59,12 +58,7 @@ def main(argv=None) -> int:
         panels = []
         for title, (reasoning, cut) in settings.items():
             tool.reasoning, tool.gap_split = reasoning, cut
-            bare = copy.deepcopy(ann)
-            bare["boxes"], bare["proposals"], bare["rejected"] = [], [], []
-            tool.refresh_proposals(bare)
-            props = [(m.shelf, (m.u0, m.u1, m.v0, m.v1)) for m in
-                     (G.metric_box(scene.plane, b, scene.shelf_v, scene.depth, scene.depth) for b in bare["proposals"])
-                     if m.shelf is not None]
+            props = tool_proposals(tool, ann, scene)
             img = cv2.resize(photo, (PANEL_W, round(photo.shape[0] * scale)), interpolation=cv2.INTER_AREA)
             for rects, colour, width, inset in ((truth, (230, 40, 40), 1, 0.0), (props, (40, 230, 40), 2, 0.015)):
                 for _, (u0, u1, v0, v1) in rects:
