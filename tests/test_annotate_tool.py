@@ -189,20 +189,26 @@ def test_a_box_around_a_row_of_equal_loads_splits_into_n_on_the_rack_plane(proj)
 
 
 
+def slot_photo(plane, slots, v0: float, v1: float) -> bytes:
+    """A 640 x 480 light grey photo (PNG bytes) with a dark slot over each (u0, u1) of `slots`
+    from v0 to v1 on the rack plane (as seen through `plane`): gaps between loads."""
+    import cv2
+
+    rgb = np.full((480, 640, 3), 170, np.uint8)
+    for u0, u1 in slots:
+        q = plane.to_image([[u0, v0], [u1, v0], [u1, v1], [u0, v1]])
+        cv2.fillPoly(rgb, [np.round(q).astype(np.int32)], (35, 35, 35))
+    return encode_png(rgb)
+
+
 def test_a_box_around_a_row_splits_where_the_photo_shows_gaps(proj):
     """One box drawn around loads of unequal widths, `W`: cut at the two dark slots the photo shows
     between them (on the rack plane of an oblique photo), each part keeping the box's depth;
     a photo with no slot along the box leaves it whole and says why."""
-    import cv2
-
     truth = clicks(CAM)
     plane = G.build_scene(truth, proj.settings).plane
     s_, x0, x1, top = 2, 0.50, 1.50, 0.45                       # BOXES[5]'s front face
-    rgb = np.full((480, 640, 3), 170, np.uint8)
-    for g0, g1 in ((0.78, 0.82), (1.10, 1.16)):
-        q = plane.to_image([[g0, BOARDS[s_]], [g1, BOARDS[s_]], [g1, BOARDS[s_] + top], [g0, BOARDS[s_] + top]])
-        cv2.fillPoly(rgb, [np.round(q).astype(np.int32)], (30, 30, 30))
-    (proj.root / "gaps.png").write_bytes(encode_png(rgb))
+    (proj.root / "gaps.png").write_bytes(slot_photo(plane, [(0.78, 0.82), (1.10, 1.16)], BOARDS[s_], BOARDS[s_] + top))
     tool = Tool(proj)
     for name in ("r.png", "gaps.png"):
         st = label_by_clicks(tool, tool.open(name), dict(truth, image=name, boxes=[]))
@@ -333,16 +339,11 @@ def test_model_proposals_accept_edit_reject(proj):
 def test_a_proposal_over_two_loads_is_cut_at_the_gap_the_photo_shows(proj):
     """The model reads the top shelf's 1 m load as one; the photo shows a dark slot across its
     middle (two loads): the tool proposes the two, split at the slot, unless the cut is off."""
-    import cv2
-
     truth = clicks(CAM)
-    plane = G.build_scene(truth, proj.settings).plane
-    rgb = np.full((480, 640, 3), 170, np.uint8)
-    slot = plane.to_image([[0.97, BOARDS[2]], [1.03, BOARDS[2]], [1.03, BOARDS[2] + 0.45], [0.97, BOARDS[2] + 0.45]])
-    cv2.fillPoly(rgb, [np.round(slot).astype(np.int32)], (40, 40, 40))
+    photo = slot_photo(G.build_scene(truth, proj.settings).plane, [(0.97, 1.03)], BOARDS[2], BOARDS[2] + 0.45)
     for depth, want in ((G.GapSplit().depth, len(BOXES) + 1), (0.0, len(BOXES))):
         name = f"slot{depth:g}.png"
-        (proj.root / name).write_bytes(encode_png(rgb))
+        (proj.root / name).write_bytes(photo)
         tool = Tool(proj, predictor=StandIn())
         tool.gap_split = G.GapSplit(depth=depth)
         st = label_by_clicks(tool, tool.open(name), dict(truth, image=name, boxes=[]))
