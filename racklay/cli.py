@@ -15,6 +15,7 @@ COMMANDS = [                       # in workflow order: data, model, use, check
     "racklay.commands.check_data",
     "racklay.commands.show",
     "racklay.commands.train",
+    "racklay.commands.distill",
     "racklay.commands.eval",
     "racklay.commands.calibrate",
     "racklay.commands.predict",

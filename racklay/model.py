@@ -448,7 +448,7 @@ class StructDecoder(nn.Module):
     cut_gaps = True
 
     def __init__(self, view: str, R: int, layout_size: int, extent: float, enc_channels, T: int = DEFAULT_T,
-                 width: int = 128, fine: bool = False, gap: bool = False):
+                 width: int = 128, fine: bool = False, gap: bool = False, fuse_k: int = 3):
         super().__init__()
         self.view, self.R, self.layout_size, self.extent, self.T = view, R, layout_size, extent, T
         self.fine, self.gap = fine, gap
@@ -459,7 +459,7 @@ class StructDecoder(nn.Module):
         self.red8 = conv_bn_relu(c8, 64, 1)
         self.red16 = conv_bn_relu(c16, 64, 1)
         self.red32 = conv_bn_relu(c32, 128, 1)
-        self.fuse = conv_bn_relu(256, width)
+        self.fuse = conv_bn_relu(256, width, fuse_k)
         self.row_att = nn.Conv2d(width, R, 1)
         self.shelf_emb = nn.Parameter(torch.zeros(R, width, 1))
         self.img_seq = nn.Sequential(_conv1d_bn_relu(width, width, 5), _conv1d_bn_relu(width, width, 5))
@@ -592,7 +592,8 @@ class RackLayNet(nn.Module):
         def make(view):
             if cfg.decoder == "struct":
                 return StructDecoder(view, cfg.R, cfg.layout_size, cfg.extent, self.encoder.channels,
-                                     fine=cfg.struct_fine, gap=cfg.struct_gap)
+                                     width=cfg.struct_width, fine=cfg.struct_fine, gap=cfg.struct_gap,
+                                     fuse_k=cfg.struct_fuse_k)
             if cfg.decoder == "paper":
                 return PaperDecoder(out, cfg.layout_size, cin)
             if cfg.decoder == "columns":

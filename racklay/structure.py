@@ -259,6 +259,34 @@ def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, ga
     return loss
 
 
+#: structure fields a distilled student matches (`distill_structure_loss`); each view has those it predicts
+DISTILL_FIELDS = ("presence", "length", "extent", "centre", "half", "box_raw", "box", "gap", "height", "near", "far")
+
+
+def distill_structure_loss(view: str, st: dict, teacher: dict) -> torch.Tensor:
+    """How far a predicted structure is from a teacher's (`racklay.distill`): BCE of the presence
+    logit on the teacher's presence probability; for each shelf weighted by that probability, L1 of
+    log length, log extent, log half-width and of the placement centre; per position, BCE of the box
+    logit (before the gap cut, where there is a gap output) and of the gap logit on the teacher's
+    probabilities, and L1 of the box fractions (height, or near and far) where the teacher sees a
+    box. Soft targets: the loss does not reach 0 where the teacher is unsure."""
+    p = torch.sigmoid(teacher["presence"].float())
+    loss = F.binary_cross_entropy_with_logits(st["presence"].float(), p)
+    w = p.clamp_min(1e-3)
+    for k in ("length", "extent", "half"):
+        loss = loss + ((st[k].float().log() - teacher[k].float().log()).abs() * w).sum() / w.sum()
+    loss = loss + ((st["centre"].float() - teacher["centre"].float()).abs() * w).sum() / w.sum()
+    box = "box_raw" if "gap" in teacher else "box"
+    wpos = w.unsqueeze(-1).expand_as(teacher[box])
+    for k in (box, "gap") if "gap" in teacher else (box,):
+        bce = F.binary_cross_entropy_with_logits(st[k].float(), torch.sigmoid(teacher[k].float()), reduction="none")
+        loss = loss + (bce * wpos).sum() / wpos.sum()
+    wb = wpos * torch.sigmoid(teacher[box].float())
+    for k in ("height",) if view == "front" else ("near", "far"):
+        loss = loss + ((st[k].float() - teacher[k].float()).abs() * wb).sum() / wb.sum().clamp_min(1e-3)
+    return loss
+
+
 def rescale_structure(st: dict, length: float | torch.Tensor) -> dict:
     """The same structure at a known shelf length: every present shelf's length set to `length`
     metres and its extent scaled by the same factor (one scale for the whole shelf); shape fields

@@ -74,6 +74,31 @@ def test_columns_decoder_grows_from_light_and_learns_per_column():
         load_grown(b, cut, "light", "light.safetensors")
 
 
+def test_struct_width_and_fuse_kernel_are_architecture_options(tmp_path):
+    """A narrower struct decoder (`struct_width`) with a 1 x 1 fuse conv (`struct_fuse_k`) is built
+    as configured, saved and loaded back as the same network (same outputs); a checkpoint written
+    before the options existed loads with the shipped architecture (width 128, 3 x 3 fuse); the
+    options need the struct decoder and the kernel is 1 or 3."""
+    cfg = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="struct", struct_width=16, struct_fuse_k=1)
+    torch.manual_seed(0)
+    m = RackLayNet(cfg).eval()
+    for dec in m.decoders.values():
+        assert dec.fuse[0].kernel_size == (1, 1) and dec.fuse[0].out_channels == 16
+        assert dec.pos_head.in_channels == 16
+    path = save_checkpoint(tmp_path / "narrow.safetensors", m, cfg)
+    m2, cfg2, _ = load_model(path)
+    assert (cfg2.struct_width, cfg2.struct_fuse_k) == (16, 1)
+    x = torch.randn(1, 3, 64, 128, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        assert all(torch.equal(a, b) for a, b in zip(m(x).values(), m2(x).values()))
+    old = {k: v for k, v in cfg.to_dict().items() if k not in ("struct_width", "struct_fuse_k")}
+    assert (ModelConfig.from_dict(old).struct_width, ModelConfig.from_dict(old).struct_fuse_k) == (128, 3)
+    with pytest.raises(ValueError, match="struct_width needs the struct decoder"):
+        ModelConfig(decoder="light", struct_width=32)
+    with pytest.raises(ValueError, match="struct_fuse_k must be one of"):
+        ModelConfig(decoder="struct", struct_fuse_k=5)
+
+
 def _struct_grown_with(field: str):
     """A small struct model, the same grown with `field` (a ModelConfig flag) from its weights
     (racklay.checkpoint.load_grown), both in eval mode, and an input batch."""

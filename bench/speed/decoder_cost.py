@@ -4,8 +4,9 @@ reference architecture to >= 3x slower than the shipped model (the model issue's
     nice -n 5 .venv/bin/python -m bench.speed.decoder_cost [--precision auto|fp32|bf16] [--batch N]
 
 Builds the shipped architecture (EfficientNet-Lite0 + `struct`) with the struct decoder at several
-widths (`StructDecoder(width=...)`: every 1-D conv and the fuse conv; 128 ships) with and without the
-1/4 detail branch, randomly initialised (weights do not change the cost), and times each against
+widths (`StructDecoder(width=...)`: every 1-D conv and the fuse conv) with and without the
+1/4 detail branch and with the fuse conv 3 x 3 or 1 x 1 (`--struct-fuse-k`), randomly initialised
+(weights do not change the cost), and times each against
 the reference (ResNet-18 + `paper`) at the shipped input, layout size and precision, channels_last,
 calls interleaved in rounds. Prints per model: wall ms median (min), the decoders' multiply-adds
 (torch's FLOP counter, both views) and reference / model. If the ratio barely moves while the
@@ -54,14 +55,15 @@ def main(argv=None) -> int:
     _, cfg, _ = load_model(resolve_weights(None))
     torch.manual_seed(0)
     models = {}
-    for fine in (True, False):
+    for fine, fuse_k in ((True, 3), (False, 3), (False, 1)):
         for width in WIDTHS:
             m = RackLayNet(replace(cfg, decoder="struct", struct_fine=fine))
             for v in list(m.decoders):
                 m.decoders[v] = StructDecoder(v, cfg.R, cfg.layout_size, cfg.extent, m.encoder.channels,
-                                              width=width, fine=fine, gap=cfg.struct_gap)
-            shipped = width == 128 and fine == cfg.struct_fine
-            models[f"struct width {width}{', 1/4 branch' if fine else ''}{' (shipped)' if shipped else ''}"] = m.eval()
+                                              width=width, fine=fine, gap=cfg.struct_gap, fuse_k=fuse_k)
+            shipped = (width, fine, fuse_k) == (cfg.struct_width, cfg.struct_fine, cfg.struct_fuse_k)
+            name = f"struct width {width}{', 1/4 branch' if fine else ''}{', 1x1 fuse' if fuse_k == 1 else ''}"
+            models[name + (" (shipped)" if shipped else "")] = m.eval()
     models["reference (ResNet-18 + paper)"] = reference_model(cfg)
     h, w = cfg.input_hw
     x = torch.randn(args.batch, 3, h, w)

@@ -1,0 +1,90 @@
+"""racklay distill: a narrower struct student learns its teacher's structures, reproducibly, and
+refuses what it cannot use with one line."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from conftest import make_toy
+from racklay.checkpoint import load_checkpoint, load_model, save_checkpoint
+from racklay.cli import main as cli_main
+from racklay.distill import DistillConfig, distill, split_spec, teacher_pass
+from racklay.model import ModelConfig, RackLayNet
+from racklay.structure import distill_structure_loss
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """A toy dataset and a small struct teacher with a gap output whose per-position outputs vary
+    from image to image (its heads perturbed from the flat prior a fresh model starts at)."""
+    data = make_toy(tmp_path_factory, n=10, seed=4, R=2, D=64)
+    cfg = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="struct", struct_gap=True)
+    torch.manual_seed(0)
+    teacher = RackLayNet(cfg).eval()
+    with torch.no_grad():
+        for dec in teacher.decoders.values():
+            for head in (dec.pos_head, dec.gap_head, dec.shelf_head):
+                head.weight.normal_(0, 0.3)
+    path = tmp_path_factory.mktemp("teacher") / "teacher.safetensors"
+    save_checkpoint(path, teacher, cfg)
+    return data, path
+
+
+def _gap_to_teacher(student_path, teacher_path, data) -> float:
+    """The distillation loss of a checkpoint against the teacher on the toy set's test images, less
+    the teacher's against itself (the floor soft targets leave: their entropy)."""
+    from racklay.distill import read_images, resolve_specs
+
+    teacher, tcfg, _ = load_model(teacher_path)
+    student, _, _ = load_model(student_path)
+    images = read_images(resolve_specs([f"{data}:test"]), tcfg.input_hw, tcfg.letterbox, 0, None, False)
+    feats, targets = teacher_pass(teacher, images, (2, 3, 4), False)
+    with torch.no_grad():
+        f = [None, None] + [feats[k].float() for k in (2, 3, 4)]
+        loss = sum(distill_structure_loss(v, dec.structure(f), targets[v]) for v, dec in student.decoders.items())
+        return float(loss - sum(distill_structure_loss(v, targets[v], targets[v]) for v in targets))
+
+
+def test_student_learns_the_teachers_structures_reproducibly(setup, tmp_path):
+    data, teacher = setup
+    kw = dict(teacher=str(teacher), data=(f"{data}:train",), photos=(f"{data}:val",), struct_width=8, steps=80,
+              batch_size=8, lr=3e-3, warmup_steps=10, seed=1)
+    logs = []
+    out = distill(DistillConfig(out=str(tmp_path / "a.safetensors"), **kw), log=logs.append)
+    ck = load_checkpoint(out)
+    assert (ck.cfg.struct_width, ck.cfg.struct_fuse_k, ck.cfg.struct_fine, ck.cfg.struct_gap) == (8, 1, False, True)
+    t = load_checkpoint(teacher).section("model")
+    s = ck.section("model")
+    assert all(torch.equal(s[k], v) for k, v in t.items() if k.startswith("encoder."))   # the teacher's encoder
+    assert ck.meta["distilled_from"]["file"] == "teacher.safetensors" and ck.meta["steps"] == 80
+    assert any("photo samples" in line for line in logs)
+    # on images it never saw, the trained student is much closer to the teacher than a fresh one
+    fresh = distill(DistillConfig(out=str(tmp_path / "fresh.safetensors"), **{**kw, "steps": 1, "lr": 1e-9}))
+    assert _gap_to_teacher(out, teacher, data) < 0.5 * _gap_to_teacher(fresh, teacher, data)
+    again = load_checkpoint(distill(DistillConfig(out=str(tmp_path / "b.safetensors"), **kw))).section("model")
+    assert all(torch.equal(again[k], v) for k, v in s.items())                        # same seed, same student
+
+
+def test_distill_refuses_what_it_cannot_use(setup, tmp_path, tmp_path_factory, capsys):
+    data, teacher = setup
+    light = tmp_path / "light.safetensors"
+    cfg = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="light")
+    save_checkpoint(light, RackLayNet(cfg).eval(), cfg)
+    cases = [(["--teacher", str(light), "--data", str(data)], f"{light}: has the light decoder"),
+             (["--teacher", str(teacher), "--data", str(tmp_path / "none")], "no such dataset folder"),
+             (["--teacher", str(teacher), "--data", f"{data}:nosuch"], "nosuch"),
+             (["--teacher", str(teacher)], "give --data (renders) and/or --photos"),
+             (["--teacher", str(teacher), "--data", str(data), "--out", str(tmp_path / "s.pt")], "must be a .safetensors"),
+             (["--teacher", str(teacher), "--data", str(data), "--struct-fuse-k", "2"], "invalid choice")]
+    for args, msg in cases:
+        if "--out" not in args:
+            args = [*args, "--out", str(tmp_path / "s.safetensors")]
+        try:
+            rc = cli_main(["distill", *args])
+        except SystemExit as e:      # argparse's own checks
+            rc = e.code
+        assert rc == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert msg in err[-1], (args, err)
+    assert not (tmp_path / "s.safetensors").exists()
+    assert split_spec("/a/b:val") == ("/a/b", "val") and split_spec("/a/b") == ("/a/b", "train")
