@@ -10,7 +10,7 @@ photos of the user's site can teach it; never the photos it will be scored on.
 
 As the encoder is frozen, its features and the teacher's structures are computed once and held in
 memory (fp16, ~0.2 MB per image at 256 x 160); training then runs the student's decoders alone,
-~13 ms per image on 2 cores where a `racklay train` step of the full model costs ~150 ms. The
+~11 ms per image on 2 cores where a `racklay train` step of the full model costs ~150 ms. The
 schedule is a time budget (`--minutes`) or a number of steps (`--steps`: the same student bit for
 bit from the same seed): warm-up, then cosine decay over it.
 Measured against the shipped model and its speed: docs/model-card.md.
@@ -103,7 +103,9 @@ def load_teacher(path: str | None):
 
 def student_for(teacher, tcfg, cfg: DistillConfig):
     """The student: the teacher's architecture with cfg's struct width and fuse kernel and no 1/4
-    branch, its encoder a frozen copy of the teacher's, its decoders freshly initialised (seeded)."""
+    branch, its encoder a frozen copy of the teacher's, its decoders freshly initialised (seeded).
+    The teacher's decision biases (`racklay calibrate`), if any, carry over: the student learns
+    the teacher's logits, so the same biases apply to them."""
     from .model import RackLayNet
 
     torch.manual_seed(cfg.seed)

@@ -420,7 +420,9 @@ class StructDecoder(nn.Module):
     come out as rectangles standing on their board and a known shelf length rescales the output
     without changing its shape (`RackLayNet.forward(x, shelf_length=...)`).
 
-    Features per image column: the 1/8, 1/16 and 1/32 maps fused at 1/8. A per-shelf attention
+    Features per image column: the 1/8, 1/16 and 1/32 maps fused at 1/8 (a 3 x 3 conv, or 1 x 1
+    with `fuse_k=1`; `width` channels from there on: `ModelConfig.struct_width` / `struct_fuse_k`,
+    narrower is faster and `racklay distill` trains such a decoder from a wider model's outputs). A per-shelf attention
     over image rows turns them into one 1-D sequence per shelf along the image columns; 1-D convs
     run along it. Each shelf's position in the image is explicit: a centre and half-width in image
     widths (it may lie partly outside the frame) place its T positions on the image columns, read
