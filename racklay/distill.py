@@ -50,6 +50,8 @@ class DistillConfig:
                                    "teacher's is usually 128) (default {default})", lo=4)
     struct_fuse_k: int = option(1, "the student's fuse conv kernel (racklay train's --struct-fuse-k) "
                                    "(default {default})", choices=(1, 3))
+    gap_weight: float = option(5.0, "weight of the positions the teacher calls gaps between loads in the gap "
+                                    "output's loss (1: unweighted; docs/training.md) (default {default})", lo=1)
     minutes: float = option(45.0, "training time budget in minutes, after the teacher's pass (default {default})",
                             gt=0)
     steps: int | None = option(None, "stop after this many steps, if sooner than --minutes", lo=1)
@@ -230,8 +232,8 @@ def distill(cfg: DistillConfig, progress: bool = False, log=print) -> Path:
             g["lr"] = lr_at(cfg, step, frac)
         idx = torch.from_numpy(rng.choice(len(probs), cfg.batch_size, p=probs))
         f = [None, None] + [feats[k][idx].float() for k in (2, 3, 4)]
-        loss = sum(distill_structure_loss(v, dec.structure(f), {k: t[idx] for k, t in targets[v].items()})
-                   for v, dec in student.decoders.items())
+        loss = sum(distill_structure_loss(v, dec.structure(f), {k: t[idx] for k, t in targets[v].items()},
+                                          cfg.gap_weight) for v, dec in student.decoders.items())
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -249,6 +251,7 @@ def distill(cfg: DistillConfig, progress: bool = False, log=print) -> Path:
     minutes = (time.time() - t0) / 60
     meta = {"distilled_from": {"file": Path(weights).name, "sha256": sha256_file(weights)},
             "data": list(r_names), "photos": list(p_names), "steps": step, "batch_size": cfg.batch_size,
+            "gap_weight": cfg.gap_weight,
             "seed": cfg.seed, "wall_minutes": round(minutes, 2), "threads": torch.get_num_threads(),
             "loss_first": first, "loss_last_200": float(np.mean(recent)) if recent else None}
     out = save_checkpoint(cfg.out, student, scfg, extra=meta)

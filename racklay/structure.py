@@ -263,13 +263,15 @@ def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, ga
 DISTILL_FIELDS = ("presence", "length", "extent", "centre", "half", "box_raw", "box", "gap", "height", "near", "far")
 
 
-def distill_structure_loss(view: str, st: dict, teacher: dict) -> torch.Tensor:
+def distill_structure_loss(view: str, st: dict, teacher: dict, gap_weight: float = 1.0) -> torch.Tensor:
     """How far a predicted structure is from a teacher's (`racklay.distill`): BCE of the presence
     logit on the teacher's presence probability; for each shelf weighted by that probability, L1 of
     log length, log extent, log half-width and of the placement centre; per position, BCE of the box
     logit (before the gap cut, where there is a gap output) and of the gap logit on the teacher's
     probabilities, and L1 of the box fractions (height, or near and far) where the teacher sees a
-    box. Soft targets: the loss does not reach 0 where the teacher is unsure."""
+    box. Soft targets: the loss does not reach 0 where the teacher is unsure. `gap_weight` weights
+    the gap BCE at each position by 1 + (gap_weight - 1) x the teacher's gap probability: gaps are a
+    few positions of a shelf, and a student fitted on the mean learns to miss them."""
     p = torch.sigmoid(teacher["presence"].float())
     loss = F.binary_cross_entropy_with_logits(st["presence"].float(), p)
     w = p.clamp_min(1e-3)
@@ -279,8 +281,10 @@ def distill_structure_loss(view: str, st: dict, teacher: dict) -> torch.Tensor:
     box = "box_raw" if "gap" in teacher else "box"
     wpos = w.unsqueeze(-1).expand_as(teacher[box])
     for k in (box, "gap") if "gap" in teacher else (box,):
-        bce = F.binary_cross_entropy_with_logits(st[k].float(), torch.sigmoid(teacher[k].float()), reduction="none")
-        loss = loss + (bce * wpos).sum() / wpos.sum()
+        target = torch.sigmoid(teacher[k].float())
+        bce = F.binary_cross_entropy_with_logits(st[k].float(), target, reduction="none")
+        wk = wpos * (1 + (gap_weight - 1) * target) if k == "gap" else wpos
+        loss = loss + (bce * wk).sum() / wpos.sum()
     wb = wpos * torch.sigmoid(teacher[box].float())
     for k in ("height",) if view == "front" else ("near", "far"):
         loss = loss + ((st[k].float() - teacher[k].float()).abs() * wb).sum() / wb.sum().clamp_min(1e-3)

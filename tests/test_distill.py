@@ -88,3 +88,19 @@ def test_distill_refuses_what_it_cannot_use(setup, tmp_path, tmp_path_factory, c
         assert msg in err[-1], (args, err)
     assert not (tmp_path / "s.safetensors").exists()
     assert split_spec("/a/b:val") == ("/a/b", "val") and split_spec("/a/b") == ("/a/b", "train")
+
+
+def test_gap_weight_makes_a_missed_teacher_gap_cost_more():
+    """A student that misses the one position the teacher calls a gap costs more with a gap weight;
+    one that matches the teacher costs the same with any weight."""
+    N, R, T = 1, 1, 16
+    gap = torch.full((N, R, T), -6.0)
+    gap[..., 8] = 6.0
+    teacher = {"presence": torch.full((N, R), 6.0), "length": torch.ones(N, R), "extent": torch.ones(N, R),
+               "half": torch.full((N, R), 0.4), "centre": torch.zeros(N, R), "box_raw": torch.full((N, R, T), 4.0),
+               "gap": gap, "height": torch.full((N, R, T), 0.5)}
+    missed = {**teacher, "gap": torch.full((N, R, T), -6.0)}
+    a, b = (distill_structure_loss("front", missed, teacher, w) for w in (1.0, 5.0))
+    assert b > a + 0.5
+    same = [distill_structure_loss("front", teacher, teacher, w) for w in (1.0, 5.0)]
+    assert abs(float(same[1] - same[0])) < 0.05
