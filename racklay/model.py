@@ -422,8 +422,9 @@ class StructDecoder(nn.Module):
 
     Features per image column: the 1/8, 1/16 and 1/32 maps fused at 1/8 (a 3 x 3 conv, or 1 x 1
     with `fuse_k=1`; `width` channels from there on: `ModelConfig.struct_width` / `struct_fuse_k`,
-    narrower is faster and `racklay distill` trains such a decoder from a wider model's outputs). A per-shelf attention
-    over image rows turns them into one 1-D sequence per shelf along the image columns; 1-D convs
+    narrower is faster and `racklay distill` trains such a decoder from a wider model's outputs).
+    A per-shelf attention over image rows turns them into one 1-D sequence per shelf along the
+    image columns; 1-D convs
     run along it. Each shelf's position in the image is explicit: a centre and half-width in image
     widths (it may lie partly outside the frame) place its T positions on the image columns, read
     with a Gaussian window (differentiable in the placement); 1-D convs along the shelf then give
