@@ -424,11 +424,10 @@ class StructDecoder(nn.Module):
     with `fuse_k=1`; `width` channels from there on: `ModelConfig.struct_width` / `struct_fuse_k`,
     narrower is faster and `racklay distill` trains such a decoder from a wider model's outputs).
     A per-shelf attention over image rows turns them into one 1-D sequence per shelf along the
-    image columns; 1-D convs
-    run along it. Each shelf's position in the image is explicit: a centre and half-width in image
-    widths (it may lie partly outside the frame) place its T positions on the image columns, read
-    with a Gaussian window (differentiable in the placement); 1-D convs along the shelf then give
-    the per-position outputs.
+    image columns; 1-D convs run along it. Each shelf's position in the image is explicit: a centre
+    and half-width in image widths (it may lie partly outside the frame) place its T positions on
+    the image columns, read with a Gaussian window (differentiable in the placement); 1-D convs
+    along the shelf then give the per-position outputs.
 
     `fine=True` adds a detail branch at 1/4 resolution: the same per-shelf row attention pools the
     1/4 features into a sequence twice as long, 1-D convs (which also see the 1/8 sequence) turn it
