@@ -126,9 +126,7 @@ def resolve_specs(specs) -> list[tuple]:
     out = []
     for spec in specs:
         root, split = split_spec(spec)
-        if not Path(root).is_dir():
-            raise ValueError(f"{root}: no such dataset folder")
-        ds = RackLayRoot(root)
+        ds = RackLayRoot(root).require()
         ids = ds.resolve(split)
         if not ids:
             raise ValueError(f"{root}: split {split!r} holds no images")

@@ -71,7 +71,7 @@ def test_distill_refuses_what_it_cannot_use(setup, tmp_path, tmp_path_factory, c
     cfg = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="light")
     save_checkpoint(light, RackLayNet(cfg).eval(), cfg)
     cases = [(["--teacher", str(light), "--data", str(data)], f"{light}: has the light decoder"),
-             (["--teacher", str(teacher), "--data", str(tmp_path / "none")], "no such dataset folder"),
+             (["--teacher", str(teacher), "--data", str(tmp_path / "none")], "dataset folder not found"),
              (["--teacher", str(teacher), "--data", f"{data}:nosuch"], "nosuch"),
              (["--teacher", str(teacher)], "give --data (renders) and/or --photos"),
              (["--teacher", str(teacher), "--data", str(data), "--out", str(tmp_path / "s.pt")], "must be a .safetensors"),
