@@ -44,8 +44,9 @@ class DistillConfig:
                            action="append", metavar=DATA_SPEC)
     photo_share: float = option(0.15, "share of the training samples drawn from --photos (default {default})",
                                 gt=0, lt=1)
-    photo_jitter: int = option(2, "colour-jittered copies of each photo (brightness, contrast, saturation), "
-                                  "beside the photo and its mirror image (default {default})", lo=0)
+    photo_jitter: int = option(2, "colour-jittered copies of each photo (the training augmentation's colour "
+                                  "jitter, racklay/augment.py), beside the photo and its mirror image "
+                                  "(default {default})", lo=0)
     struct_width: int = option(32, "the student's struct decoder width (racklay train's --struct-width; the "
                                    "teacher's is usually 128) (default {default})", lo=4)
     struct_fuse_k: int = option(1, "the student's fuse conv kernel (racklay train's --struct-fuse-k) "
@@ -79,16 +80,6 @@ def split_spec(spec: str) -> tuple[str, str]:
     if not sep or not split or "/" in split or "\\" in split:
         return str(spec), "train"
     return root, split
-
-
-def jitter_colour(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """A colour-jittered copy of an RGB uint8 image: contrast, brightness and saturation each
-    scaled by a factor drawn from `rng` (0.7-1.3, 0.7-1.3, 0.6-1.4)."""
-    x = image.astype(np.float32)
-    c, b, s = rng.uniform(0.7, 1.3), rng.uniform(0.7, 1.3), rng.uniform(0.6, 1.4)
-    x = ((x - x.mean()) * c + x.mean()) * b
-    grey = x.mean(2, keepdims=True)
-    return np.clip(grey + (x - grey) * s, 0, 255).astype(np.uint8)
 
 
 def load_teacher(path: str | None):
@@ -134,11 +125,15 @@ def resolve_specs(specs) -> list[tuple]:
     return out
 
 
-def read_images(sets, input_hw, letterbox: bool, jitter: int, rng, progress: bool) -> list:
+def read_images(sets, input_hw, letterbox: bool, jitter: int, seed: int, progress: bool) -> list:
     """The input-size images of every resolved set (`resolve_specs`), each also mirrored and in
-    `jitter` colour-jittered copies (each mirrored or not at random)."""
+    `jitter` colour-jittered copies, each mirrored or not at random: the training augmentation's
+    colour jitter and flip (`racklay.augment`, the paper's ranges, the jitter always applied),
+    seeded by `seed`."""
+    from .augment import Augment, AugmentConfig
     from .torchdata import prepare_image
 
+    aug = Augment(seed, AugmentConfig(jitter_p=1.0)) if jitter else None
     images = []
     for ds, ids, name in sets:
         it = ids
@@ -148,9 +143,7 @@ def read_images(sets, input_hw, letterbox: bool, jitter: int, rng, progress: boo
         for sid in it:
             im = prepare_image(ds.read_image(sid), input_hw, letterbox)
             images += [im, np.ascontiguousarray(im[:, ::-1])]
-            for _ in range(jitter):
-                j = jitter_colour(im, rng)
-                images.append(np.ascontiguousarray(j[:, ::-1]) if rng.random() < 0.5 else j)
+            images += [aug(im, {})[0] for _ in range(jitter)]
     return images
 
 
@@ -205,8 +198,8 @@ def distill(cfg: DistillConfig, progress: bool = False, log=print) -> Path:
     r_names, p_names = [n for *_, n in r_sets], [n for *_, n in p_sets]
     teacher, tcfg, weights = load_teacher(cfg.teacher)
     student, scfg = student_for(teacher, tcfg, cfg)
-    renders = read_images(r_sets, tcfg.input_hw, tcfg.letterbox, 0, rng, progress)
-    photos = read_images(p_sets, tcfg.input_hw, tcfg.letterbox, cfg.photo_jitter, rng, progress)
+    renders = read_images(r_sets, tcfg.input_hw, tcfg.letterbox, 0, cfg.seed, progress)
+    photos = read_images(p_sets, tcfg.input_hw, tcfg.letterbox, cfg.photo_jitter, cfg.seed, progress)
     n_r, n_p = len(renders), len(photos)
     log(f"teacher {Path(weights).name}: {n_r} render samples ({', '.join(r_names) or 'none'}), {n_p} photo samples "
         f"({', '.join(p_names) or 'none'}), each image also mirrored")

@@ -37,7 +37,7 @@ def _gap_to_teacher(student_path, teacher_path, data) -> float:
 
     teacher, tcfg, _ = load_model(teacher_path)
     student, _, _ = load_model(student_path)
-    images = read_images(resolve_specs([f"{data}:test"]), tcfg.input_hw, tcfg.letterbox, 0, None, False)
+    images = read_images(resolve_specs([f"{data}:test"]), tcfg.input_hw, tcfg.letterbox, 0, 0, False)
     feats, targets = teacher_pass(teacher, images, (2, 3, 4), False)
     with torch.no_grad():
         f = [None, None] + [feats[k].float() for k in (2, 3, 4)]
