@@ -12,12 +12,12 @@ As the encoder is frozen, its features and the teacher's structures are computed
 memory (fp16, ~0.2 MB per image at 256 x 160); training then runs the student's decoders alone,
 ~11 ms per image on 2 cores where a `racklay train` step of the full model costs ~150 ms. The
 schedule is a time budget (`--minutes`) or a number of steps (`--steps`: the same student bit for
-bit from the same seed): warm-up, then cosine decay over it.
+bit from the same seed): warm-up, then cosine decay over it, as `racklay train`'s
+(`racklay.train.warmup_cosine`).
 Measured against the shipped model and its speed: docs/model-card.md.
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -173,12 +173,6 @@ def teacher_pass(teacher, images: list, taps: tuple, progress: bool, batch: int 
             {v: {k: torch.cat(x) for k, x in d.items()} for v, d in structs.items()})
 
 
-def lr_at(cfg: DistillConfig, step: int, frac: float) -> float:
-    """Warm-up over the first steps, then cosine decay over the budget's fraction done."""
-    warm = min(1.0, (step + 1) / cfg.warmup_steps) if cfg.warmup_steps else 1.0
-    return cfg.lr * warm * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
-
-
 def sample_weights(n_renders: int, n_photos: int, photo_share: float) -> np.ndarray:
     """Sampling probabilities: photos `photo_share` of the draws (all of them without renders), renders the rest."""
     if not n_photos or not n_renders:
@@ -191,6 +185,7 @@ def distill(cfg: DistillConfig, progress: bool = False, log=print) -> Path:
     from .checkpoint import save_checkpoint
     from .release import sha256_file
     from .structure import distill_structure_loss
+    from .train import warmup_cosine
 
     t0 = time.time()
     rng = np.random.default_rng(cfg.seed)
@@ -218,9 +213,12 @@ def distill(cfg: DistillConfig, progress: bool = False, log=print) -> Path:
         from tqdm import tqdm
         bar = tqdm(total=cfg.steps, desc="distil", unit="step", leave=False)
     while (time.time() - t1) < budget and (cfg.steps is None or step < cfg.steps):
-        frac = step / cfg.steps if cfg.steps else (time.time() - t1) / budget   # steps given: reproducible
+        if cfg.steps:                                   # steps given: reproducible
+            t = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+        else:
+            t = (time.time() - t1) / budget
         for g in opt.param_groups:
-            g["lr"] = lr_at(cfg, step, frac)
+            g["lr"] = warmup_cosine(cfg.lr, step, cfg.warmup_steps, t)
         idx = torch.from_numpy(rng.choice(len(probs), cfg.batch_size, p=probs))
         f = [None, None] + [feats[k][idx].float() for k in (2, 3, 4)]
         loss = sum(distill_structure_loss(v, dec.structure(f), {k: t[idx] for k, t in targets[v].items()},

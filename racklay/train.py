@@ -63,15 +63,21 @@ from .structure import structure_loss
 # ----------------------------------------------------------------------------- helpers
 
 
+def warmup_cosine(peak: float, step: int, warmup_steps: int, t: float) -> float:
+    """The learning rate of step `step`: linear warm-up over `warmup_steps`, then cosine decay to
+    1% of `peak` as `t` (the fraction of the decay done) goes from 0 to 1."""
+    if step < warmup_steps:
+        return peak * (step + 1) / warmup_steps
+    return peak * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * min(1.0, t))))
+
+
 def lr_at(step: int, total: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> float:
-    """Linear warm-up over `warmup_steps`, then cosine decay to 1% of the peak at `total` steps
-    or, with `schedule: time`, at the time budget if that comes first (`elapsed_s` of it spent)."""
-    if step < cfg.warmup_steps:
-        return cfg.lr * (step + 1) / cfg.warmup_steps
+    """`warmup_cosine` decaying over the steps after warm-up up to `total` or, with `schedule:
+    time`, over the time budget if that comes first (`elapsed_s` of it spent)."""
     t = min(1.0, (step - cfg.warmup_steps) / max(1, total - cfg.warmup_steps))
     if cfg.schedule == "time":
         t = max(t, min(1.0, elapsed_s / (cfg.max_minutes * 60)))
-    return cfg.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
+    return warmup_cosine(cfg.lr, step, cfg.warmup_steps, t)
 
 
 def load_teacher(cfg: TrainConfig, device) -> RackLayNet:
@@ -662,4 +668,4 @@ def _maybe_crash(global_step: int) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-__all__ = ["TrainConfig", "train", "validate", "val_score", "lr_at", "split_ids"]
+__all__ = ["TrainConfig", "train", "validate", "val_score", "lr_at", "warmup_cosine", "split_ids"]
