@@ -214,11 +214,11 @@ def distill(cfg: DistillConfig, progress: bool = False, log=print) -> Path:
         bar = tqdm(total=cfg.steps, desc="distil", unit="step", leave=False)
     while (time.time() - t1) < budget and (cfg.steps is None or step < cfg.steps):
         if cfg.steps:                                   # steps given: reproducible
-            t = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+            done = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
         else:
-            t = (time.time() - t1) / budget
+            done = (time.time() - t1) / budget
         for g in opt.param_groups:
-            g["lr"] = warmup_cosine(cfg.lr, step, cfg.warmup_steps, t)
+            g["lr"] = warmup_cosine(cfg.lr, step, cfg.warmup_steps, done)
         idx = torch.from_numpy(rng.choice(len(probs), cfg.batch_size, p=probs))
         f = [None, None] + [feats[k][idx].float() for k in (2, 3, 4)]
         loss = sum(distill_structure_loss(v, dec.structure(f), {k: t[idx] for k, t in targets[v].items()},
