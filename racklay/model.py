@@ -32,7 +32,8 @@ Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3,
   of the shelf, drawn by `racklay.structure.rasterize` as rectangles on their board. Beat `light`
   by 9-12 box-IoU points at equal CPU time (docs/results/2026-11-22-to-26-accuracy-log.md). `ModelConfig.struct_fine` adds a
   1/4-resolution detail branch and `ModelConfig.struct_gap` a gap output that cuts box runs,
-  both grown from a struct checkpoint (StructDecoder).
+  both grown from a struct checkpoint (StructDecoder); `ModelConfig.struct_joint` gives both
+  views one trunk (`RackLayNet.structures`).
 - `fast`: `light`'s layers (the same tensors) with its last conv3x3-BN-ReLU and 1x1 head run at
   the 1/2-input resolution of the last stage; only the 3·R logits are resized to S x S (bilinear,
   as segmentation heads do). At the release size (160x256 in, 256 out) that conv is 10x cheaper,
@@ -442,7 +443,11 @@ class StructDecoder(nn.Module):
     logit and trained by its own loss (`structure_loss`). The box logit drawn is
     min(box, -gap), so a confident gap cuts a run of boxes without the box loss being reweighted
     (`--gap-weight` does that, and costs box IoU). Its bias starts at -6: a checkpoint without it
-    starts computing what it computed."""
+    starts computing what it computed.
+
+    `trunk=False` (`ModelConfig.struct_joint`, the second view's decoder): no trunk and no
+    per-position convs of its own, only its shelf head (placement included) and its per-position
+    heads; `RackLayNet.structures` feeds it the first view's trunk (`trunk`, `read`, `heads`)."""
 
     #: the submodules a checkpoint without the detail branch / the gap output lacks (see `grown_tensor_names`)
     GROWN = ("red4", "detail", "gap_head")
@@ -450,40 +455,46 @@ class StructDecoder(nn.Module):
     cut_gaps = True
 
     def __init__(self, view: str, R: int, layout_size: int, extent: float, enc_channels, T: int = DEFAULT_T,
-                 width: int = 128, fine: bool = False, gap: bool = False, fuse_k: int = 3):
+                 width: int = 128, fine: bool = False, gap: bool = False, fuse_k: int = 3, trunk: bool = True):
         super().__init__()
         self.view, self.R, self.layout_size, self.extent, self.T = view, R, layout_size, extent, T
-        self.fine, self.gap = fine, gap
-        c4, c8, c16, c32 = enc_channels[1], enc_channels[2], enc_channels[3], enc_channels[4]
-        if fine:
-            self.red4 = conv_bn_relu(c4, 32, 1)
-            self.detail = nn.Sequential(_conv1d_bn_relu(32 + width, 64, 5), nn.Conv1d(64, width, 3, 1, 1))
-        self.red8 = conv_bn_relu(c8, 64, 1)
-        self.red16 = conv_bn_relu(c16, 64, 1)
-        self.red32 = conv_bn_relu(c32, 128, 1)
-        self.fuse = conv_bn_relu(256, width, fuse_k)
-        self.row_att = nn.Conv2d(width, R, 1)
-        self.shelf_emb = nn.Parameter(torch.zeros(R, width, 1))
-        self.img_seq = nn.Sequential(_conv1d_bn_relu(width, width, 5), _conv1d_bn_relu(width, width, 5))
-        self.glob = nn.Sequential(nn.Linear(3 * width, width), nn.ReLU(inplace=True))
-        # per shelf: presence, log length, log extent, placement centre, log half-width, log window
-        self.shelf_head = nn.Linear(width, 6)
+        self.fine, self.gap, self.has_trunk = fine and trunk, gap, trunk
         n_pos = 4 if view == "front" else 6                  # sin/cos of t at a few frequencies
         self.n_freq = n_pos // 2
-        self.pos_seq = nn.Sequential(_conv1d_bn_relu(2 * width + n_pos, width, 5), _conv1d_bn_relu(width, width, 5),
-                                     _conv1d_bn_relu(width, width, 5))
+        if trunk:
+            c4, c8, c16, c32 = enc_channels[1], enc_channels[2], enc_channels[3], enc_channels[4]
+            if fine:
+                self.red4 = conv_bn_relu(c4, 32, 1)
+                self.detail = nn.Sequential(_conv1d_bn_relu(32 + width, 64, 5), nn.Conv1d(64, width, 3, 1, 1))
+            self.red8 = conv_bn_relu(c8, 64, 1)
+            self.red16 = conv_bn_relu(c16, 64, 1)
+            self.red32 = conv_bn_relu(c32, 128, 1)
+            self.fuse = conv_bn_relu(256, width, fuse_k)
+            self.row_att = nn.Conv2d(width, R, 1)
+            self.shelf_emb = nn.Parameter(torch.zeros(R, width, 1))
+            self.img_seq = nn.Sequential(_conv1d_bn_relu(width, width, 5), _conv1d_bn_relu(width, width, 5))
+            self.glob = nn.Sequential(nn.Linear(3 * width, width), nn.ReLU(inplace=True))
+            self.pos_seq = nn.Sequential(_conv1d_bn_relu(2 * width + n_pos, width, 5),
+                                         _conv1d_bn_relu(width, width, 5), _conv1d_bn_relu(width, width, 5))
+        # per shelf: presence, log length, log extent, placement centre, log half-width, log window
+        self.shelf_head = nn.Linear(width, 6)
         self.pos_head = nn.Conv1d(width, 2 if view == "front" else 3, 1)
         if gap:
             self.gap_head = nn.Conv1d(width, 1, 1)
 
-    def structure(self, feats) -> dict:
+    def trunk(self, feats) -> dict:
+        """Encoder features -> what each view reads: per shelf the global feature `g` (N, R, C)
+        and the sequence along the image columns `cols` (N, R, C, W)."""
+        if not self.has_trunk:
+            raise ValueError(f"the {self.view} struct decoder has no trunk of its own (struct_joint: "
+                             "RackLayNet.structures reads it from the other view's)")
         f8, f16, f32 = feats[2], feats[3], feats[4]
         size = f8.shape[-2:]
         x = torch.cat([self.red8(f8), F.interpolate(self.red16(f16), size=size, mode="bilinear", align_corners=False),
                        F.interpolate(self.red32(f32), size=size, mode="bilinear", align_corners=False)], 1)
         x = self.fuse(x)                                                         # (N, C, H8, W8)
         N, C, _, W = x.shape
-        R, T = self.R, self.T
+        R = self.R
         att_logits = self.row_att(x)
         att = att_logits.softmax(2)                                              # (N, R, H8, W8)
         cols = torch.einsum("nrhw,nchw->nrcw", att, x) + self.shelf_emb          # (N, R, C, W8)
@@ -497,19 +508,37 @@ class StructDecoder(nn.Module):
             d = torch.einsum("nrhw,nchw->nrcw", att4, f4).reshape(N * R, -1, W)
             up = F.interpolate(cols.reshape(N * R, C, W8), size=W, mode="linear", align_corners=False)
             cols = (up + self.detail(torch.cat([d, up], 1))).reshape(N, R, C, W)
-        pres, log_len, log_ext, centre, log_half, log_win = self.shelf_head(g).float().unbind(-1)
+        return {"g": g, "cols": cols, "W8": W8, "n_freq": self.n_freq}
+
+    def read(self, tr: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """A trunk's output (this decoder's own, or with `struct_joint` the other view's) -> this
+        view's shelf head output (N, R, 6) and the sequence it reads along each shelf
+        (N*R, C', T): the trunk's columns at the T positions where this view places the shelf,
+        with the global feature and the position's sin/cos."""
+        g, cols, W8 = tr["g"], tr["cols"], tr["W8"]
+        N, R, C, W = cols.shape
+        T = self.T
+        shelf = self.shelf_head(g).float()
+        centre, log_half, log_win = shelf[..., 3], shelf[..., 4], shelf[..., 5]
         half = torch.exp(log_half).clamp(MIN_HALF_WIDTH, MAX_HALF_WIDTH)
-        t = (torch.arange(T, device=x.device, dtype=torch.float32) + 0.5) / T    # positions along the shelf
+        t = (torch.arange(T, device=cols.device, dtype=torch.float32) + 0.5) / T   # positions along the shelf
         mu = position_columns(centre, half, T)                                   # (N, R, T) image widths
-        u = (torch.arange(W, device=x.device, dtype=torch.float32) + 0.5) / W
+        u = (torch.arange(W, device=cols.device, dtype=torch.float32) + 0.5) / W
         win = torch.exp(log_win).clamp(0.25, 8.0).unsqueeze(-1).unsqueeze(-1) / W8   # in 1/8 columns
         w = (-0.5 * ((u - mu.unsqueeze(-1)) / win) ** 2).softmax(-1)             # (N, R, T, W)
         seq = torch.einsum("nrtw,nrcw->nrct", w.to(cols.dtype), cols)          # (N, R, C, T)
-        freqs = torch.arange(1, self.n_freq + 1, device=x.device, dtype=torch.float32) * math.pi
+        freqs = torch.arange(1, tr["n_freq"] + 1, device=cols.device, dtype=torch.float32) * math.pi
         pos = torch.cat([torch.sin(freqs[:, None] * t), torch.cos(freqs[:, None] * t)], 0)   # (n_pos, T)
         seq = torch.cat([seq, g.unsqueeze(-1).expand(N, R, C, T).to(seq.dtype),
                          pos.to(seq.dtype).expand(N, R, -1, T)], 2)
-        h = self.pos_seq(seq.reshape(N * R, -1, T))
+        return shelf, seq.reshape(N * R, -1, T)
+
+    def heads(self, shelf: torch.Tensor, h: torch.Tensor) -> dict:
+        """This view's shelf head output (`read`) and per-position features `h` (N*R, C, T) ->
+        this view's structure."""
+        N, R, T = shelf.shape[0], self.R, h.shape[-1]
+        pres, log_len, log_ext, centre, log_half = shelf[..., :5].unbind(-1)
+        half = torch.exp(log_half).clamp(MIN_HALF_WIDTH, MAX_HALF_WIDTH)
         out = self.pos_head(h).float().reshape(N, R, -1, T)
         st = {"presence": pres, "length": torch.exp(log_len.clamp(-4, 3)), "extent": torch.exp(log_ext.clamp(-4, 3)),
               "centre": centre, "half": half, "box": out[:, :, 0]}
@@ -523,6 +552,11 @@ class StructDecoder(nn.Module):
         else:
             st["near"], st["far"] = torch.sigmoid(out[:, :, 1]), torch.sigmoid(out[:, :, 2])
         return st
+
+    def structure(self, feats) -> dict:
+        """Encoder features -> this view's structure (a decoder with a trunk of its own)."""
+        shelf, seq = self.read(self.trunk(feats))
+        return self.heads(shelf, self.pos_seq(seq))
 
     def draw(self, st: dict) -> torch.Tensor:
         """A structure -> (N, R, 3, S, S) layout log-probabilities: soft edges while training,
@@ -592,10 +626,10 @@ class RackLayNet(nn.Module):
         cin = self.encoder.channels[-1]
 
         def make(view):
-            if cfg.decoder == "struct":
+            if cfg.decoder == "struct":      # struct_joint: the first view's decoder holds the one trunk
                 return StructDecoder(view, cfg.R, cfg.layout_size, cfg.extent, self.encoder.channels,
                                      width=cfg.struct_width, fine=cfg.struct_fine, gap=cfg.struct_gap,
-                                     fuse_k=cfg.struct_fuse_k)
+                                     fuse_k=cfg.struct_fuse_k, trunk=not cfg.struct_joint or view == cfg.views[0])
             if cfg.decoder == "paper":
                 return PaperDecoder(out, cfg.layout_size, cin)
             if cfg.decoder == "columns":
@@ -636,6 +670,24 @@ class RackLayNet(nn.Module):
         for dec in self.decoders.values():
             dec.cut_gaps = bool(on)
 
+    def trunk_decoder(self, view: str) -> "StructDecoder":
+        """The struct decoder whose trunk reads the image for `view`: its own, or with
+        `struct_joint` the first view's."""
+        return self.decoders[self.cfg.views[0] if self.cfg.struct_joint else view]
+
+    def structures(self, feats) -> dict:
+        """Encoder features -> {view: structure} as each view's decoder predicts it (struct decoder;
+        before `tie_views`). With `struct_joint` one trunk serves both views: each view places
+        its shelves in the image itself and reads the trunk's columns there, the per-position 1-D
+        convs run once over both views' sequences, and each view has its own heads."""
+        if not self.cfg.struct_joint:
+            return {v: dec.structure(feats) for v, dec in self.decoders.items()}
+        owner = self.trunk_decoder(self.cfg.views[0])
+        tr = owner.trunk(feats)
+        reads = {v: dec.read(tr) for v, dec in self.decoders.items()}
+        hs = owner.pos_seq(torch.cat([seq for _, seq in reads.values()])).chunk(len(reads))   # one call for all views
+        return {v: dec.heads(reads[v][0], h) for (v, dec), h in zip(self.decoders.items(), hs)}
+
     def forward(self, x: torch.Tensor, shelf_length=None, with_structure: bool = False):
         """{view: (N, R, 3, S, S) logits}. `struct` decoder only: `shelf_length` (metres, a number
         or (N, R)) fixes every shelf's length and so the scale; `with_structure` also returns
@@ -649,7 +701,7 @@ class RackLayNet(nn.Module):
         feats = self.encoder(x)
         if self.cfg.decoder == "struct":
             cut_gaps = all(dec.cut_gaps for dec in self.decoders.values())
-            structs = {v: dec.structure(feats) for v, dec in self.decoders.items()}
+            structs = self.structures(feats)
             if self.flip_average:
                 structs = {v: flip_average_structure(st, n, cut_gaps) for v, st in structs.items()}
             structs = tie_views(structs, cut_gaps=cut_gaps)

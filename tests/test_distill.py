@@ -41,7 +41,7 @@ def _gap_to_teacher(student_path, teacher_path, data) -> float:
     feats, targets = teacher_pass(teacher, images, (2, 3, 4), False)
     with torch.no_grad():
         f = [None, None] + [feats[k].float() for k in (2, 3, 4)]
-        loss = sum(distill_structure_loss(v, dec.structure(f), targets[v]) for v, dec in student.decoders.items())
+        loss = sum(distill_structure_loss(v, st, targets[v]) for v, st in student.structures(f).items())
         return float(loss - sum(distill_structure_loss(v, targets[v], targets[v]) for v in targets))
 
 
@@ -63,6 +63,12 @@ def test_student_learns_the_teachers_structures_reproducibly(setup, tmp_path):
     assert _gap_to_teacher(out, teacher, data) < 0.5 * _gap_to_teacher(fresh, teacher, data)
     again = load_checkpoint(distill(DistillConfig(out=str(tmp_path / "b.safetensors"), **kw))).section("model")
     assert all(torch.equal(again[k], v) for k, v in s.items())                        # same seed, same student
+    # one trunk for both views: a smaller student that learns as well
+    joint = distill(DistillConfig(out=str(tmp_path / "joint.safetensors"), **{**kw, "struct_joint": True}))
+    jk = load_checkpoint(joint)
+    assert jk.cfg.struct_joint and not any(k.startswith("decoders.front.fuse") for k in jk.section("model"))
+    assert len(jk.section("model")) < len(s)
+    assert _gap_to_teacher(joint, teacher, data) < 0.5 * _gap_to_teacher(fresh, teacher, data)
 
 
 def test_distill_refuses_what_it_cannot_use(setup, tmp_path, tmp_path_factory, capsys):

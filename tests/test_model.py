@@ -15,6 +15,7 @@ from racklay.model import (
     RackLayNet,
     ResNet18Encoder,
     build_model,
+    count_parameters,
     load_imagenet_weights,
 )
 
@@ -97,6 +98,46 @@ def test_struct_width_and_fuse_kernel_are_architecture_options(tmp_path):
         ModelConfig(decoder="light", struct_width=32)
     with pytest.raises(ValueError, match="struct_fuse_k must be one of"):
         ModelConfig(decoder="struct", struct_fuse_k=5)
+
+
+def test_struct_joint_reads_both_views_from_one_trunk(tmp_path):
+    """`struct_joint`: the first view's decoder holds the one trunk (fuse conv, row attention, 1-D
+    convs), the other view only its heads, each view placing its shelves itself; the model saves
+    and loads back as the same network; it needs both views, and a checkpoint with separate
+    trunks cannot initialise it (one error naming the option)."""
+    from racklay.checkpoint import check_init, load_checkpoint
+    from racklay.config import TrainConfig
+
+    base = dict(R=2, image_size=(64, 128), layout_size=32, decoder="struct", struct_width=16, struct_gap=True)
+    torch.manual_seed(0)
+    m = RackLayNet(ModelConfig(**base, struct_joint=True)).eval()
+    sep = RackLayNet(ModelConfig(**base)).eval()
+    assert hasattr(m.decoders["top"], "fuse") and not hasattr(m.decoders["front"], "fuse")
+    assert not hasattr(m.decoders["front"], "pos_seq") and hasattr(m.decoders["front"], "pos_head")
+    assert m.trunk_decoder("front") is m.decoders["top"] and sep.trunk_decoder("front") is sep.decoders["front"]
+    assert count_parameters(m) < count_parameters(sep)
+    x = torch.randn(2, 3, 64, 128, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        out, st = m(x, with_structure=True)
+    assert set(out) == {"top", "front"} and out["front"].shape == (2, 2, 3, 32, 32)
+    assert not torch.equal(st["top"]["centre"], st["front"]["centre"])     # each view's own placement
+    assert st["top"]["extent"].shape == st["front"]["extent"].shape == (2, 2)
+    with pytest.raises(ValueError, match="no trunk of its own"):
+        m.decoders["front"].structure(m.encoder(x))
+    path = save_checkpoint(tmp_path / "joint.safetensors", m, m.cfg)
+    m2, cfg2, _ = load_model(path)
+    assert cfg2.struct_joint
+    with torch.no_grad():
+        assert all(torch.equal(a, b) for a, b in zip(m(x).values(), m2(x).values()))
+    with pytest.raises(ValueError, match="struct_joint shares one trunk"):
+        ModelConfig(**base, struct_joint=True, views=("front",))
+    with pytest.raises(ValueError, match="struct_joint needs the struct decoder"):
+        ModelConfig(decoder="light", struct_joint=True)
+    sep_path = save_checkpoint(tmp_path / "sep.safetensors", sep, sep.cfg)
+    run = TrainConfig(data="x", decoder="struct", struct_width=16, struct_gap=True, struct_joint=True, R=2,
+                      image_size=(64, 128), layout_size=32)
+    with pytest.raises(ValueError, match=r"sep.safetensors: cannot fine-tune.*struct_joint False \(run: True\)"):
+        check_init(load_checkpoint(sep_path), run)
 
 
 def _struct_grown_with(field: str):

@@ -703,6 +703,22 @@ def test_level_spans_move_with_the_image_through_letterbox_flip_and_squeeze(tmp_
         RackLayDataset(ds.root, "train", transform=Blur(), **kw)
 
 
+def test_struct_joint_trains_one_trunk_for_both_views(tmp_path, toy):
+    """--struct-joint: a struct run with one trunk for both views trains (its loss falls), its
+    checkpoint is such a model, and a run with two trunks cannot start from it (one error naming
+    the option, before the first step)."""
+    common = dict(data=str(toy), out=str(tmp_path), decoder="struct", struct_width=16, lr=5e-3, disc=False,
+                  patience=None, checkpoint_every=0, **TINY)
+    run = train(TrainConfig(name="joint", struct_joint=True, epochs=4, **common))
+    rows = _rows(run)
+    assert float(rows[-1]["train_loss"]) < float(rows[0]["train_loss"])
+    model, mcfg, _ = load_model(run / "last.safetensors")
+    assert mcfg.struct_joint and hasattr(model.decoders["top"], "fuse") and not hasattr(model.decoders["front"], "fuse")
+    with pytest.raises(ValueError, match=r"last.safetensors: cannot fine-tune.*struct_joint True \(run: False\)"):
+        train(TrainConfig(name="two", init=str(run / "last.safetensors"), epochs=1, **common))
+    assert not (tmp_path / "two" / "last.safetensors").exists()
+
+
 def test_placement_weight_trains_where_each_shelf_is_read(tmp_path, toy):
     """--placement-weight: on samples whose meta has level spans the struct decoder's shelf
     placement moves to the labelled span (here all shelves at [0.55, 0.95] of the image, far from

@@ -96,7 +96,7 @@ def main(argv=None) -> int:
     if pred.model is None or pred.cfg.decoder != "struct" or not pred.cfg.struct_gap or "front" not in pred.views:
         ap.error(f"{pred.weights}: needs a struct model with a gap output and a front view")
     project = Project(args.project, create=False)
-    dec = pred.model.decoders["front"]
+    dec = pred.model.trunk_decoder("front")   # the decoder whose row attention reads the front view
     cap = {}
     hooks = [dec.row_att.register_forward_hook(lambda m, i, o: cap.__setitem__("att", o.detach()))]
     _, _, ds = split_dataset(pred, args.data, args.split)

@@ -5,7 +5,8 @@ reference architecture to >= 3x slower than the shipped model (the model issue's
 
 Builds the shipped architecture (EfficientNet-Lite0 + `struct`) with the struct decoder at several
 widths (`StructDecoder(width=...)`: every 1-D conv and the fuse conv) with and without the
-1/4 detail branch and with the fuse conv 3 x 3 or 1 x 1 (`--struct-fuse-k`), randomly initialised
+1/4 detail branch, with the fuse conv 3 x 3 or 1 x 1 (`--struct-fuse-k`) and with one trunk for both
+views (`--struct-joint`), randomly initialised
 (weights do not change the cost), and times each against
 the reference (ResNet-18 + `paper`) at the shipped input, layout size and precision, channels_last,
 calls interleaved in rounds. Prints per model: wall ms median (min), the decoders' multiply-adds
@@ -47,7 +48,7 @@ def main(argv=None) -> int:
     from torch.utils.flop_counter import FlopCounterMode
 
     from racklay.checkpoint import load_model
-    from racklay.model import RackLayNet, StructDecoder
+    from racklay.model import RackLayNet
     from racklay.precision import resolve_precision
     from racklay.release import resolve_weights
 
@@ -55,14 +56,14 @@ def main(argv=None) -> int:
     _, cfg, _ = load_model(resolve_weights(None))
     torch.manual_seed(0)
     models = {}
-    for fine, fuse_k in ((True, 3), (False, 3), (False, 1)):
+    for fine, fuse_k, joint in ((True, 3, False), (False, 3, False), (False, 1, False), (False, 1, True)):
         for width in WIDTHS:
-            m = RackLayNet(replace(cfg, decoder="struct", struct_fine=fine))
-            for v in list(m.decoders):
-                m.decoders[v] = StructDecoder(v, cfg.R, cfg.layout_size, cfg.extent, m.encoder.channels,
-                                              width=width, fine=fine, gap=cfg.struct_gap, fuse_k=fuse_k)
-            shipped = (width, fine, fuse_k) == (cfg.struct_width, cfg.struct_fine, cfg.struct_fuse_k)
-            name = f"struct width {width}{', 1/4 branch' if fine else ''}{', 1x1 fuse' if fuse_k == 1 else ''}"
+            m = RackLayNet(replace(cfg, decoder="struct", struct_fine=fine, struct_width=width, struct_fuse_k=fuse_k,
+                                   struct_joint=joint))
+            shipped = (width, fine, fuse_k, joint) == (cfg.struct_width, cfg.struct_fine, cfg.struct_fuse_k,
+                                                       cfg.struct_joint)
+            name = (f"struct width {width}{', 1/4 branch' if fine else ''}{', 1x1 fuse' if fuse_k == 1 else ''}"
+                    f"{', one trunk' if joint else ''}")
             models[name + (" (shipped)" if shipped else "")] = m.eval()
     models["reference (ResNet-18 + paper)"] = reference_model(cfg)
     h, w = cfg.input_hw
