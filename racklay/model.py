@@ -510,11 +510,11 @@ class StructDecoder(nn.Module):
             cols = (up + self.detail(torch.cat([d, up], 1))).reshape(N, R, C, W)
         return {"g": g, "cols": cols, "W8": W8, "n_freq": self.n_freq}
 
-    def read(self, tr: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    def read(self, tr: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """A trunk's output (this decoder's own, or with `struct_joint` the other view's) -> this
-        view's shelf head output (N, R, 6) and the sequence it reads along each shelf
-        (N*R, C', T): the trunk's columns at the T positions where this view places the shelf,
-        with the global feature and the position's sin/cos."""
+        view's shelf head output (N, R, 6), each shelf's half-width in the image (N, R) and the
+        sequence it reads along each shelf (N*R, C', T): the trunk's columns at the T positions
+        where this view places the shelf, with the global feature and the position's sin/cos."""
         g, cols, W8 = tr["g"], tr["cols"], tr["W8"]
         N, R, C, W = cols.shape
         T = self.T
@@ -531,14 +531,13 @@ class StructDecoder(nn.Module):
         pos = torch.cat([torch.sin(freqs[:, None] * t), torch.cos(freqs[:, None] * t)], 0)   # (n_pos, T)
         seq = torch.cat([seq, g.unsqueeze(-1).expand(N, R, C, T).to(seq.dtype),
                          pos.to(seq.dtype).expand(N, R, -1, T)], 2)
-        return shelf, seq.reshape(N * R, -1, T)
+        return shelf, half, seq.reshape(N * R, -1, T)
 
-    def heads(self, shelf: torch.Tensor, h: torch.Tensor) -> dict:
-        """This view's shelf head output (`read`) and per-position features `h` (N*R, C, T) ->
-        this view's structure."""
+    def heads(self, shelf: torch.Tensor, half: torch.Tensor, h: torch.Tensor) -> dict:
+        """This view's shelf head output and half-widths (`read`) and per-position features `h`
+        (N*R, C, T) -> this view's structure."""
         N, R, T = shelf.shape[0], self.R, h.shape[-1]
-        pres, log_len, log_ext, centre, log_half = shelf[..., :5].unbind(-1)
-        half = torch.exp(log_half).clamp(MIN_HALF_WIDTH, MAX_HALF_WIDTH)
+        pres, log_len, log_ext, centre = shelf[..., :4].unbind(-1)
         out = self.pos_head(h).float().reshape(N, R, -1, T)
         st = {"presence": pres, "length": torch.exp(log_len.clamp(-4, 3)), "extent": torch.exp(log_ext.clamp(-4, 3)),
               "centre": centre, "half": half, "box": out[:, :, 0]}
@@ -555,8 +554,8 @@ class StructDecoder(nn.Module):
 
     def structure(self, feats) -> dict:
         """Encoder features -> this view's structure (a decoder with a trunk of its own)."""
-        shelf, seq = self.read(self.trunk(feats))
-        return self.heads(shelf, self.pos_seq(seq))
+        shelf, half, seq = self.read(self.trunk(feats))
+        return self.heads(shelf, half, self.pos_seq(seq))
 
     def draw(self, st: dict) -> torch.Tensor:
         """A structure -> (N, R, 3, S, S) layout log-probabilities: soft edges while training,
@@ -685,8 +684,8 @@ class RackLayNet(nn.Module):
         owner = self.trunk_decoder(self.cfg.views[0])
         tr = owner.trunk(feats)
         reads = {v: dec.read(tr) for v, dec in self.decoders.items()}
-        hs = owner.pos_seq(torch.cat([seq for _, seq in reads.values()])).chunk(len(reads))   # one call for all views
-        return {v: dec.heads(reads[v][0], h) for (v, dec), h in zip(self.decoders.items(), hs)}
+        hs = owner.pos_seq(torch.cat([seq for *_, seq in reads.values()])).chunk(len(reads))   # one call for all views
+        return {v: dec.heads(*reads[v][:2], h) for (v, dec), h in zip(self.decoders.items(), hs)}
 
     def forward(self, x: torch.Tensor, shelf_length=None, with_structure: bool = False):
         """{view: (N, R, 3, S, S) logits}. `struct` decoder only: `shelf_length` (metres, a number
