@@ -327,7 +327,7 @@ class TrainConfig:
     struct_joint: bool = option(
         False, "struct decoder: one trunk (fuse conv, row attention, 1-D convs) for both views; each view "
                "places its shelves in the image itself and keeps its own heads (presence, length, extent; box, "
-               "height or depth interval, gap): about a third less decoder time, but a distilled student read photos "
+               "height or depth interval, gap): up to a third less decoder time, but a distilled student read photos "
                "2-3 box points worse with it (docs/training.md) (default {default})",
         keep=True)
     encoder: str = option(
