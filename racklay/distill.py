@@ -52,7 +52,7 @@ class DistillConfig:
     struct_fuse_k: int = option(1, "the student's fuse conv kernel (racklay train's --struct-fuse-k) "
                                    "(default {default})", choices=(1, 3))
     struct_joint: bool = option(False, "one struct trunk for both of the student's views, each keeping its own "
-                                       "heads (racklay train's --struct-joint): about a third less decoder time, "
+                                       "heads (racklay train's --struct-joint): up to a third less decoder time, "
                                        "2-3 box points lower on photos when measured (default {default})")
     gap_weight: float = option(5.0, "weight of the positions the teacher calls gaps between loads in the gap "
                                     "output's loss (1: unweighted; docs/training.md) (default {default})", lo=1)
