@@ -625,10 +625,10 @@ class RackLayNet(nn.Module):
         cin = self.encoder.channels[-1]
 
         def make(view):
-            if cfg.decoder == "struct":      # struct_joint: the first view's decoder holds the one trunk
+            if cfg.decoder == "struct":
                 return StructDecoder(view, cfg.R, cfg.layout_size, cfg.extent, self.encoder.channels,
                                      width=cfg.struct_width, fine=cfg.struct_fine, gap=cfg.struct_gap,
-                                     fuse_k=cfg.struct_fuse_k, trunk=not cfg.struct_joint or view == cfg.views[0])
+                                     fuse_k=cfg.struct_fuse_k, trunk=self.trunk_view(view) == view)
             if cfg.decoder == "paper":
                 return PaperDecoder(out, cfg.layout_size, cin)
             if cfg.decoder == "columns":
@@ -669,10 +669,14 @@ class RackLayNet(nn.Module):
         for dec in self.decoders.values():
             dec.cut_gaps = bool(on)
 
+    def trunk_view(self, view: str) -> str:
+        """The view whose struct decoder holds the trunk that reads the image for `view`: `view`
+        itself, or with `struct_joint` the first view."""
+        return self.cfg.views[0] if self.cfg.struct_joint else view
+
     def trunk_decoder(self, view: str) -> "StructDecoder":
-        """The struct decoder whose trunk reads the image for `view`: its own, or with
-        `struct_joint` the first view's."""
-        return self.decoders[self.cfg.views[0] if self.cfg.struct_joint else view]
+        """The struct decoder whose trunk reads the image for `view` (`trunk_view`)."""
+        return self.decoders[self.trunk_view(view)]
 
     def structures(self, feats) -> dict:
         """Encoder features -> {view: structure} as each view's decoder predicts it (struct decoder;

@@ -63,7 +63,7 @@ def test_student_learns_the_teachers_structures_reproducibly(setup, tmp_path):
     assert _gap_to_teacher(out, teacher, data) < 0.5 * _gap_to_teacher(fresh, teacher, data)
     again = load_checkpoint(distill(DistillConfig(out=str(tmp_path / "b.safetensors"), **kw))).section("model")
     assert all(torch.equal(again[k], v) for k, v in s.items())                        # same seed, same student
-    # one trunk for both views: a smaller student that learns as well
+    # one trunk for both views: a smaller student, which also learns the teacher's structures
     joint = distill(DistillConfig(out=str(tmp_path / "joint.safetensors"), **{**kw, "struct_joint": True}))
     jk = load_checkpoint(joint)
     assert jk.cfg.struct_joint and not any(k.startswith("decoders.front.fuse") for k in jk.section("model"))
