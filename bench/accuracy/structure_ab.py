@@ -51,6 +51,8 @@ from pathlib import Path
 
 import numpy as np
 
+from racklay.precision import PRECISIONS
+
 PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
 BOX_TARGET = {"top": 70.0, "front": 75.0}            # reproduction row, dataset-level box IoU
 
@@ -246,6 +248,9 @@ def main() -> int:
                          "split scored")
     ap.add_argument("--flip-average", action="store_true",
                     help="predict with test-time flip averaging (`racklay eval --flip-average`)")
+    ap.add_argument("--precision", default="auto", choices=PRECISIONS,
+                    help="inference precision of every arm (default auto: bf16 where the CPU has it natively); "
+                         "compare scores across machine kinds at one precision")
     ap.add_argument("--json", default=None, help="also write the numbers here")
     args = ap.parse_args()
     if args.calibrate_on and not all(args.calibrate_on.rpartition(":")[::2]):
@@ -269,7 +274,7 @@ def main() -> int:
         for run in runs.split(","):
             run = Path(run)
             ckpt = run if run.is_file() else run / args.weights
-            pred = Predictor(str(ckpt), precision="auto", flip_average=args.flip_average)
+            pred = Predictor(str(ckpt), precision=args.precision, flip_average=args.flip_average)
             print(f"{name}: {ckpt} ({pred.cfg.decoder} decoder, {pred.precision})", file=sys.stderr, flush=True)
             rows.append(score_run(pred, run, args, photos))
         out[name] = mean_rows(rows)
