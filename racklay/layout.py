@@ -12,7 +12,8 @@ File encoding (RackLay): 0 / 115 / 255, uint8. Decoding is strict: any other val
 
 Grid: a layout is D x D pixels covering L x L metres (defaults D = 512, L = 8 m, so
 1.5625 cm/pixel). R channels (default 4), one per shelf, channel 0 = lowest *visible* shelf;
-channels of shelves that are not visible are all background.
+channels of shelves that are not visible are all background; an image showing more than R
+levels has the lowest R visible ones as its channels.
 
 Shelf-centric frame, per shelf i: origin at the centre of the shelf board's top surface;
 x along the rack's length (to the camera's right), y along its depth (away from the camera),

@@ -754,3 +754,37 @@ def test_level_spans_are_where_the_image_shows_the_shelf_the_layouts_draw(extent
             else:
                 assert extent == "bay" or (sp[0] > -0.02 and sp[1] < 1.02), (index, sp)   # seen whole
     assert extent == "bay" or cut > 0
+
+
+def test_a_tall_view_shows_more_levels_than_it_labels_the_lowest_r_of_them(renderer):
+    """`tall_view_fraction`: that share of cameras frames more levels than R (a tall rack
+    photographed whole) and the lowest R visible levels get the layout channels, as the labelling
+    guide labels photo 17 (docs/annotate.md); the loads of the levels above are in the image with
+    no channel. At 0 (the default) no camera shows more than R levels."""
+    from racklay.synth.scene import visible_shelves
+
+    r0, ren = renderer
+
+    def scenes(over):
+        r = load_recipe("complex", {**SMALL, "n_shelves": [7, 9], "shelf_height": [0.25, 0.4],
+                                    "camera_distance": [0.35, 12.0], **over})
+        return r, [sample_scene(r, 3, i) for i in range(16)]
+
+    def shown(r, s):
+        return visible_shelves(s.camera, s.rack_length, s.rack_depth, s.shelves, r.visible_fraction,
+                               r.detection_range_m, r.visible_fraction_board)
+
+    r, plain = scenes({})
+    assert all(len(shown(r, s)) <= r.R and s.visible == shown(r, s) for s in plain)
+    r, tall = scenes({"tall_view_fraction": 1.0})
+    more = [s for s in tall if len(shown(r, s)) > r.R]
+    assert len(more) >= 12, [len(shown(r, s)) for s in tall]
+    assert all(s.visible == shown(r, s)[:r.R] for s in tall)       # the lowest R of those in view
+    s = more[0]
+    top, front = scene_layouts(s, L.Grid(128, r.extent_m), r.R)
+    assert top.shape[0] == front.shape[0] == r.R and (front[r.R - 1] > 0).any()
+    anns = object_annotations(s, ren.render(s).instance)
+    above = set(shown(r, s)[r.R:])
+    up = [a for a in anns if a["shelf"] in above]
+    assert up and all(a["channel"] is None for a in up) and any(a["visible_pixels"] > 0 for a in up)
+    assert {a["channel"] for a in anns if a["shelf"] in s.visible} == set(range(r.R))

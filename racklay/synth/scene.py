@@ -1164,7 +1164,9 @@ def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries):
     for _ in range(tries):
         # the extra draw only where zoom is on: recipes without it keep their random streams
         f = _u(rng, r.long_focal_px if r.long_lens_fraction and rng.random() < r.long_lens_fraction else r.focal_px)
-        k = int(rng.integers(1, min(r.R, n) + 1))
+        # likewise the tall view's draw: frame more levels than R, label the lowest R of those visible
+        tall = n > r.R and bool(r.tall_view_fraction) and rng.random() < r.tall_view_fraction
+        k = int(rng.integers(r.R + 1, n + 1)) if tall else int(rng.integers(1, min(r.R, n) + 1))
         s = int(rng.integers(0, n - k + 1))
         lo = shelves[s].board_top
         hi = shelves[s + k - 1].board_top + shelves[s + k - 1].clear_height
@@ -1184,8 +1186,8 @@ def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries):
         vis = visible_shelves(cam, length, depth, shelves, r.visible_fraction, r.detection_range_m,
                               r.visible_fraction_board)
         last = (cam, vis)
-        if 1 <= len(vis) <= r.R:
-            return cam, vis
+        if 1 <= len(vis) <= r.R or (tall and len(vis) > r.R):
+            return cam, vis[:r.R]
     raise ValueError(f"recipe {r.name}: no camera placement with 1..{r.R} visible shelves in {tries} tries "
                      f"(check camera_distance / camera_height / focal_px against the rack size); last try saw "
                      f"{len(last[1])} shelves")
