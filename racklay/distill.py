@@ -64,6 +64,10 @@ class DistillConfig:
                              "(default {default})", gt=0)
     warmup_steps: int = option(100, "linear warm-up steps (default {default})", lo=0)
     weight_decay: float = option(1e-4, "AdamW weight decay (default {default})", lo=0)
+    init: str = option("random", "how the student's decoders start: random (seeded) or pruned, the teacher's own "
+                                 "decoder layers cut to the student's width, keeping each layer's channels of largest "
+                                 "batch-norm scale (a 3 x 3 fuse conv summed to 1 x 1; the 1/4 branch dropped) "
+                                 "(default {default})", choices=("random", "pruned"))
     seed: int = option(0, "seed of the student's initialisation, the jitter and the sampling (default {default})",
                        lo=0)
 
@@ -99,7 +103,8 @@ def load_teacher(path: str | None):
 
 def student_for(teacher, tcfg, cfg: DistillConfig):
     """The student: the teacher's architecture with cfg's struct width, fuse kernel and trunk sharing, no 1/4
-    branch, its encoder a frozen copy of the teacher's, its decoders freshly initialised (seeded).
+    branch, its encoder a frozen copy of the teacher's, its decoders freshly initialised (seeded), or
+    with `init="pruned"` cut from the teacher's (`prune_decoder`).
     The teacher's decision biases (`racklay calibrate`), if any, carry over: the student learns
     the teacher's logits, so the same biases apply to them."""
     from .model import RackLayNet
@@ -110,7 +115,65 @@ def student_for(teacher, tcfg, cfg: DistillConfig):
     student = RackLayNet(scfg)
     student.encoder.load_state_dict(teacher.encoder.state_dict())
     student.encoder.requires_grad_(False).eval()
+    if cfg.init == "pruned":
+        if tcfg.struct_joint or cfg.struct_joint:
+            raise ValueError("--init pruned: needs a teacher and a student with a trunk per view (no --struct-joint)")
+        if cfg.struct_width > tcfg.struct_width:
+            raise ValueError(f"--init pruned: the student's width {cfg.struct_width} is wider than the teacher's "
+                             f"{tcfg.struct_width}")
+        for view, dec in student.decoders.items():
+            prune_decoder(teacher.decoders[view], dec)
     return student, scfg
+
+
+def _keep(bn_or_weight: torch.Tensor, n: int) -> torch.Tensor:
+    """The n channels (sorted) with the largest |scale| (a batch norm's weight), or for a layer
+    without a norm the largest row norms of its weight."""
+    score = bn_or_weight.abs() if bn_or_weight.dim() == 1 else bn_or_weight.flatten(1).norm(dim=1)
+    return score.topk(n).indices.sort().values
+
+
+@torch.no_grad()
+def prune_decoder(src, dst) -> None:
+    """Start struct decoder `dst` (narrower, no 1/4 branch, same view, R and T) from `src`, the
+    network-slimming way: every layer keeps the output channels of largest batch-norm scale, and
+    the next layer reads those channels of its input. The reductions of the encoder's maps are
+    copied whole; a 3 x 3 fuse conv becomes the 1 x 1 conv it is on a locally constant input (its
+    taps summed); heads are cut to the kept channels. `dst` then computes roughly what `src`
+    computed with its strongest channels alone, and distillation trains it from there."""
+    def conv_bn(s, d, cin=None):
+        """Copy conv-bn-relu `s` into `d`, keeping the outputs of largest scale; -> their indices."""
+        keep = _keep(s[1].weight, d[1].weight.shape[0])
+        w = s[0].weight[keep] if cin is None else s[0].weight[keep][:, cin]
+        if w.shape[2:] != d[0].weight.shape[2:]:
+            w = w.sum(dim=tuple(range(2, w.dim())), keepdim=True)
+        d[0].weight.copy_(w)
+        for name in ("weight", "bias", "running_mean", "running_var"):
+            getattr(d[1], name).copy_(getattr(s[1], name)[keep])
+        return keep
+
+    for name in ("red8", "red16", "red32"):
+        getattr(dst, name).load_state_dict(getattr(src, name).state_dict())
+    C = src.shelf_emb.shape[1]
+    k1 = conv_bn(src.fuse, dst.fuse)
+    dst.row_att.weight.copy_(src.row_att.weight[:, k1])
+    dst.row_att.bias.copy_(src.row_att.bias)
+    dst.shelf_emb.copy_(src.shelf_emb[:, k1])
+    k2 = conv_bn(src.img_seq[0], dst.img_seq[0], k1)
+    k3 = conv_bn(src.img_seq[1], dst.img_seq[1], k2)
+    lin = src.glob[0]
+    k4 = _keep(lin.weight, dst.glob[0].weight.shape[0])
+    dst.glob[0].weight.copy_(lin.weight[k4][:, torch.cat([k3, C + k3, 2 * C + k1])])
+    dst.glob[0].bias.copy_(lin.bias[k4])
+    n_pos = src.pos_seq[0][0].weight.shape[1] - 2 * C
+    k = conv_bn(src.pos_seq[0], dst.pos_seq[0], torch.cat([k3, C + k4, 2 * C + torch.arange(n_pos)]))
+    for i in (1, 2):
+        k = conv_bn(src.pos_seq[i], dst.pos_seq[i], k)
+    dst.shelf_head.weight.copy_(src.shelf_head.weight[:, k4])
+    dst.shelf_head.bias.copy_(src.shelf_head.bias)
+    for h in ("pos_head", "gap_head") if src.gap and dst.gap else ("pos_head",):
+        getattr(dst, h).weight.copy_(getattr(src, h).weight[:, k])
+        getattr(dst, h).bias.copy_(getattr(src, h).bias)
 
 
 def resolve_specs(specs) -> list[tuple]:

@@ -27,7 +27,9 @@ What is a shelf, what is a box (pallet racking included):
   height up to the first beam's top. WareSynth (`floor_level`) and the annotator agree on this.
 - A box is one load unit: a carton, crate or stack of them on a shelf, or a pallet with
   everything on it (cartons, a stretch-wrapped load, crates), from the pallet's underside on the
-  beams to the load's top. The pallet is never a box of its own and never part of the shelf.
+  beams to the load's top; one load standing on two pallets (a long crate, board stack or
+  appliance carton) is one box across both. The pallet is never a box of its own and never part
+  of the shelf.
 
 How much of a bay: a labelled photo draws the bay as far as the photo shows it (where the
 frame's left or right edge cuts the bay, the shelf ends there; where its top edge cuts a level,

@@ -2,6 +2,8 @@
 refuses what it cannot use with one line."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -69,6 +71,35 @@ def test_student_learns_the_teachers_structures_reproducibly(setup, tmp_path):
     assert jk.cfg.struct_joint and not any(k.startswith("decoders.front.fuse") for k in jk.section("model"))
     assert len(jk.section("model")) < len(s)
     assert _gap_to_teacher(joint, teacher, data) < 0.5 * _gap_to_teacher(fresh, teacher, data)
+
+
+def test_pruned_student_starts_from_the_teachers_own_channels(setup, tmp_path):
+    """`--init pruned`: cut to the teacher's own width and kernel, the student computes exactly the
+    teacher's structures (every channel kept, in order); cut narrower, it holds the teacher's
+    weights of the channels with the largest batch-norm scales."""
+    from racklay.distill import load_teacher, student_for
+
+    data, path = setup
+    teacher, tcfg, _ = load_teacher(str(path))
+    x = torch.rand(3, 3, *tcfg.input_hw)
+    want = teacher.structures(teacher.encoder(x))
+    cfg = DistillConfig(out=str(tmp_path / "s.safetensors"), data=(str(data),), init="pruned",
+                        struct_width=tcfg.struct_width, struct_fuse_k=tcfg.struct_fuse_k)
+    same, _ = student_for(teacher, tcfg, cfg)
+    got = same.eval().structures(same.encoder(x))
+    for view in want:
+        for k in ("presence", "length", "centre", "box", "gap"):
+            torch.testing.assert_close(got[view][k], want[view][k], rtol=1e-4, atol=1e-4)
+    narrow, _ = student_for(teacher, tcfg, replace(cfg, struct_width=8, struct_fuse_k=1))
+    src, dst = teacher.decoders["front"], narrow.decoders["front"]
+    keep = src.fuse[1].weight.abs().topk(8).indices.sort().values
+    torch.testing.assert_close(dst.fuse[1].weight, src.fuse[1].weight[keep])
+    torch.testing.assert_close(dst.fuse[0].weight[..., 0, 0], src.fuse[0].weight[keep].sum((2, 3)))
+    torch.testing.assert_close(dst.red32[0].weight, src.red32[0].weight)
+    with pytest.raises(ValueError, match="wider than the teacher"):
+        student_for(teacher, tcfg, replace(cfg, struct_width=tcfg.struct_width + 8))
+    with pytest.raises(ValueError, match="struct-joint"):
+        student_for(teacher, tcfg, replace(cfg, struct_joint=True))
 
 
 def test_distill_refuses_what_it_cannot_use(setup, tmp_path, tmp_path_factory, capsys):

@@ -241,6 +241,32 @@ def test_recipe_errors_before_anything_is_written(tmp_path, capsys):
         load_recipe(str(tmp_path / "empty.yaml"))
 
 
+def test_a_recipe_based_on_another_lists_only_what_it_changes(tmp_path):
+    """`base: NAME`: a recipe starts from another's keys (a built-in name or a file, recursively),
+    its own keys win, its name is its own; a base that is missing, not a name, or the recipe itself
+    is one error naming the file. The shipped `mixed_wide` is `mixed` with its coverage keys."""
+    import dataclasses
+
+    mixed, wide = load_recipe("mixed"), load_recipe("mixed_wide")
+    changed = {f.name for f in dataclasses.fields(mixed) if getattr(mixed, f.name) != getattr(wide, f.name)}
+    assert wide.name == "mixed_wide" and wide.pallet_wide_fraction == 0.15 and wide.shelf_height == mixed.shelf_height
+    assert "pallet_wide_fraction" in changed and "shelf_height" not in changed and "jpeg_quality" not in changed
+    a = tmp_path / "a.yaml"
+    a.write_text("base: mixed_wide\npallet_wide_fraction: 0.5\n")
+    r = load_recipe(str(a), ["min_gap=0.05"])
+    assert (r.name, r.pallet_wide_fraction, r.flush_fraction, r.min_gap) == ("a", 0.5, 0.15, 0.05)
+    (tmp_path / "b.yaml").write_text(f"base: {tmp_path / 'c.yaml'}\n")
+    (tmp_path / "c.yaml").write_text(f"base: {tmp_path / 'b.yaml'}\n")
+    for text, msg in (("base: nosuch\n", r"d.yaml: key 'base': recipe 'nosuch' not found"),
+                      ("base: [mixed]\n", r"d.yaml: key 'base': expected a recipe name"),
+                      ("base: mixed\nbox_densty: 1\n", r"d.yaml: unknown key 'box_densty'")):
+        (tmp_path / "d.yaml").write_text(text)
+        with pytest.raises(RecipeError, match=msg):
+            load_recipe(str(tmp_path / "d.yaml"))
+    with pytest.raises(RecipeError, match="is based on itself"):
+        load_recipe(str(tmp_path / "b.yaml"))
+
+
 def test_existing_folder_with_other_settings_is_refused(tmp_path, reference):
     out = tmp_path / "copy"
     shutil.copytree(reference, out)

@@ -496,6 +496,39 @@ def test_flush_shelving_items_form_walls_and_overhanging_loads_stay_in_their_bay
     assert max(plain_widths) <= max(pallet_widths) + 1e-9
 
 
+def test_wide_loads_stand_on_two_real_pallets_inside_their_bay():
+    """`pallet_wide_fraction`: some loads stand on two pallets (1.6-2.5 m along the beams, as the
+    crates, appliance cartons and board stacks of the labelled photos 16, 43 and 45): each is one
+    unit, one box in the layouts, with two pallets of real sizes under it within its width; units
+    never overlap nor leave the beams, with or without overhangs."""
+    from racklay.synth.scene import PALLET_FOOTPRINTS, SEM
+
+    pallet_widths = {w for fp in PALLET_FOOTPRINTS for w in fp}
+    dense = {"box_density": [1.0, 1.0], "wire_deck": 0.0, "pallet_wide_fraction": 0.7}
+    for keys in ({}, {"pallet_packing": 1.0, "pallet_gap": [0.0, 0.1], "pallet_overhang": [0.0, 0.2]}):
+        r = load_recipe("pallet", {**dense, **keys})
+        wide = 0
+        for index in range(12):
+            scene = sample_scene(r, 5, index)
+            for sh in scene.shelves:
+                xs = sorted(scene.objects[i].layout_box.x_range() for i in sh.items)
+                assert all(-scene.rack_length / 2 - 1e-9 <= a and b <= scene.rack_length / 2 + 1e-9 for a, b in xs)
+                assert all(a1 <= b0 + 1e-9 for (_, a1), (b0, _) in zip(xs, xs[1:])), xs
+                for i in sh.items:
+                    unit = scene.objects[i]
+                    pallets = [o for o in scene.objects if o.part_of == i and o.semantic == SEM["pallet"]]
+                    assert all(min(abs(p.size[0] - w) for w in pallet_widths) < 0.03 for p in pallets)
+                    x0, x1 = unit.layout_box.x_range()
+                    assert all(x0 - 1e-9 <= p.center[0] - p.size[0] / 2 and p.center[0] + p.size[0] / 2 <= x1 + 1e-9
+                               for p in pallets)
+                    if len(pallets) == 2:
+                        wide += 1
+                        assert 1.6 - 1e-9 <= unit.layout_box.sx <= 2.4 + 0.05 + 0.4 + 1e-9, unit.layout_box.sx
+                    else:
+                        assert len(pallets) == 1
+        assert wide > 10, wide
+
+
 def test_location_labels_sit_on_the_front_beams_and_stay_out_of_the_layouts():
     """`beam_labels`: a scene that has them carries labels on the front face of every front beam
     (or lip) of the considered bay (pallet racking, shelving, boltless, slotted angle), within its length and

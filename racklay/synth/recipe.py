@@ -1,8 +1,9 @@
 """WareSynth recipes: every knob of the generator in one validated dataclass.
 
-A recipe is a flat YAML mapping. The built-in ones (simple, complex, proxy_real, release) ship
-inside the package, ``racklay/synth/recipes/NAME.yaml``, read through importlib.resources so
-a normal (non-editable) install finds them. Keys not listed in `Recipe`
+A recipe is a flat YAML mapping. The built-in ones (simple, complex, proxy_real, release, ...)
+ship inside the package, ``racklay/synth/recipes/NAME.yaml``, read through importlib.resources so
+a normal (non-editable) install finds them. ``base: NAME`` (a built-in name or a file) makes a
+recipe start from another one's keys and list only what it changes. Keys not listed in `Recipe`
 and values outside a field's range are rejected with one clear error *before* anything is
 written. Command-line overrides use the same names: ``--set box_density=[0.2,0.9]``.
 
@@ -69,6 +70,7 @@ class Recipe:
     pallet_load: dict = _f({"cartons": 0.5, "wrapped": 0.35, "crates": 0.15}, "weights:cartons|wrapped|crates", doc="pallet racking: what stands on a pallet")
     pallet_gap: list = _f([0.06, 0.15], "frange", 0.0, 1.0, "pallet racking: clearance between neighbouring pallets, metres (one draw per level)")
     pallet_overhang: list = _f([0.0, 0.0], "frange", 0.0, 0.4, "pallet racking: a load may be wider than its pallet by up to this much on each side along the beams, metres (one draw per load; never past a neighbour or the beams' ends)")
+    pallet_wide_fraction: float = _f(0.0, "float", 0.0, 1.0, "pallet racking: probability that two loads in neighbouring slots are one load on both pallets, the pallets moved together (long crates, appliance cartons, flat-packed boards: 1.6-2.5 m along the beams)")
     pallet_packing: float = _f(0.0, "float", 0.0, 1.0, "pallet racking: probability that a level's pallets stand packed at pallet_gap from each other (as in a bay sized for them) rather than spread evenly along the beams")
     pallet_load_height: list = _f([0.35, 1.0], "frange", 0.0, 1.0, "pallet racking: a load's height above its pallet as a fraction of the level's clear height above the pallet ~ U(lo, hi) (one draw per load; near 1: loads built up to the next beam's forklift clearance, as in a full warehouse)")
     # --- cube units (drawn only where rack_style gives them a weight) ---
@@ -301,6 +303,29 @@ def builtin_recipes() -> list[str]:
     return sorted(x.stem for x in RECIPE_DIR.glob("*.yaml"))
 
 
+def _recipe_file(path: Path, seen: tuple) -> dict:
+    """A recipe file's keys, validated against the file, its `base` recipe's keys (recursively)
+    under them; its name is its own `name`, else the file's stem."""
+    data = read_yaml_mapping(path, "key: value", error=RecipeError)
+    if not data:   # an unsaved or truncated file would otherwise render the defaults unnoticed
+        raise RecipeError(f"{path}: empty recipe (no 'key: value' line); leave out --recipe for the defaults")
+    data = dict(data)
+    name = data.setdefault("name", path.stem)
+    base = data.pop("base", None)
+    if base is not None:
+        if not isinstance(base, str) or not base:
+            raise RecipeError(f"{path}: key 'base': expected a recipe name or file, got {base!r}")
+        try:
+            base_path = resolve_recipe_path(base)
+        except RecipeError as e:
+            raise RecipeError(f"{path}: key 'base': {e}") from None
+        if base_path.resolve() in seen + (path.resolve(),):
+            raise RecipeError(f"{path}: key 'base': recipe {base!r} is based on itself")
+        data = {**_recipe_file(base_path, seen + (path.resolve(),)), **data, "name": name}
+    recipe_from_dict(data, str(path))   # errors in the file are reported against the file
+    return data
+
+
 def load_recipe(name_or_path: str | None = None, overrides: list[str] | dict | None = None) -> Recipe:
     """Load a recipe by name (a built-in one, RECIPE_DIR) or path, apply `key=value` overrides,
     validate everything, and return it."""
@@ -308,11 +333,7 @@ def load_recipe(name_or_path: str | None = None, overrides: list[str] | dict | N
     if name_or_path:
         path = resolve_recipe_path(name_or_path)
         src = str(path)
-        data = read_yaml_mapping(path, "key: value", error=RecipeError)
-        if not data:   # an unsaved or truncated file would otherwise render the defaults unnoticed
-            raise RecipeError(f"{path}: empty recipe (no 'key: value' line); leave out --recipe for the defaults")
-        data.setdefault("name", path.stem)
-        recipe_from_dict(data, src)  # errors in the file are reported against the file
+        data = _recipe_file(path, ())
     if overrides:
         items = overrides.items() if isinstance(overrides, dict) else (parse_override(o) for o in overrides)
         for k, v in items:

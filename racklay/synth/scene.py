@@ -383,10 +383,11 @@ def _stack(rng, r, items, cat, base: L.Box, slot, yband, max_top, stack_max):
 def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: float,
                       density: float) -> list[tuple[str, L.Box, tuple[float, float] | None]]:
     """Load units on one pallet-rack level (shelf frame): pallets side by side along the beams,
-    each slot taken with probability `density`. Returns (load kind, unit Box, the pallet's x-range
-    where the load overhangs it, else None) triples; a unit is the pallet and its load as one box
-    standing on the level (z0 = 0), as wide as the pallet unless `pallet_overhang` widens the load,
-    kept on the level (x and y) and below `max_top`."""
+    each slot taken with probability `density`. Returns (load kind, unit Box, the x-ranges of the
+    pallets under it where they differ from the unit's, else None) triples; a unit is the pallet(s)
+    and its load as one box standing on the level (z0 = 0), as wide as the pallet unless
+    `pallet_overhang` widens the load or `pallet_wide_fraction` sets one load on two neighbouring
+    pallets, kept on the level (x and y) and below `max_top`."""
     units: list = []
     if max_top < PALLET_HEIGHT + 0.2:
         return units
@@ -416,25 +417,56 @@ def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: floa
             cx = -length / 2 + pitch * (k + 0.5) + float(rng.uniform(-0.25, 0.25)) * (pitch - along)
         cy = -depth / 2 + 0.01 + deep / 2 + float(rng.uniform(0, max(0.0, depth - 0.02 - deep)))
         sz = PALLET_HEIGHT + _u(rng, r.pallet_load_height) * (max_top - PALLET_HEIGHT)
-        units.append((kind, L.Box(cx=cx, cy=cy, sx=along, sy=deep, sz=sz, z0=0.0, yaw=0.0), None))
-    if r.pallet_overhang[1] > 0:      # drawn only by recipes that use it: the others keep their scenes
+        units.append((kind, L.Box(cx=cx, cy=cy, sx=along, sy=deep, sz=sz, z0=0.0, yaw=0.0), k))
+    if r.pallet_wide_fraction > 0:    # drawn only by recipes that use them: the others keep their scenes
+        units = _wide_loads(rng, r, units, length)
+    units = [(kind, b, None if isinstance(p, int) else p) for kind, b, p in units]
+    if r.pallet_overhang[1] > 0:
         units = _overhang(rng, r, units, length)
     return units
+
+
+def _wide_loads(rng, r: Recipe, units: list, length: float) -> list:
+    """Loads wider than a pallet standing on two (long crates, appliance cartons, flat-packed
+    boards): each pair of loads in neighbouring slots becomes, with probability
+    `pallet_wide_fraction`, one load on both pallets, the pallets moved together (0-5 cm apart)
+    about the pair's middle, never onto a neighbour; the load is as wide as the two pallets, as deep and as tall as the
+    larger of the two. `units` holds (kind, Box, slot index) triples; merged units carry their two
+    pallets' x-ranges instead of the index."""
+    out, i = [], 0
+    while i < len(units):
+        kind, a, k = units[i]
+        if i + 1 < len(units) and units[i + 1][2] == k + 1 and rng.uniform() < r.pallet_wide_fraction:
+            b = units[i + 1][1]
+            lo = out[-1][1].cx + out[-1][1].sx / 2 if out else -length / 2   # never onto a neighbour
+            hi = units[i + 2][1].cx - units[i + 2][1].sx / 2 if i + 2 < len(units) else length / 2
+            gap = min(float(rng.uniform(0.0, 0.05)), max(0.0, hi - lo - a.sx - b.sx))
+            width = a.sx + b.sx + gap
+            cx = min(max((a.cx + b.cx) / 2, lo + width / 2), hi - width / 2)
+            x0 = cx - width / 2
+            pallets = ((x0, x0 + a.sx), (x0 + a.sx + gap, x0 + width))
+            out.append((kind, L.Box(cx=cx, cy=a.cy, sx=width, sy=max(a.sy, b.sy), sz=max(a.sz, b.sz), z0=0.0,
+                                    yaw=0.0), pallets))
+            i += 2
+            continue
+        out.append(units[i])
+        i += 1
+    return out
 
 
 def _overhang(rng, r: Recipe, units: list, length: float) -> list:
     """Loads wider than their pallet (cartons or a wrapped load overhanging it along the beams):
     each unit widened by up to `pallet_overhang` on each side, never past the beams' ends or a
-    neighbour's (possibly widened) edge; the unit keeps its pallet's x-range (drawn under it)."""
+    neighbour's (possibly widened) edge; the unit keeps its pallets' x-ranges (drawn under it)."""
     out = []
-    for i, (kind, b, _) in enumerate(units):
+    for i, (kind, b, pallets) in enumerate(units):
         lo_lim = out[-1][1].cx + out[-1][1].sx / 2 if out else -length / 2
         hi_lim = units[i + 1][1].cx - units[i + 1][1].sx / 2 if i + 1 < len(units) else length / 2
         x0, x1 = b.cx - b.sx / 2, b.cx + b.sx / 2
         x0 = max(lo_lim, x0 - _u(rng, r.pallet_overhang))
         x1 = min(hi_lim, x1 + _u(rng, r.pallet_overhang))
         out.append((kind, L.Box(cx=(x0 + x1) / 2, cy=b.cy, sx=x1 - x0, sy=b.sy, sz=b.sz, z0=b.z0, yaw=b.yaw),
-                    (b.cx - b.sx / 2, b.cx + b.sx / 2)))
+                    pallets or ((b.cx - b.sx / 2, b.cx + b.sx / 2),)))
     return out
 
 
@@ -599,7 +631,7 @@ class _Builder:
                 continue
             units = fill_pallet_level(self.rng, r, length, depth, max_top, density)
             idx = [self.pallet_unit(kind, b, z_top, x0, y0, shelf_of(si), detailed=shelf_infos is not None,
-                                    pallet=pallet) for kind, b, pallet in units]
+                                    pallets=pallets) for kind, b, pallets in units]
             if shelf_infos is not None:
                 shelf_infos[si].items = idx
             else:
@@ -724,20 +756,20 @@ class _Builder:
         self.shelf_items(boards, length, depth, x0, y0, shelf_infos)
 
     def pallet_unit(self, kind: str, b: L.Box, z_board: float, x_off: float, y_off: float, shelf: int,
-                    detailed: bool, pallet: tuple[float, float] | None = None) -> int:
+                    detailed: bool, pallets: tuple | None = None) -> int:
         """One load unit: an undrawn object holding the unit's box (what the ground truth
-        sees), a pallet (its x-range `pallet`, default the unit's) and its load drawn as parts of
-        it. A carton or crate load is drawn as single cartons/crates, fewer of them in background
-        bays (not `detailed`)."""
+        sees), its pallets (their x-ranges `pallets`, default one as wide as the unit) and its load
+        drawn as parts of it. A carton or crate load is drawn as single cartons/crates, fewer of
+        them in background bays (not `detailed`)."""
         rng = self.rng
         cx, cy = b.cx + x_off, b.cy + y_off
         unit = self.add((cx, cy, z_board + b.sz / 2), (b.sx, b.sy, b.sz), "pallet",
                         SEM["crate"] if kind == "crates" else SEM["box"],
                         shape="none", category=PALLET_UNITS[kind], shelf=shelf,
                         layout_box=b if shelf >= 0 else None)
-        pcx, psx = (cx, b.sx) if pallet is None else ((pallet[0] + pallet[1]) / 2 + x_off, pallet[1] - pallet[0])
-        self.add((pcx, cy, z_board + PALLET_HEIGHT / 2), (psx, b.sy, PALLET_HEIGHT), "pallet", SEM["pallet"],
-                 part_of=unit)
+        for p0, p1 in pallets or ((b.cx - b.sx / 2, b.cx + b.sx / 2),):
+            self.add(((p0 + p1) / 2 + x_off, cy, z_board + PALLET_HEIGHT / 2), (p1 - p0, b.sy, PALLET_HEIGHT),
+                     "pallet", SEM["pallet"], part_of=unit)
         h = b.sz - PALLET_HEIGHT
         inset = float(rng.uniform(0.0, 0.05))
         lx, ly = b.sx - 2 * inset, b.sy - 2 * inset
