@@ -381,7 +381,7 @@ def _stack(rng, r, items, cat, base: L.Box, slot, yband, max_top, stack_max):
 
 
 def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: float,
-                      density: float) -> list[tuple[str, L.Box, tuple[float, float] | None]]:
+                      density: float) -> list[tuple[str, L.Box, tuple | None]]:
     """Load units on one pallet-rack level (shelf frame): pallets side by side along the beams,
     each slot taken with probability `density`. Returns (load kind, unit Box, the x-ranges of the
     pallets under it where they differ from the unit's, else None) triples; a unit is the pallet(s)
@@ -430,9 +430,9 @@ def _wide_loads(rng, r: Recipe, units: list, length: float) -> list:
     """Loads wider than a pallet standing on two (long crates, appliance cartons, flat-packed
     boards): each pair of loads in neighbouring slots becomes, with probability
     `pallet_wide_fraction`, one load on both pallets, the pallets moved together (0-5 cm apart)
-    about the pair's middle, never onto a neighbour; the load is as wide as the two pallets, as deep and as tall as the
-    larger of the two. `units` holds (kind, Box, slot index) triples; merged units carry their two
-    pallets' x-ranges instead of the index."""
+    about the pair's middle, never onto a neighbour; the load is as wide as the two pallets and
+    as deep and as tall as the larger of the two. `units` holds (kind, Box, slot index) triples;
+    merged units carry their two pallets' x-ranges ((x0, x1), (x0, x1)) instead of the index."""
     out, i = [], 0
     while i < len(units):
         kind, a, k = units[i]
