@@ -389,6 +389,7 @@ def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: floa
     `pallet_overhang` widens the load or `pallet_wide_fraction` sets one load on two neighbouring
     pallets, kept on the level (x and y) and below `max_top`."""
     units: list = []
+    slots: list[int] = []      # each unit's slot along the beams
     if max_top < PALLET_HEIGHT + 0.2:
         return units
     along, deep = PALLET_FOOTPRINTS[int(rng.integers(len(PALLET_FOOTPRINTS)))]
@@ -417,29 +418,37 @@ def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: floa
             cx = -length / 2 + pitch * (k + 0.5) + float(rng.uniform(-0.25, 0.25)) * (pitch - along)
         cy = -depth / 2 + 0.01 + deep / 2 + float(rng.uniform(0, max(0.0, depth - 0.02 - deep)))
         sz = PALLET_HEIGHT + _u(rng, r.pallet_load_height) * (max_top - PALLET_HEIGHT)
-        units.append((kind, L.Box(cx=cx, cy=cy, sx=along, sy=deep, sz=sz, z0=0.0, yaw=0.0), k))
+        units.append((kind, L.Box(cx=cx, cy=cy, sx=along, sy=deep, sz=sz, z0=0.0, yaw=0.0), None))
+        slots.append(k)
     if r.pallet_wide_fraction > 0:    # drawn only by recipes that use them: the others keep their scenes
-        units = _wide_loads(rng, r, units, length)
-    units = [(kind, b, None if isinstance(p, int) else p) for kind, b, p in units]
+        units = _wide_loads(rng, r, units, slots, length)
     if r.pallet_overhang[1] > 0:
         units = _overhang(rng, r, units, length)
     return units
 
 
-def _wide_loads(rng, r: Recipe, units: list, length: float) -> list:
+def _room(placed: list, following: list, length: float) -> tuple[float, float]:
+    """The stretch of beam a unit may take: from the last placed unit's right edge (else the
+    beams' left end) to the next unit's left edge (else the right end)."""
+    lo = placed[-1][1].cx + placed[-1][1].sx / 2 if placed else -length / 2
+    hi = following[0][1].cx - following[0][1].sx / 2 if following else length / 2
+    return lo, hi
+
+
+def _wide_loads(rng, r: Recipe, units: list, slots: list, length: float) -> list:
     """Loads wider than a pallet standing on two (long crates, appliance cartons, flat-packed
     boards): each pair of loads in neighbouring slots becomes, with probability
     `pallet_wide_fraction`, one load on both pallets, the pallets moved together (0-5 cm apart)
     about the pair's middle, never onto a neighbour; the load is as wide as the two pallets and
-    as deep and as tall as the larger of the two. `units` holds (kind, Box, slot index) triples;
-    merged units carry their two pallets' x-ranges ((x0, x1), (x0, x1)) instead of the index."""
+    as deep and as tall as the larger of the two. `units` holds (kind, Box, None) triples and
+    `slots` their slots along the beams; merged units carry their two pallets' x-ranges
+    ((x0, x1), (x0, x1)) in place of None."""
     out, i = [], 0
     while i < len(units):
-        kind, a, k = units[i]
-        if i + 1 < len(units) and units[i + 1][2] == k + 1 and rng.uniform() < r.pallet_wide_fraction:
+        kind, a, _ = units[i]
+        if i + 1 < len(units) and slots[i + 1] == slots[i] + 1 and rng.uniform() < r.pallet_wide_fraction:
             b = units[i + 1][1]
-            lo = out[-1][1].cx + out[-1][1].sx / 2 if out else -length / 2   # never onto a neighbour
-            hi = units[i + 2][1].cx - units[i + 2][1].sx / 2 if i + 2 < len(units) else length / 2
+            lo, hi = _room(out, units[i + 2:], length)    # never onto a neighbour
             gap = min(float(rng.uniform(0.0, 0.05)), max(0.0, hi - lo - a.sx - b.sx))
             width = a.sx + b.sx + gap
             cx = min(max((a.cx + b.cx) / 2, lo + width / 2), hi - width / 2)
@@ -460,8 +469,7 @@ def _overhang(rng, r: Recipe, units: list, length: float) -> list:
     neighbour's (possibly widened) edge; the unit keeps its pallets' x-ranges (drawn under it)."""
     out = []
     for i, (kind, b, pallets) in enumerate(units):
-        lo_lim = out[-1][1].cx + out[-1][1].sx / 2 if out else -length / 2
-        hi_lim = units[i + 1][1].cx - units[i + 1][1].sx / 2 if i + 1 < len(units) else length / 2
+        lo_lim, hi_lim = _room(out, units[i + 1:], length)
         x0, x1 = b.cx - b.sx / 2, b.cx + b.sx / 2
         x0 = max(lo_lim, x0 - _u(rng, r.pallet_overhang))
         x1 = min(hi_lim, x1 + _u(rng, r.pallet_overhang))
