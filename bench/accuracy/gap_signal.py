@@ -36,6 +36,7 @@ import numpy as np
 
 from bench.accuracy.structure_ab import rank_auc
 from bench.accuracy.synth_coverage import run_spans
+from bench.common import add_precision_arg
 from racklay.data import luminance
 
 #: the darkness cue at the labelled geometry pools the rows from the board to this share
@@ -79,6 +80,7 @@ def main(argv=None) -> int:
     ap.add_argument("--project", default=Path("datasets/real-photos"), type=Path,
                     help="the annotate project the dataset was exported from (default datasets/real-photos)")
     ap.add_argument("--weights", default=None, help="a struct checkpoint with a gap output (default: the shipped model)")
+    add_precision_arg(ap)
     args = ap.parse_args(argv)
 
     from annotate import geometry as G
@@ -92,7 +94,7 @@ def main(argv=None) -> int:
     from racklay.structure import gap_positions, truth_structure
     from racklay.torchdata import data_loader
 
-    pred = Predictor(str(resolve_weights(args.weights)), precision="auto")
+    pred = Predictor(str(resolve_weights(args.weights)), precision=args.precision)
     if pred.model is None or pred.cfg.decoder != "struct" or not pred.cfg.struct_gap or "front" not in pred.views:
         ap.error(f"{pred.weights}: needs a struct model with a gap output and a front view")
     project = Project(args.project, create=False)

@@ -18,6 +18,8 @@ import sys
 
 import numpy as np
 
+from bench.common import add_precision_arg
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
@@ -27,6 +29,7 @@ def main(argv=None) -> int:
     ap.add_argument("--weights", nargs="+", default=[None],
                     help="struct checkpoints to compare (default: the shipped model)")
     ap.add_argument("--limit", type=int, default=None, help="the first N samples of the split")
+    add_precision_arg(ap)
     args = ap.parse_args(argv)
 
     from tqdm import tqdm
@@ -41,7 +44,7 @@ def main(argv=None) -> int:
           "(median / 90th percentile; both ends within 0.05)")
     print("| model | view | shelves | left end | right end | both within 0.05 |\n|---|---|---|---|---|---|")
     for w in args.weights:
-        pred = Predictor(str(resolve_weights(w)), precision="auto")
+        pred = Predictor(str(resolve_weights(w)), precision=args.precision)
         if pred.model is None or pred.cfg.decoder != "struct":
             ap.error(f"{pred.weights}: needs a struct model (its structures carry the placement)")
         _, views, ds = split_dataset(pred, args.data, args.split, args.limit, spans=True)

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import REPO, labelled_photos
+from bench.common import REPO, add_precision_arg, labelled_photos
 from bench.speed.labelling_actions import CLICK_S, KEY_S, NUMBER_S
 
 
@@ -99,6 +99,7 @@ def main(argv=None) -> int:
     ap.add_argument("--flip-average", action="store_true",
                     help="the model predicts with test-time flip averaging (`racklay predict --flip-average`; "
                          "whether the annotator's proposals would gain from it)")
+    add_precision_arg(ap)
     args = ap.parse_args(argv)
 
     from dataclasses import replace
@@ -113,7 +114,7 @@ def main(argv=None) -> int:
     proj = Project(args.project)
     names = labelled_photos(proj, args.split, args.limit)
     weights = resolve_weights(args.weights)
-    tool = Tool(proj, Predictor(weights, precision="auto", flip_average=args.flip_average))
+    tool = Tool(proj, Predictor(weights, precision=args.precision, flip_average=args.flip_average))
     steps = args.split_step or [0.0, ReasoningConfig().split_step_m]
     depths = args.gap_depth or [0.0, G.GapSplit().depth]
     settings = [(s, d) for s in steps for d in depths]

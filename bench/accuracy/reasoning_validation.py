@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import markdown_table
+from bench.common import add_precision_arg, markdown_table
 from racklay import layout as L
 from racklay.data import DataError, RackLayRoot
 from racklay.reasoning import ReasoningConfig, ShelfTruth, analyze_layouts
@@ -192,6 +192,7 @@ def main(argv=None) -> int:
     ap.add_argument("--split-step", type=float, action="append", default=None, metavar="M",
                     help="racklay.reasoning split_step_m; repeat to compare settings (default: "
                          f"{ReasoningConfig().split_step_m})")
+    add_precision_arg(ap)
     args = ap.parse_args(argv)
 
     steps = args.split_step or [ReasoningConfig().split_step_m]
@@ -217,7 +218,7 @@ def main(argv=None) -> int:
         if Path(args.weights).is_file():
             from racklay.predict import Predictor
 
-            predictor = Predictor(args.weights)
+            predictor = Predictor(args.weights, precision=args.precision)
             print(f"predicted layouts from {args.weights} (S={predictor.layout_size})")
         else:
             print(f"{args.weights}: no checkpoint, predicted layouts skipped")
@@ -318,7 +319,7 @@ def photos_main(args) -> int:
     if args.weights:
         from racklay.predict import Predictor
 
-        tool = Tool(proj, Predictor(args.weights, precision="auto"))
+        tool = Tool(proj, Predictor(args.weights, precision=args.precision))
     st = proj.settings
     grid = L.Grid(st["D"], st["extent"])
     rows: dict = {}

@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # A WareSynth recipe A/B at GPU scale, in one lease-sized call: renders the same scenes once per
 # arm (RECIPE, seed SEED, N images each; arm A with A_SETS, arm B with B_SETS as extra `--set` keys;
-# more arms with ARMS="A B C" and C_SETS=...), then trains one renders-only model per arm side by
-# side from ImageNet (the shipped architecture: struct decoder with the 1/4 detail branch and the
-# gap output), the learning rate decaying over the time left (--schedule time). Everything is
-# timed against one DEADLINE (seconds after the start), so the call always ends with every arm's
-# best weights written as fp16 release files in OUT, whatever the rendering took. Score them on the CPU, e.g.
+# more arms with ARMS="A B C" and C_SETS=...; an arm of another recipe with e.g. B_RECIPE=release),
+# then trains one renders-only model per arm side by side from ImageNet (the shipped architecture:
+# struct decoder with the 1/4 detail branch and the gap output), the learning rate decaying over
+# the time left (--schedule time). Everything is timed against one DEADLINE (seconds after the
+# start), so the call always ends with every arm's best weights written as fp16 release files in
+# OUT, whatever the rendering took. Score them on the CPU, e.g.
 #   python -m bench.accuracy.structure_ab --arm A=OUT/A.safetensors --arm B=OUT/B.safetensors \
 #     --data REAL --split test --photos datasets/real-photos --calibrate-on REAL:train
 # Example (the 2026-11-27 lease: v8's packed `mixed` against the same plus the labels' visibility
@@ -17,6 +18,8 @@
 # continued across uprights):
 #   ARMS="A B C" A_SETS="" B_SETS="ambient_occlusion=[0.5,3]" C_SETS="layout_extent=row" \
 #   N=6000 DEADLINE=540 OUT=$OUT bench/accuracy/recipe_ab_gpu.sh
+# Recipes against each other (the rack-styles issue's A/B: the coverage recipe, the training recipe, `release`):
+#   ARMS="A B C" A_RECIPE=mixed_wide B_RECIPE=mixed C_RECIPE=release N=6000 DEADLINE=540 OUT=$OUT bench/accuracy/recipe_ab_gpu.sh
 # A dry run on a CPU: DEVICE=cpu N=24 DEADLINE=150 SYNTH_WORKERS=1 WORKERS=0 BATCH=4 THREADS=1 bench/accuracy/recipe_ab_gpu.sh
 set -uo pipefail
 RECIPE=${RECIPE:-mixed}
@@ -48,8 +51,9 @@ LEAN=(--set layout_size=256 --set "splits={train: 0.95, val: 0.05, test: 0.0}" -
 declare -A pid
 for arm in $ARMS; do
   var=${arm}_SETS
+  rvar=${arm}_RECIPE
   # shellcheck disable=SC2046
-  $PY -m racklay synth --recipe "$RECIPE" --n "$N" --seed "$SEED" --out "$WORK/$arm" --workers "$SYNTH_WORKERS" \
+  $PY -m racklay synth --recipe "${!rvar:-$RECIPE}" --n "$N" --seed "$SEED" --out "$WORK/$arm" --workers "$SYNTH_WORKERS" \
     "${LEAN[@]}" $(sets "${!var:-}") --no-progress > "$OUT/$arm.log" 2>&1 &
   pid[$arm]=$!
 done

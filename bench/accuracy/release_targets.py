@@ -17,7 +17,7 @@
    proxy-real box IoU >= 45 / 50, real photos box IoU >= 35 / 35 and, shape alone, shelf >= 70 and
    box >= 50), the real-photo ones only for a model that never saw the photos.
 Missing data sets are rendered first (about 3 min on 2 cores). Prints a table and MET / NOT MET;
-asserts nothing. Precision follows the machine (`auto`).
+asserts nothing. Precision follows the machine (`--precision auto`) unless set.
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.common import REPO
+from bench.common import REPO, add_precision_arg
 
 PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
 NO_EXTRAS = ["--set", "write_depth=false", "--set", "write_normals=false", "--set", "write_semantic=false",
@@ -130,6 +130,7 @@ def main() -> int:
     ap.add_argument("--flip-average", action="store_true",
                     help="predict with test-time flip averaging (`racklay eval --flip-average`)")
     ap.add_argument("--json", default=None, help="also write the numbers here")
+    add_precision_arg(ap)
     args = ap.parse_args()
 
     from racklay.evaluate import evaluate
@@ -139,7 +140,7 @@ def main() -> int:
     ensure(args.complex, ["--recipe", "complex", "--n", "2000", "--seed", "2027", "--set", "splits={test: 1.0}", *NO_EXTRAS])
     ensure(args.proxy_real, ["--recipe", "proxy_real", "--n", "542", "--seed", "1", "--set", "layout_size=256"])
     weights = resolve_weights(args.weights)
-    pred = Predictor(str(weights), precision="auto", flip_average=args.flip_average)
+    pred = Predictor(str(weights), precision=args.precision, flip_average=args.flip_average)
     print(f"model {weights} ({pred.precision}{', flip-averaged' if args.flip_average else ''}), input {pred.image_size[1]}x{pred.image_size[0]}, "
           f"layouts {pred.layout_size}", flush=True)
     out = {}

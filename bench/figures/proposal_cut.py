@@ -15,7 +15,7 @@ import argparse
 import sys
 from dataclasses import replace
 
-from bench.common import REPO
+from bench.common import REPO, add_precision_arg
 
 #: test-site photos (never trained on) and a training-site shelving photo
 PHOTOS = ("24_palletvid0261_f044.jpg", "117_palletvid0265_f217.jpg", "06_blueshelf_mixed.jpg")
@@ -28,6 +28,7 @@ def main(argv=None) -> int:
     ap.add_argument("--project", default=str(REPO / "datasets" / "real-photos"), help="labelled photo project")
     ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
     ap.add_argument("--out", default=str(REPO / "docs" / "img" / "annotate-proposals.jpg"))
+    add_precision_arg(ap)
     args = ap.parse_args(argv)
 
     import cv2
@@ -44,7 +45,7 @@ def main(argv=None) -> int:
     from racklay.release import resolve_weights
 
     proj = Project(args.project, create=False)
-    tool = Tool(proj, Predictor(str(resolve_weights(args.weights)), precision="auto"))
+    tool = Tool(proj, Predictor(str(resolve_weights(args.weights)), precision=args.precision))
     now_reasoning, now_cut = tool.reasoning, tool.gap_split
     settings = {"before: step cut": (ReasoningConfig(), replace(now_cut, depth=0.0)),
                 "now: cut at the photo's gaps": (now_reasoning, now_cut)}

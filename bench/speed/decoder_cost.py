@@ -23,6 +23,7 @@ from dataclasses import replace
 from bench.common import (
     add_batch_arg,
     add_common_args,
+    add_precision_arg,
     ensure_malloc_env,
     forward_runner,
     interleaved,
@@ -31,15 +32,13 @@ from bench.common import (
     start,
     summarise,
 )
-from racklay.precision import PRECISIONS
 
 WIDTHS = (128, 64, 32)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--precision", choices=PRECISIONS, default="auto",
-                    help="every model at this precision (default auto: bf16 only on CPUs with native bf16)")
+    add_precision_arg(ap)
     add_batch_arg(ap)
     add_common_args(ap, rounds=3, calls=5, warmup=2)
     args = ap.parse_args(argv)

@@ -26,6 +26,7 @@ from dataclasses import replace
 from bench.common import (
     add_batch_arg,
     add_common_args,
+    add_precision_arg,
     ensure_malloc_env,
     forward_runner,
     interleaved,
@@ -34,14 +35,12 @@ from bench.common import (
     start,
     summarise,
 )
-from racklay.precision import PRECISIONS
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
-    ap.add_argument("--precision", choices=PRECISIONS, default="auto",
-                    help="both models at this precision (default auto: bf16 only on CPUs with native bf16)")
+    add_precision_arg(ap, "both models")
     ap.add_argument("--memory-format", choices=("channels_last", "contiguous"), default="channels_last",
                     help="both models in this layout (default channels_last: what racklay predict uses)")
     ap.add_argument("--onnx", action="store_true",
