@@ -75,17 +75,6 @@ def markdown_table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines)
 
 
-def add_precision_arg(ap, what: str = "every model") -> None:
-    """`--precision` of the benchmarks that run a model (the one vocabulary of racklay.precision).
-    The default `auto` is bf16 only on CPUs with native bf16: scores and times from two machine
-    kinds compare only at one precision, so the model card's numbers name theirs."""
-    from racklay.precision import PRECISIONS
-
-    ap.add_argument("--precision", choices=PRECISIONS, default="auto",
-                    help=f"{what} at this precision (default auto: bf16 only on CPUs with native bf16; "
-                         "fp32 to compare with a score measured on a machine without it)")
-
-
 def add_common_args(ap, rounds: int = 3, calls: int = 5, warmup: int = 2) -> None:
     """Options shared by the benchmarks: interleaving, threads, JSON output."""
     ap.add_argument("--rounds", type=int, default=rounds, help=f"interleaved rounds (default {rounds})")

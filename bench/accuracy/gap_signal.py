@@ -36,8 +36,8 @@ import numpy as np
 
 from bench.accuracy.structure_ab import rank_auc
 from bench.accuracy.synth_coverage import run_spans
-from bench.common import add_precision_arg
 from racklay.data import luminance
+from racklay.predict import add_precision_args
 
 #: the darkness cue at the labelled geometry pools the rows from the board to this share
 CUE_ROWS = (0.05, 0.6)
@@ -80,7 +80,7 @@ def main(argv=None) -> int:
     ap.add_argument("--project", default=Path("datasets/real-photos"), type=Path,
                     help="the annotate project the dataset was exported from (default datasets/real-photos)")
     ap.add_argument("--weights", default=None, help="a struct checkpoint with a gap output (default: the shipped model)")
-    add_precision_arg(ap)
+    add_precision_args(ap)
     args = ap.parse_args(argv)
 
     from annotate import geometry as G

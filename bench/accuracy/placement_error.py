@@ -18,7 +18,7 @@ import sys
 
 import numpy as np
 
-from bench.common import add_precision_arg
+from racklay.predict import add_precision_args
 
 
 def main(argv=None) -> int:
@@ -29,7 +29,7 @@ def main(argv=None) -> int:
     ap.add_argument("--weights", nargs="+", default=[None],
                     help="struct checkpoints to compare (default: the shipped model)")
     ap.add_argument("--limit", type=int, default=None, help="the first N samples of the split")
-    add_precision_arg(ap)
+    add_precision_args(ap)
     args = ap.parse_args(argv)
 
     from tqdm import tqdm

@@ -36,8 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import REPO, add_precision_arg, labelled_photos
+from bench.common import REPO, labelled_photos
 from bench.speed.labelling_actions import CLICK_S, KEY_S, NUMBER_S
+from racklay.predict import add_precision_args
 
 
 def label_stacks(scene) -> list[tuple[int, tuple[float, float, float, float]]]:
@@ -99,7 +100,7 @@ def main(argv=None) -> int:
     ap.add_argument("--flip-average", action="store_true",
                     help="the model predicts with test-time flip averaging (`racklay predict --flip-average`; "
                          "whether the annotator's proposals would gain from it)")
-    add_precision_arg(ap)
+    add_precision_args(ap)
     args = ap.parse_args(argv)
 
     from dataclasses import replace

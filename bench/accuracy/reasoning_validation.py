@@ -43,9 +43,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import add_precision_arg, markdown_table
+from bench.common import markdown_table
 from racklay import layout as L
 from racklay.data import DataError, RackLayRoot
+from racklay.predict import add_precision_args
 from racklay.reasoning import ReasoningConfig, ShelfTruth, analyze_layouts
 
 BOX_FIELDS = ("cx", "cy", "sx", "sy", "sz", "z0", "yaw")
@@ -192,7 +193,7 @@ def main(argv=None) -> int:
     ap.add_argument("--split-step", type=float, action="append", default=None, metavar="M",
                     help="racklay.reasoning split_step_m; repeat to compare settings (default: "
                          f"{ReasoningConfig().split_step_m})")
-    add_precision_arg(ap)
+    add_precision_args(ap)
     args = ap.parse_args(argv)
 
     steps = args.split_step or [ReasoningConfig().split_step_m]

@@ -29,7 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.common import REPO, add_precision_arg
+from bench.common import REPO
+from racklay.predict import add_precision_args
 
 PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
 NO_EXTRAS = ["--set", "write_depth=false", "--set", "write_normals=false", "--set", "write_semantic=false",
@@ -130,7 +131,7 @@ def main() -> int:
     ap.add_argument("--flip-average", action="store_true",
                     help="predict with test-time flip averaging (`racklay eval --flip-average`)")
     ap.add_argument("--json", default=None, help="also write the numbers here")
-    add_precision_arg(ap)
+    add_precision_args(ap)
     args = ap.parse_args()
 
     from racklay.evaluate import evaluate

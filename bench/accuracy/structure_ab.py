@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import add_precision_arg
+from racklay.predict import add_precision_args
 
 PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
 BOX_TARGET = {"top": 70.0, "front": 75.0}            # reproduction row, dataset-level box IoU
@@ -248,7 +248,7 @@ def main() -> int:
                          "split scored")
     ap.add_argument("--flip-average", action="store_true",
                     help="predict with test-time flip averaging (`racklay eval --flip-average`)")
-    add_precision_arg(ap, "every arm")
+    add_precision_args(ap)
     ap.add_argument("--json", default=None, help="also write the numbers here")
     args = ap.parse_args()
     if args.calibrate_on and not all(args.calibrate_on.rpartition(":")[::2]):

@@ -15,7 +15,8 @@ import argparse
 import sys
 from dataclasses import replace
 
-from bench.common import REPO, add_precision_arg
+from bench.common import REPO
+from racklay.predict import add_precision_args
 
 #: test-site photos (never trained on) and a training-site shelving photo
 PHOTOS = ("24_palletvid0261_f044.jpg", "117_palletvid0265_f217.jpg", "06_blueshelf_mixed.jpg")
@@ -28,7 +29,7 @@ def main(argv=None) -> int:
     ap.add_argument("--project", default=str(REPO / "datasets" / "real-photos"), help="labelled photo project")
     ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
     ap.add_argument("--out", default=str(REPO / "docs" / "img" / "annotate-proposals.jpg"))
-    add_precision_arg(ap)
+    add_precision_args(ap)
     args = ap.parse_args(argv)
 
     import cv2

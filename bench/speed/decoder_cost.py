@@ -23,7 +23,6 @@ from dataclasses import replace
 from bench.common import (
     add_batch_arg,
     add_common_args,
-    add_precision_arg,
     ensure_malloc_env,
     forward_runner,
     interleaved,
@@ -32,13 +31,14 @@ from bench.common import (
     start,
     summarise,
 )
+from racklay.predict import add_precision_args
 
 WIDTHS = (128, 64, 32)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_precision_arg(ap)
+    add_precision_args(ap)
     add_batch_arg(ap)
     add_common_args(ap, rounds=3, calls=5, warmup=2)
     args = ap.parse_args(argv)

@@ -26,7 +26,6 @@ from dataclasses import replace
 from bench.common import (
     add_batch_arg,
     add_common_args,
-    add_precision_arg,
     ensure_malloc_env,
     forward_runner,
     interleaved,
@@ -35,12 +34,13 @@ from bench.common import (
     start,
     summarise,
 )
+from racklay.predict import add_precision_args
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
-    add_precision_arg(ap, "both models")
+    add_precision_args(ap)
     ap.add_argument("--memory-format", choices=("channels_last", "contiguous"), default="channels_last",
                     help="both models in this layout (default channels_last: what racklay predict uses)")
     ap.add_argument("--onnx", action="store_true",
