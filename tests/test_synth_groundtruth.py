@@ -822,3 +822,31 @@ def test_a_tall_view_shows_more_levels_than_it_labels_the_lowest_r_of_them(rende
     assert up and all(a["channel"] is None for a in up) and any(a["visible_pixels"] > 0 for a in up)
     on = [a for a in anns if a["shelf"] in s.visible]
     assert on and all(a["channel"] == s.visible.index(a["shelf"]) for a in on)   # channel 0: the lowest
+
+
+def test_tall_view_shelves_draws_tall_racks_for_tall_views_and_leaves_the_others_alone():
+    """`tall_view_shelves`: the tall view is decided with the rack, so a recipe can photograph
+    a few tall racks whole (here 8-10 shelves) while every other rack keeps `n_shelves` and a
+    camera showing at most R of its levels; off ([0, 0]) the recipe's scenes do not change."""
+    from racklay.synth.scene import visible_shelves
+
+    def scenes(over):
+        r = load_recipe("complex", {**SMALL, "n_shelves": [2, 4], "shelf_height": [0.25, 0.4],
+                                    "camera_distance": [0.35, 12.0], **over})
+        return r, [sample_scene(r, 5, i) for i in range(24)]
+
+    def shown(r, s):
+        return visible_shelves(s.camera, s.rack_length, s.rack_depth, s.shelves, r.visible_fraction,
+                               r.detection_range_m, r.visible_fraction_board)
+
+    r, tall = scenes({"tall_view_fraction": 0.5, "tall_view_shelves": [8, 10]})
+    counts = [len(s.shelves) for s in tall]
+    big = [s for s in tall if len(s.shelves) > 4]
+    assert set(counts) <= {2, 3, 4, 8, 9, 10} and 4 <= len(big) <= 20, counts
+    assert all(len(shown(r, s)) <= r.R for s in tall if len(s.shelves) <= 4)
+    assert sum(len(shown(r, s)) > r.R for s in big) >= len(big) // 2
+    assert all(s.visible == shown(r, s)[:r.R] for s in tall)
+    # off: the same scenes as without the key (no extra random draw)
+    r0, plain = scenes({})
+    r1, off = scenes({"tall_view_shelves": [0, 0]})
+    assert [s.camera.t.tolist() for s in plain] == [s.camera.t.tolist() for s in off]

@@ -815,6 +815,12 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
     if any(w > 0 for k, w in r.rack_style.items() if k != "shelving"):
         w = np.array(list(r.rack_style.values()))
         style = str(rng.choice(list(r.rack_style), p=w / w.sum()))
+    # a tall view as a photo of a tall rack (tall_view_shelves): drawn with the rack, so the other
+    # racks keep n_shelves; recipes without the key draw no extra number
+    tall_rack = False
+    if r.tall_view_shelves[1] > 0 and r.tall_view_fraction > 0 and style in ("shelving", "boltless", "slotted"):
+        tall_rack = bool(rng.random() < r.tall_view_fraction)
+    n_range = r.tall_view_shelves if tall_rack else r.n_shelves
     boards = []
     if style == "cube":
         columns, rows = _ui(rng, r.cube_columns), _ui(rng, r.cube_rows)
@@ -850,7 +856,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             z += h
     elif style == "boltless":   # the shelving keys size it; its own construction and finishes
         length, depth = _u(rng, r.rack_length), _u(rng, _depth_range(r, style))
-        n = _ui(rng, r.n_shelves)
+        n = _ui(rng, n_range)
         h_nom = _u(rng, r.shelf_height)
         beam_h = float(rng.uniform(0.035, 0.09))
         steel_deck = bool(rng.uniform() < 0.5)
@@ -863,7 +869,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             z += h
     elif style == "slotted":    # the shelving keys size it; panels or chipboard on angle frames
         length, depth = _u(rng, r.rack_length), _u(rng, _depth_range(r, style))
-        n = _ui(rng, r.n_shelves)
+        n = _ui(rng, n_range)
         h_nom = _u(rng, r.shelf_height)
         beam_h = float(rng.uniform(0.025, 0.045))    # the lip under each deck
         steel_deck = bool(rng.uniform() < 0.6)
@@ -875,7 +881,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             z += h
     else:
         length, depth = _u(rng, r.rack_length), _u(rng, _depth_range(r, style))
-        n = _ui(rng, r.n_shelves)
+        n = _ui(rng, n_range)
         h_nom = _u(rng, r.shelf_height)
         beam_h = _u(rng, r.beam_height)
         z = _u(rng, r.bottom_height)
@@ -1061,7 +1067,7 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             B.add((cx, cy, 2.15), (1.0, 1.2, 0.06), "paint", SEM["clutter"], yaw=yaw, tint=(0.1, 0.1, 0.1))
 
     cam, visible = _sample_camera(rng, r, length, depth, shelves, corridor if background == "busy" else None,
-                                  max_camera_tries)
+                                  max_camera_tries, tall_rack)
     effects = _sample_effects(rng, r)
     # a wide lens gets at most the barrel distortion that keeps its corners (effects.k1_limit)
     effects["distortion_k1"] = max(effects["distortion_k1"], k1_limit(cam.K, cam.width, cam.height))
@@ -1197,7 +1203,7 @@ def visible_shelves(cam: Camera, length: float, depth: float, shelves: list, fra
     return out
 
 
-def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries):
+def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries, tall_rack=False):
     W, H = r.image_width, r.image_height
     n = len(shelves)
     last = None
@@ -1205,7 +1211,10 @@ def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries):
         # the extra draw only where zoom is on: recipes without it keep their random streams
         f = _u(rng, r.long_focal_px if r.long_lens_fraction and rng.random() < r.long_lens_fraction else r.focal_px)
         # likewise the tall view's draw: frame more levels than R, label the lowest R of those visible
-        tall = n > r.R and bool(r.tall_view_fraction) and rng.random() < r.tall_view_fraction
+        if r.tall_view_shelves[1] > 0:      # decided with the rack (sample_scene)
+            tall = tall_rack and n > r.R
+        else:
+            tall = n > r.R and bool(r.tall_view_fraction) and rng.random() < r.tall_view_fraction
         k = int(rng.integers(r.R + 1, n + 1)) if tall else int(rng.integers(1, min(r.R, n) + 1))
         s = int(rng.integers(0, n - k + 1))
         lo = shelves[s].board_top
