@@ -789,35 +789,42 @@ def test_level_spans_are_where_the_image_shows_the_shelf_the_layouts_draw(extent
     assert extent == "bay" or cut > 0
 
 
+def _tall_scenes(n_shelves, seed, count, over):
+    """Scenes of small racks of `n_shelves` low shelves, cameras up to 12 m away (tall views)."""
+    r = load_recipe("complex", {**SMALL, "n_shelves": n_shelves, "shelf_height": [0.25, 0.4],
+                                "camera_distance": [0.35, 12.0], **over})
+    return r, [sample_scene(r, seed, i) for i in range(count)]
+
+
+def _shown(r, s):
+    """The shelves a scene's camera shows by the recipe's visibility rule (all of them, not only R)."""
+    from racklay.synth.scene import visible_shelves
+
+    return visible_shelves(s.camera, s.rack_length, s.rack_depth, s.shelves, r.visible_fraction,
+                           r.detection_range_m, r.visible_fraction_board)
+
+
 def test_a_tall_view_shows_more_levels_than_it_labels_the_lowest_r_of_them(renderer):
     """`tall_view_fraction`: that share of cameras frames more levels than R (a tall rack
     photographed whole) and the lowest R visible levels get the layout channels, as the labelling
     guide labels photo 17 (docs/annotate.md); the loads of the levels above are in the image with
     no channel. At 0 (the default) no camera shows more than R levels."""
-    from racklay.synth.scene import visible_shelves
-
     _, ren = renderer
 
     def scenes(over):
-        r = load_recipe("complex", {**SMALL, "n_shelves": [7, 9], "shelf_height": [0.25, 0.4],
-                                    "camera_distance": [0.35, 12.0], **over})
-        return r, [sample_scene(r, 3, i) for i in range(16)]
-
-    def shown(r, s):
-        return visible_shelves(s.camera, s.rack_length, s.rack_depth, s.shelves, r.visible_fraction,
-                               r.detection_range_m, r.visible_fraction_board)
+        return _tall_scenes([7, 9], 3, 16, over)
 
     r, plain = scenes({})
-    assert all(len(shown(r, s)) <= r.R and s.visible == shown(r, s) for s in plain)
+    assert all(len(_shown(r, s)) <= r.R and s.visible == _shown(r, s) for s in plain)
     r, tall = scenes({"tall_view_fraction": 1.0})
-    more = [s for s in tall if len(shown(r, s)) > r.R]
-    assert len(more) >= 12, [len(shown(r, s)) for s in tall]
-    assert all(s.visible == shown(r, s)[:r.R] for s in tall)       # the lowest R of those in view
+    more = [s for s in tall if len(_shown(r, s)) > r.R]
+    assert len(more) >= 12, [len(_shown(r, s)) for s in tall]
+    assert all(s.visible == _shown(r, s)[:r.R] for s in tall)       # the lowest R of those in view
     s = more[0]
     top, front = scene_layouts(s, L.Grid(128, r.extent_m), r.R)
     assert top.shape[0] == front.shape[0] == r.R and (front[r.R - 1] > 0).any()
     anns = object_annotations(s, ren.render(s).instance)
-    above = set(shown(r, s)[r.R:])
+    above = set(_shown(r, s)[r.R:])
     up = [a for a in anns if a["shelf"] in above]
     assert up and all(a["channel"] is None for a in up) and any(a["visible_pixels"] > 0 for a in up)
     on = [a for a in anns if a["shelf"] in s.visible]
@@ -827,26 +834,18 @@ def test_a_tall_view_shows_more_levels_than_it_labels_the_lowest_r_of_them(rende
 def test_tall_view_shelves_draws_tall_racks_for_tall_views_and_leaves_the_others_alone():
     """`tall_view_shelves`: the tall view is decided with the rack, so a recipe can photograph
     a few tall racks whole (here 8-10 shelves) while every other rack keeps `n_shelves` and a
-    camera showing at most R of its levels; off ([0, 0]) the recipe's scenes do not change."""
-    from racklay.synth.scene import visible_shelves
-
+    camera showing at most R of its levels; without `tall_view_fraction` it changes nothing."""
     def scenes(over):
-        r = load_recipe("complex", {**SMALL, "n_shelves": [2, 4], "shelf_height": [0.25, 0.4],
-                                    "camera_distance": [0.35, 12.0], **over})
-        return r, [sample_scene(r, 5, i) for i in range(24)]
-
-    def shown(r, s):
-        return visible_shelves(s.camera, s.rack_length, s.rack_depth, s.shelves, r.visible_fraction,
-                               r.detection_range_m, r.visible_fraction_board)
+        return _tall_scenes([2, 4], 5, 24, over)
 
     r, tall = scenes({"tall_view_fraction": 0.5, "tall_view_shelves": [8, 10]})
     counts = [len(s.shelves) for s in tall]
     big = [s for s in tall if len(s.shelves) > 4]
     assert set(counts) <= {2, 3, 4, 8, 9, 10} and 4 <= len(big) <= 20, counts
-    assert all(len(shown(r, s)) <= r.R for s in tall if len(s.shelves) <= 4)
-    assert sum(len(shown(r, s)) > r.R for s in big) >= len(big) // 2
-    assert all(s.visible == shown(r, s)[:r.R] for s in tall)
-    # off: the same scenes as without the key (no extra random draw)
-    r0, plain = scenes({})
-    r1, off = scenes({"tall_view_shelves": [0, 0]})
-    assert [s.camera.t.tolist() for s in plain] == [s.camera.t.tolist() for s in off]
+    assert all(len(_shown(r, s)) <= r.R for s in tall if len(s.shelves) <= 4)
+    assert sum(len(_shown(r, s)) > r.R for s in big) >= len(big) // 2
+    assert all(s.visible == _shown(r, s)[:r.R] for s in tall)
+    # without tall views the key draws nothing: the recipe's scenes stay as they were
+    _, plain = scenes({})
+    _, idle = scenes({"tall_view_shelves": [8, 10]})
+    assert [s.camera.t.tolist() for s in plain] == [s.camera.t.tolist() for s in idle]
