@@ -11,7 +11,7 @@ import pytest
 
 from racklay import layout as L
 from racklay.synth.groundtruth import object_annotations, scene_layouts
-from racklay.synth.recipe import load_recipe
+from racklay.synth.recipe import RecipeError, load_recipe
 from racklay.synth.scene import CATEGORIES, Obj, cuboid_corners, sample_scene
 
 SMALL = {"image_width": 240, "image_height": 144, "focal_px": [170.0, 260.0]}
@@ -845,6 +845,8 @@ def test_tall_view_shelves_draws_tall_racks_for_tall_views_and_leaves_the_others
     assert all(len(_shown(r, s)) <= r.R for s in tall if len(s.shelves) <= 4)
     assert sum(len(_shown(r, s)) > r.R for s in big) >= len(big) // 2
     assert all(s.visible == _shown(r, s)[:r.R] for s in tall)
+    with pytest.raises(RecipeError, match="tall_view_shelves.*more than R = 4"):
+        load_recipe("complex", {"tall_view_shelves": [3, 10]})
     # without tall views the key draws nothing: the recipe's scenes stay as they were
     _, plain = scenes({})
     _, idle = scenes({"tall_view_shelves": [8, 10]})

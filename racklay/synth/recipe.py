@@ -114,7 +114,7 @@ class Recipe:
     pitch_jitter_deg: float = _f(3.0, "float", 0.0, 30.0, "camera pitch jitter ~ U(-a, a)")
     roll_jitter_deg: float = _f(1.0, "float", 0.0, 15.0, "camera roll jitter ~ U(-a, a)")
     tall_view_fraction: float = _f(0.0, "float", 0.0, 1.0, "probability that a camera frames more levels than R (a tall rack photographed whole): the lowest R visible levels get the layout channels, as the labelling guide labels such a photo (docs/annotate.md); the others stay in the image, unlabelled (0: at most R levels visible)")
-    tall_view_shelves: list = _f([0, 0], "irange", 0, 16, "shelving: shelves of the racks photographed in a tall view (tall_view_fraction of the shelving racks get this many shelves and a camera that frames more than R of them; the others keep n_shelves and at most R visible); [0, 0]: a tall view is drawn per camera, on any rack with more than R levels")
+    tall_view_shelves: list = _f([0, 0], "irange", 0, 16, "shelving: shelves (more than R) of the racks photographed in a tall view (tall_view_fraction of the shelving racks get this many shelves and a camera that frames more than R of them; the others keep n_shelves and at most R visible); [0, 0]: a tall view is drawn per camera, on any rack with more than R levels")
     visible_fraction: float = _f(0.5, "float", 0.05, 1.0, "a shelf is visible when this fraction of its front opening's height is in the image")
     visible_fraction_board: float = _f(1.0, "float", 0.05, 1.0, "a shelf whose board's front edge is in the image is visible when this fraction of its front opening's height is (a level whose top the frame cuts, as labellers count one; 1.0: visible_fraction decides alone)")
     layout_extent: str = _f("bay", "choice:bay|frame|row", doc="what the layouts draw of a bay the image cuts: 'bay' the whole bay (the paper's data, `complex`), 'frame' the bay as far as the image shows it, as the labelling guide draws photos (docs/annotate.md): cut where the image's left and right edges meet its front at the height of the middle of its visible levels, and a level whose opening the image's top edge cuts ended there; 'row' as 'frame', but the shelves continue across shared uprights into the neighbouring bays of the row as far as the image shows them (the guide's 'bay or bays'; at most extent_m long)")
@@ -250,6 +250,9 @@ def recipe_from_dict(data: dict, src: str = "recipe") -> Recipe:
     r = Recipe(**kw)
     if r.layout_size % 2:
         raise RecipeError(f"{src}: key 'layout_size' must be even, got {r.layout_size}")
+    if r.tall_view_shelves[1] > 0 and r.tall_view_shelves[0] <= r.R:
+        raise RecipeError(f"{src}: key 'tall_view_shelves': {r.tall_view_shelves} must draw more than R = {r.R} "
+                          "shelves (a tall view frames more levels than R), or be [0, 0] (off)")
     if r.texture_dir and not Path(os.path.expanduser(r.texture_dir)).is_dir():
         raise RecipeError(f"{src}: key 'texture_dir': folder {r.texture_dir} not found")
     if r.texture_dir:        # an empty folder is refused here, before any output folder exists
