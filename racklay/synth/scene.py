@@ -816,10 +816,12 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
         w = np.array(list(r.rack_style.values()))
         style = str(rng.choice(list(r.rack_style), p=w / w.sum()))
     # a tall view as a photo of a tall rack (tall_view_shelves): drawn with the rack, so the other
-    # racks keep n_shelves; recipes without the key draw no extra number
-    tall_rack = False
-    if r.tall_view_shelves[1] > 0 and r.tall_view_fraction > 0 and style in ("shelving", "boltless", "slotted"):
-        tall_rack = bool(rng.random() < r.tall_view_fraction)
+    # racks keep n_shelves; None: the key is off and the camera draws its own tall view; recipes
+    # without the key draw no extra number
+    tall_rack = None
+    if r.tall_view_shelves[1] > 0:
+        tall_rack = (r.tall_view_fraction > 0 and style in ("shelving", "boltless", "slotted")
+                     and bool(rng.random() < r.tall_view_fraction))
     n_range = r.tall_view_shelves if tall_rack else r.n_shelves
     boards = []
     if style == "cube":
@@ -1203,7 +1205,7 @@ def visible_shelves(cam: Camera, length: float, depth: float, shelves: list, fra
     return out
 
 
-def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries, tall_rack=False):
+def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries, tall_rack=None):
     W, H = r.image_width, r.image_height
     n = len(shelves)
     last = None
@@ -1211,10 +1213,10 @@ def _sample_camera(rng, r: Recipe, length, depth, shelves, corridor, tries, tall
         # the extra draw only where zoom is on: recipes without it keep their random streams
         f = _u(rng, r.long_focal_px if r.long_lens_fraction and rng.random() < r.long_lens_fraction else r.focal_px)
         # likewise the tall view's draw: frame more levels than R, label the lowest R of those visible
-        if r.tall_view_shelves[1] > 0:      # decided with the rack (sample_scene)
-            tall = tall_rack and n > r.R
-        else:
+        if tall_rack is None:
             tall = n > r.R and bool(r.tall_view_fraction) and rng.random() < r.tall_view_fraction
+        else:                               # decided with the rack (sample_scene, tall_view_shelves)
+            tall = tall_rack and n > r.R
         k = int(rng.integers(r.R + 1, n + 1)) if tall else int(rng.integers(1, min(r.R, n) + 1))
         s = int(rng.integers(0, n - k + 1))
         lo = shelves[s].board_top
