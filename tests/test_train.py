@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 
+from bench.speed.machine_check import cpu_fields
 from conftest import ENV, make_toy, metrics_rows, run_module
 from racklay.checkpoint import load_checkpoint, load_model, save_checkpoint
 from racklay.data import RackLayRoot
@@ -396,14 +397,6 @@ GOLDEN_KERNELS = {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2"}
 GOLDEN_VENDOR = "AuthenticAMD"
 
 
-def cpu_vendor() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("vendor_id")), "unknown")
-    except OSError:
-        return "unknown"
-
-
 def golden_rows(toy, out) -> list[dict]:
     cfg = dict(data=str(toy), out=str(out), name="golden", **GOLDEN_CFG)
     code = "import json, sys; from racklay.train import TrainConfig, train; train(TrainConfig(**json.loads(sys.argv[1])))"
@@ -414,7 +407,7 @@ def golden_rows(toy, out) -> list[dict]:
             for row in _rows(Path(out) / "golden")]
 
 
-@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64") or cpu_vendor() != GOLDEN_VENDOR,
+@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64") or cpu_fields().get("vendor_id") != GOLDEN_VENDOR,
                     reason="the golden numbers are AVX2 kernel results of AMD x86-64 CPUs")
 def test_golden_run_metrics_unchanged(tmp_path, toy):
     want = json.loads(GOLDEN.read_text())

@@ -17,17 +17,26 @@ import platform
 import time
 
 
-def cpu_model() -> str:
+def cpu_fields() -> dict[str, str]:
+    """The first core's fields of /proc/cpuinfo (`vendor_id`, `model name`, `flags`, ...); empty
+    where there is no such file."""
     try:
         with open("/proc/cpuinfo") as f:
             info = f.read()
     except OSError:
-        return platform.processor() or "unknown"
+        return {}
     fields: dict[str, str] = {}
-    for ln in info.splitlines():       # the first core's fields
+    for ln in info.splitlines():
         key, sep, value = ln.partition(":")
         if sep:
             fields.setdefault(key.strip(), value.strip())
+    return fields
+
+
+def cpu_model() -> str:
+    fields = cpu_fields()
+    if not fields:
+        return platform.processor() or "unknown"
     name, family = fields.get("model name", "unknown"), fields.get("cpu family", "?")
     flags = fields.get("flags", "").split()
     extra = ", ".join(f for f in ("avx512f", "avx512_bf16", "amx_bf16") if f in flags) or "no AVX-512"
