@@ -15,6 +15,7 @@
 #   REAL=/tmp/real131s bench/accuracy/recipe_ab_cpu.sh
 # Then compare: python -m bench.accuracy.structure_ab --arm tall=WORK/runs/tall --arm packed=... (same flags).
 set -euo pipefail
+export MALLOC_MMAP_THRESHOLD_=4294967296 MALLOC_TRIM_THRESHOLD_=4294967296   # racklay.runtime.MALLOC_ENV
 RECIPE=${RECIPE:-mixed}
 SEED=${SEED:-22}
 N=${N:-2000}
