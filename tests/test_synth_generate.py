@@ -180,6 +180,34 @@ def _worker_pids(pid: int) -> list[int]:
     return [int(k) for k in kids if b"spawn_main" in Path(f"/proc/{k}/cmdline").read_bytes()]
 
 
+def test_a_pool_that_breaks_between_two_images_stops_with_the_same_message(tmp_path, monkeypatch):
+    """The worker can die just after another image finished: the pool then refuses the next
+    image at submit time. That must read like any other crash, not as a traceback."""
+    import concurrent.futures as cf
+    from concurrent.futures.process import BrokenProcessPool
+
+    import racklay.synth.generate as gen
+
+    class OnceThenBroken:  # runs the first images, then behaves like a pool whose worker was killed
+        def __init__(self, *a, **k):
+            self.calls = 0
+
+        def submit(self, fn, i):
+            self.calls += 1
+            if self.calls > 2:
+                raise BrokenProcessPool("a child process terminated abruptly")
+            f = cf.Future()
+            f.set_result((i, {}))
+            return f
+
+        def shutdown(self, **k):
+            pass
+
+    monkeypatch.setattr(cf, "ProcessPoolExecutor", OnceThenBroken)
+    with pytest.raises(gen.WorkerCrash, match="a worker process died while making image .*run the same command"):
+        list(gen._pool_results(list(range(10)), 1, (), tmp_path))
+
+
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="finds the workers through Linux /proc")
 def test_a_worker_killed_mid_run_stops_the_run_with_a_message_and_a_rerun_finishes(tmp_path):
     """A worker that dies (the OOM killer, a crash in the GL driver) must not leave the run

@@ -319,6 +319,11 @@ def _pool_results(todo: list[int], workers: int, initargs: tuple, out: Path):
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool
 
+    def crash(i: int) -> WorkerCrash:
+        return WorkerCrash(f"{out}: a worker process died while making image {sample_id(i)} (killed, out of "
+                           f"memory, or a crash in the GL driver); the finished images are kept: run the same "
+                           f"command again to resume")
+
     queue = iter(todo)
     ex = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker, initargs=initargs)
     try:
@@ -330,12 +335,13 @@ def _pool_results(todo: list[int], workers: int, initargs: tuple, out: Path):
                 try:
                     yield f.result()
                 except BrokenProcessPool:
-                    raise WorkerCrash(f"{out}: a worker process died while making image {sample_id(i)} (killed, "
-                                      f"out of memory, or a crash in the GL driver); the finished images are kept: "
-                                      f"run the same command again to resume") from None
+                    raise crash(i) from None
                 nxt = next(queue, None)
                 if nxt is not None:
-                    running[ex.submit(_work, nxt)] = nxt
+                    try:
+                        running[ex.submit(_work, nxt)] = nxt
+                    except BrokenProcessPool:   # a worker died after this image finished: name one in flight
+                        raise crash(min(running.values(), default=nxt)) from None
     finally:   # on an error or a stop (Ctrl-C, SIGTERM) the images being made finish, the rest never start
         ex.shutdown(wait=True, cancel_futures=True)
 
