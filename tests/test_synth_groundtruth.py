@@ -592,6 +592,44 @@ def test_packed_pallet_levels_stand_their_loads_a_gap_apart():
     assert np.median(spread_gaps) > 0.15, np.median(spread_gaps)
 
 
+def test_bays_sized_for_their_pallets_hold_them_end_to_end():
+    """`pallet_bay_fit`: a bay sized for its pallets (as a real rack's beams are specified) holds n
+    pallets of one footprint on every level, with one clearance between them and at both beam
+    ends, and its beams stay within `pallet_bay_length`; full levels then cover most of the beam,
+    as in the labelled photos (most of their levels 80-99 % under loads). Off, recipes keep their
+    scenes draw for draw."""
+    from racklay.synth.scene import PALLET_FOOTPRINTS, SEM
+
+    full = {"box_density": [1.0, 1.0], "wire_deck": 0.0, "pallet_bay_length": [2.4, 4.6]}
+    r = load_recipe("pallet", {**full, "pallet_bay_fit": 1.0})
+    pallet_widths = {w for fp in PALLET_FOOTPRINTS for w in fp}
+    covers = []
+    for index in range(12):
+        scene = sample_scene(r, 6, index)
+        L_ = scene.rack_length
+        assert 2.4 - 1e-9 <= L_ <= 4.6 + 1e-9, L_
+        footprints = set()
+        for sh in scene.shelves:
+            if not sh.items:
+                continue
+            pallets = sorted((o for i in sh.items for o in scene.objects if o.part_of == i and o.semantic == SEM["pallet"]),
+                             key=lambda o: o.center[0])
+            along = pallets[0].size[0]
+            assert min(abs(along - w) for w in pallet_widths) < 0.03
+            footprints.add(round(along, 3))
+            n = len(pallets)
+            gap = (L_ - n * along) / (n + 1)
+            assert 0.06 - 1e-6 <= gap <= 0.15 + 1e-6, (L_, n, along)   # mixed's pallet_gap range
+            covers.append(sum(scene.objects[i].layout_box.sx for i in sh.items) / L_)
+        assert len(footprints) <= 1, "one footprint for every level of the bay"
+    assert len(covers) > 15 and np.median(covers) > 0.85, np.median(covers)
+
+    plain = load_recipe("pallet", full)
+    off = load_recipe("pallet", {**full, "pallet_bay_fit": 0.0})
+    for index in range(3):
+        assert sample_scene(plain, 6, index).rack_length == sample_scene(off, 6, index).rack_length
+
+
 def test_full_warehouse_knobs_build_loads_up_and_fill_the_other_bays():
     """`pallet_load_height` sets how far a load fills its level's clear height above the pallet;
     `neighbour_fill` loads every bay but the considered one at least that densely (what a gap

@@ -10,7 +10,8 @@ sampled from each recipe (`racklay.synth.scene.sample_scene`, no rendering):
     shelves, level height (board to board, shelves below the top one), box width / height /
     depth, box run width (boxes on one shelf that touch or overlap along it, less than RUN_GAP
     apart, merged: what the front layout draws as one run and what a labeller draws as one box
-    for a wall of cartons), camera distance to the rack front,
+    for a wall of cartons), the fraction of each level's drawn length under loads (empty levels
+    0; a full pallet bay 0.85-0.99), camera distance to the rack front,
     camera height, focal length per pixel of image width; and the framing, which every photo
     determines (near-frontal ones too): the width in the image of the part of the bay that the
     layouts draw (at the height of the middle of its levels) over the image width (a labelled
@@ -50,6 +51,7 @@ QUANTITIES = {   # key: (label, unit)
     "level_height": ("level height", "m"),
     "box_width": ("box width", "m"),
     "run_width": ("box run width", "m"),
+    "load_cover": ("level length under loads", ""),
     "box_height": ("box height", "m"),
     "box_depth": ("box depth", "m"),
     "cam_distance": ("camera distance", "m"),
@@ -81,6 +83,15 @@ def run_spans(intervals) -> list[tuple[float, float]]:
 def run_widths(intervals) -> list[float]:
     """Widths of the runs of `run_spans`."""
     return [x1 - x0 for x0, x1 in run_spans(intervals)]
+
+
+def load_cover(intervals, x0: float, x1: float, snap: float = 0.0) -> float:
+    """The fraction of a level's drawn stretch x0..x1 that loads stand on (their x-spans' union);
+    a load within `snap` of an end reaches it, as the annotator snaps a labelled box's side
+    (`annotate.geometry.snap_edges`), so that renders are measured as a labeller draws them."""
+    spans = [(x0 if a < x0 + snap else a, x1 if b > x1 - snap else b) for a, b in intervals]
+    spans = [(max(a, x0), min(b, x1)) for a, b in run_spans(spans)]
+    return sum(max(0.0, b - a) for a, b in spans) / (x1 - x0)
 
 
 def framing_quantities(to_image, x0: float, x1: float, lo: float, hi: float, w: int, h: int) -> dict:
@@ -124,6 +135,8 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
                 q["box_height"].append(b.v1 - b.v0)
             q["box_depth"].append(b.depth)
         n_cut = sum(c[0] for c in cut.values())
+        q["load_cover"] = [load_cover([(b.u0, b.u1) for b in sc.boxes if b.shelf == k], 0.0, sc.width)
+                           for k in range(len(sc.shelf_v))]
         for k in {b.shelf for b in sc.boxes if b.shelf is not None}:
             on = [b for b in sc.boxes if b.shelf == k]
             spans = [(b.u0, b.u1) for b in on]
@@ -150,7 +163,9 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
     return out, notes
 
 
-def recipe_quantities(name: str, n: int, seed: int, sets=()) -> dict:
+def recipe_quantities(name: str, n: int, seed: int, sets=(), snap: float = 0.0) -> dict:
+    """The QUANTITIES of n scenes sampled from a recipe; `snap`: the labelling project's box snap
+    (metres), applied to the loads' ends when measuring load_cover."""
     from racklay.synth.recipe import load_recipe
     from racklay.synth.scene import sample_scene
 
@@ -173,6 +188,7 @@ def recipe_quantities(name: str, n: int, seed: int, sets=()) -> dict:
                 q["box_depth"].append(b.sy)
                 spans.append(b.x_range())                # its footprint along x (yaw included)
             q["run_width"] += run_widths(spans)
+            q["load_cover"].append(load_cover(spans, x0, x1, snap))
         lo = s.shelves[s.visible[0]].board_top
         top = s.shelves[s.visible[-1]]
 
@@ -210,7 +226,9 @@ def main(argv=None) -> int:
     from racklay.synth.recipe import RecipeError
 
     try:
-        rq = {name: recipe_quantities(name, args.n, args.seed, args.set) for name in recipes}
+        from annotate.schema import load_settings
+        snap = load_settings(args.project / "project.json").get("box_snap", 0.05) or 0.0   # as build_scene snaps
+        rq = {name: recipe_quantities(name, args.n, args.seed, args.set, snap) for name in recipes}
     except RecipeError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -64,6 +64,7 @@ class Recipe:
     pallet_level_height: list = _f([1.2, 2.2], "frange", 0.5, 4.0, "pallet racking: beam level to beam level, metres")
     pallet_bay_length: list = _f([2.7, 3.6], "frange", 1.0, 6.0, "pallet racking: beam length (clear bay width), metres")
     pallet_rack_depth: list = _f([0.8, 1.2], "frange", 0.5, 2.0, "pallet racking: frame depth, metres")
+    pallet_bay_fit: float = _f(0.0, "float", 0.0, 1.0, "pallet racking: probability that a rack's bays are sized for their pallets, as real bays are specified (2.7 m beams for three euro pallets turned): one footprint and orientation for every level, n pallets with pallet_gap between them and at both ends, n chosen so that the beams stay within pallet_bay_length where they can; otherwise the beam length is drawn from pallet_bay_length and each level draws its own footprint")
     floor_level: float = _f(0.5, "float", 0.0, 1.0, "pallet racking: probability that the floor under the first beam is a storage level (shelf channel 0, its board is the floor)")
     wire_deck: float = _f(0.3, "float", 0.0, 1.0, "pallet racking: probability of wire-mesh decks on the beams (else open beams)")
     beam_labels: float = _f(0.0, "float", 0.0, 1.0, "probability that a scene's racks carry location labels on their front beams (pallet racking, shelving, boltless and slotted beams or lips: a white, yellow or blue-banded label with a location code and a barcode, about one per metre of beam)")

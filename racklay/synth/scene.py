@@ -380,10 +380,35 @@ def _stack(rng, r, items, cat, base: L.Box, slot, yband, max_top, stack_max):
         below = b
 
 
+def _pallet_footprint(rng, depth: float) -> tuple[float, float]:
+    """A pallet's (along the beams, across them) size: euro or UK, turned with its long side
+    across the beams half the time where the rack is deep enough."""
+    along, deep = PALLET_FOOTPRINTS[int(rng.integers(len(PALLET_FOOTPRINTS)))]
+    if rng.uniform() < 0.5 and along <= depth + 0.05:   # turned: the long side across the beams
+        along, deep = deep, along
+    return along, deep
+
+
+def fitted_bay(rng, r: Recipe, depth: float) -> tuple[float, tuple[float, float, float]] | None:
+    """A pallet bay sized for its pallets (`pallet_bay_fit`): the beam length n * along + (n + 1)
+    * gap, for one footprint and clearance, with n the count that keeps the beams within
+    `pallet_bay_length` (else the nearest); returns (length, (along, deep, gap))."""
+    along, deep = _pallet_footprint(rng, depth)
+    gap = _u(rng, r.pallet_gap)
+    lo, hi = r.pallet_bay_length
+    fits = [n for n in range(1, 9) if lo <= n * along + (n + 1) * gap <= hi]
+    if fits:
+        n = int(fits[int(rng.integers(len(fits)))])
+    else:   # no count fits the range: the count whose bay is nearest to it
+        n = min(range(1, 9), key=lambda k: abs(k * along + (k + 1) * gap - (lo + hi) / 2))
+    return n * along + (n + 1) * gap, (along, deep, gap)
+
+
 def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: float,
-                      density: float) -> list[tuple[str, L.Box, tuple | None]]:
+                      density: float, fit: tuple | None = None) -> list[tuple[str, L.Box, tuple | None]]:
     """Load units on one pallet-rack level (shelf frame): pallets side by side along the beams,
-    each slot taken with probability `density`. Returns (load kind, unit Box, the x-ranges of the
+    each slot taken with probability `density`; in a bay sized for its pallets (`fit`, from
+    `fitted_bay`: along, deep, gap) every level holds that footprint at that clearance. Returns (load kind, unit Box, the x-ranges of the
     pallets under it where they differ from the unit's, else None) triples; a unit is the pallet(s)
     and its load as one box standing on the level (z0 = 0), as wide as the pallet unless
     `pallet_overhang` widens the load or `pallet_wide_fraction` sets one load on two neighbouring
@@ -392,12 +417,14 @@ def fill_pallet_level(rng, r: Recipe, length: float, depth: float, max_top: floa
     slots: list[int] = []      # each unit's slot along the beams
     if max_top < PALLET_HEIGHT + 0.2:
         return units
-    along, deep = PALLET_FOOTPRINTS[int(rng.integers(len(PALLET_FOOTPRINTS)))]
-    if rng.uniform() < 0.5 and along <= depth + 0.05:   # turned: the long side across the beams
-        along, deep = deep, along
+    if fit is None:
+        along, deep = _pallet_footprint(rng, depth)
+        gap = _u(rng, r.pallet_gap)
+    else:
+        along, deep, gap = fit
     deep = min(deep, depth - 0.02)
-    gap = _u(rng, r.pallet_gap)
-    n = int((length - gap) // (along + gap))
+    # a bay sized for its pallets holds n of them exactly (round: no float error drops one)
+    n = int((length - gap) // (along + gap)) if fit is None else max(1, round((length - gap) / (along + gap)))
     if n < 1:
         along, n = length - 2 * gap, 1
     pitch = length / n
@@ -519,6 +546,7 @@ class _Builder:
         self.board_tint = None   # a scene colour for every board (palette_random), else per-board jitter
         self.label_size = None   # (width, height) of the location labels on front beams (beam_labels), else none
         self.collect = None      # per level: where a neighbouring bay's items go as layout boxes (layout_extent 'row')
+        self.pallet_fit = None   # (along, deep, gap) of the pallets every level of a bay sized for them holds (pallet_bay_fit)
 
     def collected(self, si: int, boxes, x0: float, y0: float) -> None:
         """Record a neighbouring bay's level-`si` items in the considered bay's frame (no draw)."""
@@ -637,7 +665,7 @@ class _Builder:
                 self.place_items(fill_shelf(self.rng, r, length, depth, max_top, density, _ui(self.rng, r.max_stack)),
                                  si, z_top, x0, y0, shelf_infos)
                 continue
-            units = fill_pallet_level(self.rng, r, length, depth, max_top, density)
+            units = fill_pallet_level(self.rng, r, length, depth, max_top, density, self.pallet_fit)
             idx = [self.pallet_unit(kind, b, z_top, x0, y0, shelf_of(si), detailed=shelf_infos is not None,
                                     pallets=pallets) for kind, b, pallets in units]
             if shelf_infos is not None:
@@ -846,6 +874,9 @@ def sample_scene(r: Recipe, seed: int, index: int, max_camera_tries: int = 60) -
             z += h
     elif style == "pallet":
         length, depth = _u(rng, r.pallet_bay_length), _u(rng, _depth_range(r, style))
+        # drawn only when the knob is on, so recipes without it keep their scenes draw for draw
+        if r.pallet_bay_fit > 0 and rng.uniform() < r.pallet_bay_fit:
+            length, B.pallet_fit = fitted_bay(rng, r, depth)
         n = _ui(rng, r.pallet_levels)
         h_nom = _u(rng, r.pallet_level_height)
         beam_h = float(rng.uniform(0.1, 0.16))
