@@ -7,6 +7,8 @@
 # other sites, and on all 131 photos. One arm at a time (2 cores: ~30 min per arm on a bf16 machine
 # at the defaults); an arm whose score file exists is skipped and a half-trained arm resumes (`--resume`),
 # so a stopped run picks up where it was.
+# X_TRAIN: the arm's extra `racklay train` flags, after the protocol's (space-separated, e.g.
+# gap5_TRAIN="--gap-weight 5": the same renders, another loss).
 # X_SETS separates its `--set` keys with ';' (values may hold spaces). Example (the mixed_cover key
 # groups, each added to `mixed` alone):
 #   ARMS="tall packed" \
@@ -39,13 +41,15 @@ for arm in $ARMS; do
   sets=()
   IFS=';' read -r -a kv <<< "${!svar:-}"
   for s in "${kv[@]}"; do [ -n "$s" ] && sets+=(--set "$s"); done
+  tvar=${arm}_TRAIN
+  read -r -a extra <<< "${!tvar:-}"
   echo "$(date -u +%T) arm $arm: render ${!rvar:-$RECIPE} ${sets[*]}"
   $PY -m racklay synth --recipe "${!rvar:-$RECIPE}" --n "$N" --seed "$SEED" --out "$WORK/data-$arm" \
     --workers "$THREADS" "${LEAN[@]}" "${sets[@]}" --no-progress | tail -n 1
-  echo "$(date -u +%T) arm $arm: train"
+  echo "$(date -u +%T) arm $arm: train ${extra[*]+${extra[*]}}"
   resume=()   # a stopped arm continues from its last finished epoch (--epochs stays the total)
   [ -f "$WORK/runs/$arm/last.safetensors" ] && resume=(--resume)
-  $PY -m racklay train --data "$WORK/data-$arm" --out "$WORK/runs" --name "$arm" "${TRAIN[@]}" "${resume[@]}" | tail -n 3
+  $PY -m racklay train --data "$WORK/data-$arm" --out "$WORK/runs" --name "$arm" "${TRAIN[@]}" ${extra[@]+"${extra[@]}"} "${resume[@]}" | tail -n 3
   echo "$(date -u +%T) arm $arm: score"
   $PY -m bench.accuracy.structure_ab --arm "$arm=$WORK/runs/$arm" --data "$REAL" --split test \
     --photos datasets/real-photos --calibrate-on "$REAL:train" > "$score.part" 2>&1
