@@ -181,6 +181,12 @@ def shelf_heights(plane: RackPlane, points) -> tuple[np.ndarray, np.ndarray]:
     return v, order
 
 
+def box_snap(settings: dict) -> float:
+    """The project's box snap in metres (`project.json` box_snap; unset 0.05, null 0): how far a box
+    side or bottom may lie from a rack end or board and still be drawn on it (`metric_box`, `snap_edges`)."""
+    return settings.get("box_snap", 0.05) or 0.0
+
+
 def build_scene(ann: dict, settings: dict) -> Scene:
     """The metric scene of an annotation (needs 4 corners and rack width/height/depth)."""
     rack = ann["rack"]
@@ -202,7 +208,7 @@ def build_scene(ann: dict, settings: dict) -> Scene:
             c = MIN_CLEAR_M
         clear.append(c)
     default_depth = settings.get("default_depth") or rack["depth"]
-    snap = settings.get("box_snap", 0.05) or 0.0
+    snap = box_snap(settings)
     boxes = [metric_box(plane, b, shelf_v, rack["depth"], default_depth, snap, warnings) for b in ann["boxes"]]
     snap_edges(boxes, plane.width, snap)
     return Scene(plane, float(rack["depth"]), shelf_v, shelf_ids, clear, boxes, warnings)

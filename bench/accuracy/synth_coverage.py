@@ -226,8 +226,9 @@ def main(argv=None) -> int:
     from racklay.synth.recipe import RecipeError
 
     try:
+        from annotate.geometry import box_snap
         from annotate.schema import load_settings
-        snap = load_settings(args.project / "project.json").get("box_snap", 0.05) or 0.0   # as build_scene snaps
+        snap = box_snap(load_settings(args.project / "project.json"))
         rq = {name: recipe_quantities(name, args.n, args.seed, args.set, snap) for name in recipes}
     except RecipeError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -389,7 +389,7 @@ def _pallet_footprint(rng, depth: float) -> tuple[float, float]:
     return along, deep
 
 
-def fitted_bay(rng, r: Recipe, depth: float) -> tuple[float, tuple[float, float, float]] | None:
+def fitted_bay(rng, r: Recipe, depth: float) -> tuple[float, tuple[float, float, float]]:
     """A pallet bay sized for its pallets (`pallet_bay_fit`): the beam length n * along + (n + 1)
     * gap, for one footprint and clearance, with n the count that keeps the beams within
     `pallet_bay_length` (else the nearest); returns (length, (along, deep, gap))."""
