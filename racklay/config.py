@@ -440,6 +440,9 @@ class TrainConfig:
         self.model_config()  # validates views, sizes, R and the struct options together
         if self.placement_weight and self.decoder != "struct":
             raise ValueError(f"placement_weight needs the struct decoder, got {self.decoder!r}")
+        if self.new_lr_mult != 1.0 and not self.init:
+            raise ValueError(f"new_lr_mult {self.new_lr_mult:g} sets the rate of what a run grows from --init; "
+                             "this run has no --init")
         if self.name is not None and (not self.name.strip() or self.name in (".", "..")
                                       or any(c in self.name for c in "/\\")):
             raise ValueError(f"name must be a folder name inside --out (no '/', '\\', '.' or '..'), got {self.name!r}")

@@ -242,8 +242,8 @@ def test_fine_tune_a_checkpoint_into_another_decoder(tmp_path, toy, decoder):
 def test_new_lr_mult_gives_the_grown_branch_its_own_learning_rate(tmp_path):
     """--new-lr-mult: with --init, the tensors the checkpoint lacks (the grown branch, here the
     brightness cue) form a second Adam group whose rate is that multiple of the schedule's, every
-    other tensor the first; without it, or without --init, one group; a multiple with nothing
-    grown is refused naming the checkpoint."""
+    other tensor the first; without it one group; a multiple without --init, or with nothing
+    grown, is refused (naming the checkpoint)."""
     from racklay.train import param_groups
 
     base = ModelConfig(R=2, image_size=64, layout_size=32, decoder="struct", struct_width=16, struct_gap=True)
@@ -255,7 +255,8 @@ def test_new_lr_mult_gives_the_grown_branch_its_own_learning_rate(tmp_path):
     assert [g["lr_mult"] for g in groups] == [1.0, 10.0] and {id(p) for p in groups[1]["params"]} == cue
     assert sum(len(g["params"]) for g in groups) == len(list(grown.parameters()))
     assert len(param_groups(grown, TrainConfig(init=str(init), struct_cue=True, **common))) == 1
-    assert len(param_groups(grown, TrainConfig(struct_cue=True, new_lr_mult=10.0, **common))) == 1
+    with pytest.raises(ValueError, match="new_lr_mult 10 .* no --init"):
+        TrainConfig(struct_cue=True, new_lr_mult=10.0, **common)
     with pytest.raises(ValueError, match="gap.safetensors"):
         param_groups(RackLayNet(base), TrainConfig(init=str(init), new_lr_mult=10.0, **common))
 
