@@ -219,8 +219,8 @@ def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
     extra = sorted(set(sd) - set(own))
     if extra:
         raise ValueError(f"{path}: tensors {extra[:3]} have no place in a {model.cfg.decoder} model"
-                         + (" (a struct model with the 1/4 detail branch or the gap output? train with "
-                            "--struct-fine / --struct-gap)"
+                         + (" (a struct model with the 1/4 detail branch, the gap output or the brightness cue? "
+                            "train with --struct-fine / --struct-gap / --struct-cue)"
                             if any(f".{sub}." in k for k in extra for sub in StructDecoder.GROWN) else ""))
     grown = grown_tensor_names(model) if (decoder, model.cfg.decoder) not in SAME_TENSOR_DECODERS else set()
     lacking = sorted(set(own) - set(sd) - grown)   # only the new branches may be new

@@ -460,7 +460,7 @@ class StructDecoder(nn.Module):
     BCE on the true gaps, `structure.structure_loss`) and combined as experts: the drawn gap
     logit is the features' ("gap_main") plus the cue's evidence (its logit less its bias, the
     prior both already hold). Trained together, the features fit the training photos' gaps
-    alone (rank AUC 0.94 there against the cue's 0.74) and a joint path learns to ignore the cue.
+    alone (rank AUC 0.94 there, plain darkness 0.70-0.74) and a joint path learns to ignore the cue.
     The 1 x 1 conv's weight starts at zero (`GROWN`), so a checkpoint without the cue starts
     computing what it computed. Needs the gap output.
 
