@@ -558,9 +558,8 @@ class StructDecoder(nn.Module):
         half = torch.exp(log_half).clamp(MIN_HALF_WIDTH, MAX_HALF_WIDTH)
         t = (torch.arange(T, device=cols.device, dtype=torch.float32) + 0.5) / T   # positions along the shelf
         mu = position_columns(centre, half, T)                                   # (N, R, T) image widths
-        u = (torch.arange(W, device=cols.device, dtype=torch.float32) + 0.5) / W
-        win = torch.exp(log_win).clamp(0.25, 8.0).unsqueeze(-1).unsqueeze(-1) / W8   # in 1/8 columns
-        w = (-0.5 * ((u - mu.unsqueeze(-1)) / win) ** 2).softmax(-1)             # (N, R, T, W)
+        win = torch.exp(log_win).clamp(0.25, 8.0) / W8                           # in 1/8 columns
+        w = column_window(mu, W, win)                                            # (N, R, T, W)
         seq = torch.einsum("nrtw,nrcw->nrct", w.to(cols.dtype), cols)          # (N, R, C, T)
         freqs = torch.arange(1, tr["n_freq"] + 1, device=cols.device, dtype=torch.float32) * math.pi
         pos = torch.cat([torch.sin(freqs[:, None] * t), torch.cos(freqs[:, None] * t)], 0)   # (n_pos, T)
@@ -599,9 +598,7 @@ class StructDecoder(nn.Module):
         prof = tr["lum"]
         N, R, W2 = prof.shape
         mu = position_columns(shelf[..., 3], half, self.T)                       # (N, R, T) image widths
-        sigma = (2 * half.float() / self.T).clamp(min=0.5 / W2).unsqueeze(-1).unsqueeze(-1)
-        u = (torch.arange(W2, device=prof.device, dtype=torch.float32) + 0.5) / W2
-        w = (-0.5 * ((u - mu.unsqueeze(-1)) / sigma) ** 2).softmax(-1)          # (N, R, T, W2)
+        w = column_window(mu, W2, (2 * half.float() / self.T).clamp(min=0.5 / W2))   # (N, R, T, W2)
         p = torch.einsum("nrtw,nrw->nrt", w, prof)
         rel = p / p.mean(-1, keepdim=True).clamp(min=1e-3)
         local = rel - F.avg_pool1d(rel.reshape(N * R, 1, -1), 9, 1, 4, count_include_pad=False).reshape(N, R, -1)
@@ -655,6 +652,14 @@ def position_columns(centre: torch.Tensor, half: torch.Tensor, T: int) -> torch.
     (2t - 1) times its half-width at each position's t."""
     t = (torch.arange(T, device=centre.device, dtype=torch.float32) + 0.5) / T
     return (0.5 + centre.float()).unsqueeze(-1) + (2 * t - 1) * half.float().unsqueeze(-1)
+
+
+def column_window(mu: torch.Tensor, W: int, sigma: torch.Tensor) -> torch.Tensor:
+    """How a struct decoder reads a sequence of W image columns at image positions `mu` (N, R, T;
+    image widths): per position, a Gaussian window of width `sigma` (N, R; image widths) over the
+    columns' centres, normalised to sum 1 (differentiable in the placement) -> (N, R, T, W)."""
+    u = (torch.arange(W, device=mu.device, dtype=torch.float32) + 0.5) / W
+    return (-0.5 * ((u - mu.unsqueeze(-1)) / sigma.unsqueeze(-1).unsqueeze(-1)) ** 2).softmax(-1)
 
 
 def _conv1d_bn_relu(cin: int, cout: int, k: int) -> nn.Sequential:

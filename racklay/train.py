@@ -334,22 +334,25 @@ def open_resume(cfg: TrainConfig, run_dir: Path, main: bool):
     return ck
 
 
-def param_groups(model: torch.nn.Module, cfg: TrainConfig) -> list[dict]:
+def param_groups(model: torch.nn.Module, cfg: TrainConfig, init_names: set | None = None) -> list[dict]:
     """The generator's Adam parameter groups: one, or with `--init` and `--new-lr-mult` a second
     for the tensors the init checkpoint lacks (the branches the model grows), whose learning rate
-    is `new_lr_mult` times the schedule's (`lr_mult`, applied each step). Read from the checkpoint
-    again on `--resume`, so a resumed run has the same groups."""
+    is `new_lr_mult` times the schedule's (`lr_mult`, applied each step). `init_names`: the init
+    checkpoint's model tensor names where the caller has read it; None (a `--resume`, which
+    restores its weights from the run's own checkpoint) reads them from `cfg.init`, so a resumed
+    run has the same groups."""
     named = list(model.named_parameters())
     if not cfg.init or cfg.new_lr_mult == 1.0:
         return [{"params": [p for _, p in named], "lr_mult": 1.0}]
-    from .checkpoint import load_checkpoint
+    if init_names is None:
+        from .checkpoint import load_checkpoint
 
-    have = set(load_checkpoint(cfg.init).section("model"))
-    new = [p for n, p in named if n not in have]
+        init_names = set(load_checkpoint(cfg.init).section("model"))
+    new = [p for n, p in named if n not in init_names]
     if not new:
         raise ValueError(f"--new-lr-mult {cfg.new_lr_mult:g}: the model grows nothing from {cfg.init} "
                          "(every tensor is in the checkpoint)")
-    return [{"params": [p for n, p in named if n in have], "lr_mult": 1.0},
+    return [{"params": [p for n, p in named if n in init_names], "lr_mult": 1.0},
             {"params": new, "lr_mult": cfg.new_lr_mult}]
 
 
@@ -362,10 +365,12 @@ def build_run(cfg: TrainConfig, dist: Dist, run_dir: Path, t_start: float, init:
     seed_everything(cfg.seed)
     model = RackLayNet(mcfg)
     disc = Discriminators(mcfg) if cfg.disc else None
+    init_names = None                     # the init checkpoint's tensor names, once read (param_groups)
     if init and cfg.init:
         ck = load_checkpoint(cfg.init)
         check_init(ck, cfg)
         load_grown(model, ck.section("model"), ck.cfg.decoder, ck.path)
+        init_names = set(ck.section("model"))
     elif init and cfg.imagenet_weights:
         load_imagenet_weights(model.encoder, cfg.imagenet_weights)
     elif init and cfg.pretrained and cfg.encoder == "efficientnet-lite0":
@@ -382,7 +387,7 @@ def build_run(cfg: TrainConfig, dist: Dist, run_dir: Path, t_start: float, init:
         model.to(memory_format=torch.channels_last)
         if teacher is not None:
             teacher.to(memory_format=torch.channels_last)
-    optimizers = {"gen": torch.optim.Adam(param_groups(model, cfg), lr=cfg.lr, weight_decay=cfg.weight_decay)}
+    optimizers = {"gen": torch.optim.Adam(param_groups(model, cfg, init_names), lr=cfg.lr, weight_decay=cfg.weight_decay)}
     if disc is not None:
         optimizers["disc"] = torch.optim.Adam(disc.parameters(), lr=cfg.disc_lr, betas=(0.5, 0.999))
     weight = torch.tensor(cfg.class_weights, dtype=torch.float32, device=device)
