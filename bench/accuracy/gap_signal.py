@@ -2,7 +2,7 @@
 placing the shelf in the image.
 
     .venv/bin/python -m bench.accuracy.gap_signal --data /tmp/real131 --split test [--weights W]
-        [--project datasets/real-photos]
+        [--project datasets/real-photos] [--signal gap|gap_main|gap_cue]
 
 `--data` is a RackLay dataset exported from an annotate project (`annotate export`: each sample's
 meta names its source photo) and `--project` that project, whose annotations give each photo's
@@ -70,6 +70,9 @@ def main(argv=None) -> int:
     ap.add_argument("--project", default=Path("datasets/real-photos"), type=Path,
                     help="the annotate project the dataset was exported from (default datasets/real-photos)")
     ap.add_argument("--weights", default=None, help="a struct checkpoint with a gap output (default: the shipped model)")
+    ap.add_argument("--signal", default="gap", choices=("gap", "gap_main", "gap_cue"),
+                    help="the model's gap logit to score: the one drawn (default), or with --struct-cue either "
+                         "detector alone (gap_main: the features', gap_cue: the brightness cue's)")
     add_precision_args(ap)
     args = ap.parse_args(argv)
 
@@ -87,6 +90,8 @@ def main(argv=None) -> int:
     pred = Predictor(str(resolve_weights(args.weights)), precision=args.precision)
     if pred.model is None or pred.cfg.decoder != "struct" or not pred.cfg.struct_gap or "front" not in pred.views:
         ap.error(f"{pred.weights}: needs a struct model with a gap output and a front view")
+    if args.signal != "gap" and not pred.cfg.struct_cue:
+        ap.error(f"{pred.weights}: --signal {args.signal} needs a model with the brightness cue (--struct-cue)")
     project = Project(args.project, create=False)
     dec = pred.model.trunk_decoder("front")   # the decoder whose row attention reads the front view
     cap = {}
@@ -114,7 +119,7 @@ def main(argv=None) -> int:
         scene = G.build_scene(ann, project.settings)
         W, H = ann["image_size"]
         st = pred.structures(batch["image"])["front"]
-        gap = st["gap"][0].float().numpy()
+        gap = st[args.signal][0].float().numpy()
         T = gap.shape[-1]
         cols = position_columns(st["centre"][0], st["half"][0], T).numpy()         # (R, T)
         dark = model_darkness(batch_luminance(batch["image"])[0, 0], cap["att"][0], cols)
