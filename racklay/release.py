@@ -13,8 +13,8 @@ from importlib import resources
 from pathlib import Path
 
 #: file name inside racklay/weights/ and its sha256 (docs/model-card.md gives both)
-RELEASE_NAME = "racklay-lite0-struct-v10.safetensors"
-RELEASE_SHA256 = "1563b3fe99d5259779d3f411667eea217067055a692d86a98fe151ef55301a80"
+RELEASE_NAME = "racklay-lite0-struct-v11.safetensors"
+RELEASE_SHA256 = "8714b6975fabd3037c9c4e36c1dca937a854ccc578e9dfed03d4f5e6cde4e0df"
 WEIGHTS_DIR = Path(str(resources.files("racklay") / "weights"))   # package data
 
 _verified: set[str] = set()

@@ -18,7 +18,7 @@ the sum of the boxes' own volumes, a stack = boxes whose footprints overlap.
     .venv/bin/python -m bench.accuracy.reasoning_validation --toy 40     # no dataset: a D=512 toy set
     .venv/bin/python -m bench.accuracy.reasoning_validation --synth 200  # WareSynth scenes, no rendering
     .venv/bin/python -m bench.accuracy.reasoning_validation --photos datasets/real-photos --split test \
-        --weights racklay/weights/racklay-lite0-struct-v10.safetensors --split-step 0 --split-step 0.08
+        --weights racklay/weights/racklay-lite0-struct-v11.safetensors --split-step 0 --split-step 0.08
 
 --photos reads a labelled photo project (annotate): its truth is the labelled boxes (a stack =
 labelled boxes whose footprints overlap; two cartons drawn side by side are two stacks), its layouts
