@@ -16,8 +16,8 @@ def register(sub) -> None:
                     "(the authors' real-world set, or `annotate export` output) with the paper's "
                     "augmentation: colour jitter (brightness/contrast/saturation in [0.8, 1.2], hue "
                     "+-0.1, p=0.5) and horizontal flip (p=0.5) applied to the image and every layout "
-                    "channel (albumentations). Lower learning rate than from scratch (default "
-                    f"{FINETUNE_LR_RATIO:g}x TrainConfig's), optional encoder freezing for the first "
+                    "channel (albumentations). Learning rate "
+                    f"{FINETUNE_LR_RATIO:g}x TrainConfig's unless --lr, optional encoder freezing for the first "
                     "epochs, early stopping on a validation set carved from the training split. The "
                     "architecture (R, layout size, input size, decoder, discriminators) comes from the checkpoint; a "
                     "checkpoint whose R or layout size does not fit is refused with a clear error.")
