@@ -33,9 +33,8 @@ import numpy as np
 from bench.common import REPO
 
 
-def photo_groups(project: Path, source_of: dict[str, str], column: str = "site") -> dict[str, list[str]]:
-    """group (the SOURCES.tsv `column`) -> exported sample ids (`source_of`: sample id -> photo
-    file name), from the project's SOURCES.tsv."""
+def source_column(project: Path, column: str = "site") -> dict[str, str]:
+    """photo file name -> its `column` (site, repo, video, ...) in the project's SOURCES.tsv."""
     src = project / "SOURCES.tsv"
     if not src.is_file():
         raise SystemExit(f"{src}: not found (the bench groups photos by their source)")
@@ -43,7 +42,14 @@ def photo_groups(project: Path, source_of: dict[str, str], column: str = "site")
         reader = csv.DictReader(f, delimiter="\t")
         if column not in (reader.fieldnames or []):
             raise SystemExit(f"{src}: no {column!r} column to group by (columns: {', '.join(reader.fieldnames or [])})")
-        repo_of = {r["file"]: r[column] for r in reader}
+        return {r["file"]: r[column] for r in reader}
+
+
+def photo_groups(project: Path, source_of: dict[str, str], column: str = "site") -> dict[str, list[str]]:
+    """group (the SOURCES.tsv `column`) -> exported sample ids (`source_of`: sample id -> photo
+    file name), from the project's SOURCES.tsv."""
+    src = project / "SOURCES.tsv"
+    repo_of = source_column(project, column)
     groups: dict[str, list[str]] = {}
     for sid, name in source_of.items():
         if name not in repo_of:

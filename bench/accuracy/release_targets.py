@@ -207,13 +207,10 @@ def main() -> int:
             print(f"IN-SAMPLE: this model was fine-tuned on {len(seen)} labelled photos ({', '.join(seen[:3])}, ...); "
                   "bench/accuracy/real_photo_cv.py gives the estimate for photos from a source it has not seen")
         elif tuned and (args.real_photos / "SOURCES.tsv").is_file():
-            from annotate.dataset import read_split_file
-            from bench.accuracy.real_photo_cv import photo_groups
+            from bench.accuracy.real_photo_cv import source_column
 
-            listed = read_split_file(args.real_photos / "SOURCES.tsv")
-            names = sorted(n for n in tuned | test_photos if n in listed)
-            site_of = {n: g for g, ns in photo_groups(args.real_photos, {n: n for n in names}).items() for n in ns}
-            sites = sorted({site_of[n] for n in test_photos if n} & {site_of[n] for n in tuned})
+            site_of = source_column(args.real_photos)
+            sites = sorted({site_of[n] for n in test_photos if n in site_of} & {site_of[n] for n in tuned if n in site_of})
             if sites:
                 seen = sites
                 print(f"SEEN SITE: this model was fine-tuned on other photos of the test photos' site ({', '.join(sites)}); "
