@@ -138,7 +138,9 @@ def predict_photos(weights: Path, photos: Path, out: Path, log, title: str = "sh
                       title=f"{f.name}: real photo, {title}'s prediction (no labels: shown, not scored)")
         written.append(fig)
         rows.append((f.name, img, r.get("top"), r.get("front")))
-    sheet = contact_sheet(rows, out / "contact_sheet.png", title=f"{title} ({Path(weights).name}) on {photos}")
+    # the folder's own name, not its absolute path: the sheet is shared, the path is this machine's
+    sheet = contact_sheet(rows, out / "contact_sheet.png",
+                          title=f"{title} ({Path(weights).name}) on {len(files)} photos of {photos.resolve().name}/")
     written.append(sheet)
     if (photos / "SOURCES.tsv").is_file():
         shutil.copyfile(photos / "SOURCES.tsv", out / "SOURCES.tsv")
