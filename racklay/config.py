@@ -358,6 +358,11 @@ class TrainConfig:
         1.0, "with --init: learning rate of the tensors the checkpoint lacks (a branch the model grows: "
              "--struct-cue, --struct-gap, --struct-fine), as a multiple of --lr; a branch that starts at zero learns "
              "little in a short fine-tune at the fine-tune's rate (default {default})", gt=0, keep=True)
+    anchor_weight: float = option(
+        0.0, "with --init: after every step each weight the checkpoint holds moves this x the step's learning rate "
+             "of the way back to its --init value (a decoupled L2 pull toward the start, L2-SP): a fine-tune on a "
+             "few photos drifts less from what the start model learnt on the renders (default {default}: off)",
+        lo=0, keep=True)
     freeze_encoder_epochs: int = option(0, "keep the encoder frozen for the first N epochs (fine-tuning; "
                                            "default {default})", lo=0, keep=True)
     freeze_bn: bool = option(
@@ -433,6 +438,8 @@ class TrainConfig:
         if len(self.class_weights) != len(CLASS_NAMES):
             raise ValueError(f"class_weights needs {len(CLASS_NAMES)} values, got {list(self.class_weights)}")
         self.amp = check_precision(self.amp, "amp")
+        if self.anchor_weight and not self.init:
+            raise ValueError("anchor_weight pulls the weights toward --init: give init too")
         if self.label_weight == 0 and not self.teacher:
             raise ValueError("label_weight 0 leaves nothing to learn from without a teacher")
         if self.schedule == "time" and self.max_minutes is None:

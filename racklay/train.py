@@ -218,6 +218,7 @@ class Run:
     t_start: float
     base_elapsed: float = 0.0        # elapsed_s when this start of the run began
     teacher: RackLayNet | None = None     # distillation teacher (cfg.teacher), eval mode
+    anchor: dict | None = None            # --anchor-weight: parameter -> its --init value
     gen: torch.nn.Module | None = None    # the model as trained this epoch (DDP-wrapped in multi-process runs)
     frozen: bool | None = None       # whether the encoder is frozen in `gen`
 
@@ -387,11 +388,29 @@ def build_run(cfg: TrainConfig, dist: Dist, run_dir: Path, t_start: float, init:
         model.to(memory_format=torch.channels_last)
         if teacher is not None:
             teacher.to(memory_format=torch.channels_last)
+    anchor = None
+    if cfg.anchor_weight:
+        held = (ck if init else load_checkpoint(cfg.init)).section("model")   # a resumed run pulls toward --init too
+        anchor = {p: torch.empty_like(p).copy_(held[n]) for n, p in model.named_parameters()
+                  if n in held and held[n].shape == p.shape}
     optimizers = {"gen": torch.optim.Adam(param_groups(model, cfg, init_names), lr=cfg.lr, weight_decay=cfg.weight_decay)}
     if disc is not None:
         optimizers["disc"] = torch.optim.Adam(disc.parameters(), lr=cfg.disc_lr, betas=(0.5, 0.999))
     weight = torch.tensor(cfg.class_weights, dtype=torch.float32, device=device)
-    return Run(cfg, dist, run_dir, model, disc, optimizers, bf16, channels_last, weight, t_start, teacher=teacher)
+    return Run(cfg, dist, run_dir, model, disc, optimizers, bf16, channels_last, weight, t_start, teacher=teacher,
+               anchor=anchor)
+
+
+@torch.no_grad()
+def pull_to_anchor(run: Run) -> None:
+    """--anchor-weight λ: every anchored weight w <- w + λ·lr·(w_init - w), at its group's current
+    learning rate (decoupled from Adam's scaling, as AdamW's decay, but toward the start)."""
+    for group in run.optimizers["gen"].param_groups:
+        k = min(1.0, run.cfg.anchor_weight * group["lr"])
+        for p in group["params"]:
+            start = run.anchor.get(p)
+            if start is not None:
+                p.lerp_(start, k)
 
 
 def restore(run: Run, ck) -> RunState:
@@ -581,6 +600,8 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
     gen_opt.zero_grad(set_to_none=True)
     loss.backward()
     gen_opt.step()
+    if run.anchor is not None:
+        pull_to_anchor(run)
     if disc is not None:
         # one forward per view on [real; fake] so DDP sees a single pass
         for v in cfg.views:

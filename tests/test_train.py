@@ -239,6 +239,29 @@ def test_fine_tune_a_checkpoint_into_another_decoder(tmp_path, toy, decoder):
         assert not torch.equal(src.decoders["top"].final[0].weight, model.decoders["top"].final[0].weight)
 
 
+def test_anchor_weight_pulls_a_fine_tune_back_toward_its_init(tmp_path, toy):
+    """--anchor-weight: after every step each weight moves λ·lr of the way back to its --init
+    value, so a fine-tune ends nearer its start the larger λ is; at λ·lr >= 1 every weight is its
+    start's exactly. Without --init it is refused."""
+    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32, disc=False, decoder="light")
+    src = RackLayNet(cfg0)
+    init = save_checkpoint(tmp_path / "src.safetensors", src, cfg0)
+    start = dict(src.named_parameters())
+
+    def drift(weight):
+        cfg = TrainConfig(data=str(toy), out=str(tmp_path), name=f"a{weight:g}", init=str(init), decoder="light",
+                          anchor_weight=weight, lr=1e-3, epochs=1, disc=False, patience=None, checkpoint_every=0,
+                          **TINY)
+        model, _, _ = load_model(train(cfg) / "last.safetensors")
+        return sum(float((p.detach() - start[n].detach()).norm()) for n, p in model.named_parameters())
+
+    free, pulled, pinned = drift(0.0), drift(300.0), drift(1e9)
+    assert free > 0 and pulled < 0.9 * free
+    assert pinned == 0.0
+    with pytest.raises(ValueError, match="anchor_weight .* init"):
+        TrainConfig(data="x", anchor_weight=1.0)
+
+
 def test_new_lr_mult_gives_the_grown_branch_its_own_learning_rate(tmp_path):
     """--new-lr-mult: with --init, the tensors the checkpoint lacks (the grown branch, here the
     brightness cue) form a second Adam group whose rate is that multiple of the schedule's, every
