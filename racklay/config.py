@@ -407,6 +407,10 @@ class TrainConfig:
         keep=True)
     distill_weight: float = option(1.0, "with --teacher: weight of the distillation loss (default {default})",
                                    gt=0, keep=True)
+    distill_on: str = option(
+        "all", "with --teacher: the images the distillation loss is taken on: all, or replay (only the --replay "
+               "renders: the photos learn from their labels while the renders keep the teacher's layouts; "
+               "default {default})", choices=("all", "replay"), keep=True)
     # --- running ----------------------------------------------------------------------------
     seed: int = option(0, "seed for init, data order and augmentation (default {default})", lo=0, keep=True)
     amp: str = option(
@@ -440,6 +444,8 @@ class TrainConfig:
         self.amp = check_precision(self.amp, "amp")
         if self.anchor_weight and not self.init:
             raise ValueError("anchor_weight pulls the weights toward --init: give init too")
+        if self.distill_on == "replay" and not (self.teacher and self.replay):
+            raise ValueError("distill_on replay distils the teacher on the --replay renders: give teacher and replay")
         if self.label_weight == 0 and not self.teacher:
             raise ValueError("label_weight 0 leaves nothing to learn from without a teacher")
         if self.schedule == "time" and self.max_minutes is None:

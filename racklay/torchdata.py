@@ -257,10 +257,11 @@ class ReplayMix(Dataset):
         return self._perm[1]
 
     def item(self, i: int, epoch: int) -> dict:
+        """Sample i of epoch `epoch`, with "replay": whether it is a pool sample (a render)."""
         if i < self.n_real:
-            return self.real[i]
+            return {**self.real[i], "replay": torch.tensor(False)}
         p, k = self._locate(int(self._draw(epoch)[i - self.n_real]))
-        return p[k]
+        return {**p[k], "replay": torch.tensor(True)}
 
     def __getitem__(self, i: int) -> dict:
         return self.item(i, 0)

@@ -549,6 +549,7 @@ def test_replay_mixes_fresh_synthetic_samples_into_every_epoch(tmp_path, toy):
     assert len(set(drawn)) == 9 and {d.rsplit(":", 1)[0] for d in drawn} == {str(RackLayRoot(toy).root),
                                                                              str(RackLayRoot(other).root)}
     assert [f"{both.item(3 + k, 0)['id']}" for k in range(9)] == [d.rsplit(":", 1)[1] for d in drawn]
+    assert [bool(both.item(i, 0)["replay"]) for i in range(len(both))] == [False] * 3 + [True] * 9
 
     cfg = TrainConfig(data=str(real.root), out=str(tmp_path), name="rp", replay=str(toy), replay_ratio=2.0,
                       epochs=1, disc=False, patience=None, checkpoint_every=0, **TINY)
@@ -567,6 +568,42 @@ def test_replay_mixes_fresh_synthetic_samples_into_every_epoch(tmp_path, toy):
     assert r.returncode != 0
     err = r.stderr.strip().splitlines()[-1]
     assert "replay" in err and "R=2" in err and str(two) in err, err
+
+
+def test_distill_on_replay_distils_the_renders_only(tmp_path, toy, monkeypatch):
+    """--teacher with --distill-on replay: the distillation loss is taken on the --replay renders of
+    each batch and not on the photos (3 photos + 9 renders an epoch: 9 images per view, against 12
+    with --distill-on all); without --replay or --teacher it is refused."""
+    import racklay.train as T
+
+    src = RackLayRoot(toy)
+    real = RackLayRoot(tmp_path / "real")
+    for sid in src.split_ids("train")[:4]:
+        real.write_sample(f"r{sid}", image=src.read_image(sid), top=src.read_layouts("top", sid),
+                          front=src.read_layouts("front", sid))
+    real.write_split("train", [f"r{s}" for s in src.split_ids("train")[:3]])
+    real.write_split("val", [f"r{src.split_ids('train')[3]}"])
+    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32)
+    tpath = save_checkpoint(tmp_path / "teacher.safetensors", RackLayNet(cfg0).eval(), cfg0)
+    seen = []
+
+    def counting(logits, teacher_logits):
+        assert logits.shape == teacher_logits.shape
+        seen.append(logits.shape[0])
+        return distill_loss(logits, teacher_logits)
+
+    distill_loss = T.distill_loss
+    monkeypatch.setattr(T, "distill_loss", counting)
+    counts = {}
+    for on in ("replay", "all"):
+        seen.clear()
+        train(TrainConfig(data=str(real.root), out=str(tmp_path), name=on, replay=str(toy), replay_ratio=3.0,
+                          teacher=str(tpath), distill_on=on, epochs=1, disc=False, patience=None, checkpoint_every=0,
+                          **TINY))
+        counts[on] = sum(seen)
+    assert counts == {"replay": 2 * 9, "all": 2 * 12}
+    with pytest.raises(ValueError, match="distill_on replay .* teacher and replay"):
+        TrainConfig(data="x", teacher=str(tpath), distill_on="replay")
 
 
 @pytest.mark.parametrize("split", ["train", "val"])
