@@ -360,8 +360,8 @@ class TrainConfig:
              "little in a short fine-tune at the fine-tune's rate (default {default})", gt=0, keep=True)
     anchor_weight: float = option(
         0.0, "with --init: after every step each weight the checkpoint holds moves this x the step's learning rate "
-             "of the way back to its --init value (a decoupled L2 pull toward the start, L2-SP): a fine-tune on a "
-             "few photos drifts less from what the start model learnt on the renders (default {default}: off)",
+             "of the way back to its --init value (a decoupled L2 pull toward the start, L2-SP); in a photo step it "
+             "cost separations and render scores, docs/training.md (default {default}: off)",
         lo=0, keep=True)
     freeze_encoder_epochs: int = option(0, "keep the encoder frozen for the first N epochs (fine-tuning; "
                                            "default {default})", lo=0, keep=True)

@@ -510,6 +510,18 @@ def test_train_flags_cover_trainconfig_and_take_help_defaults_from_it(capsys, mo
         assert "argument --seed: must be >= 0, got -1" in capsys.readouterr().err, argv
 
 
+def _small_real_set(tmp_path, toy) -> RackLayRoot:
+    """A 'photo' set for replay runs: copies of 4 toy samples, 3 in train and 1 in val."""
+    src, real = RackLayRoot(toy), RackLayRoot(tmp_path / "real")
+    ids = src.split_ids("train")[:4]
+    for sid in ids:
+        real.write_sample(f"r{sid}", image=src.read_image(sid), top=src.read_layouts("top", sid),
+                          front=src.read_layouts("front", sid))
+    real.write_split("train", [f"r{s}" for s in ids[:3]])
+    real.write_split("val", [f"r{ids[3]}"])
+    return real
+
+
 def test_replay_mixes_fresh_synthetic_samples_into_every_epoch(tmp_path, toy):
     """--replay: each epoch holds every real sample plus round(ratio x n) samples of the replay
     set's train split, drawn afresh per epoch, reproducibly by seed, never twice in one epoch;
@@ -517,13 +529,7 @@ def test_replay_mixes_fresh_synthetic_samples_into_every_epoch(tmp_path, toy):
     a one-line error naming it."""
     from racklay.torchdata import RackLayDataset, ReplayMix
 
-    src = RackLayRoot(toy)
-    real = RackLayRoot(tmp_path / "real")
-    for sid in src.split_ids("train")[:4]:
-        real.write_sample(f"r{sid}", image=src.read_image(sid), top=src.read_layouts("top", sid),
-                          front=src.read_layouts("front", sid))
-    real.write_split("train", [f"r{s}" for s in src.split_ids("train")[:3]])
-    real.write_split("val", [f"r{src.split_ids('train')[3]}"])
+    src, real = RackLayRoot(toy), _small_real_set(tmp_path, toy)
     pool_ids = src.split_ids("train")
     kw = dict(image_size=64, layout_size=32, R=4)
     mix = ReplayMix(RackLayDataset(real.root, "train", **kw), RackLayDataset(toy, ids=pool_ids, **kw), 2.0, seed=1)
@@ -576,13 +582,7 @@ def test_distill_on_replay_distils_the_renders_only(tmp_path, toy, monkeypatch):
     with --distill-on all); without --replay or --teacher it is refused."""
     import racklay.train as T
 
-    src = RackLayRoot(toy)
-    real = RackLayRoot(tmp_path / "real")
-    for sid in src.split_ids("train")[:4]:
-        real.write_sample(f"r{sid}", image=src.read_image(sid), top=src.read_layouts("top", sid),
-                          front=src.read_layouts("front", sid))
-    real.write_split("train", [f"r{s}" for s in src.split_ids("train")[:3]])
-    real.write_split("val", [f"r{src.split_ids('train')[3]}"])
+    real = _small_real_set(tmp_path, toy)
     cfg0 = ModelConfig(R=4, image_size=64, layout_size=32)
     tpath = save_checkpoint(tmp_path / "teacher.safetensors", RackLayNet(cfg0).eval(), cfg0)
     seen = []
