@@ -10,7 +10,7 @@ sampled from each recipe (`racklay.synth.scene.sample_scene`, no rendering):
     shelves, level height (board to board, shelves below the top one), box width / height /
     depth, box run width (boxes on one shelf that touch or overlap along it, less than RUN_GAP
     apart, merged: what the front layout draws as one run and what a labeller draws as one box
-    for a wall of cartons), the fraction of each level's drawn length under loads (empty levels
+    for a wall of cartons), the gap between neighbouring runs, the fraction of each level's drawn length under loads (empty levels
     0; a full pallet bay 0.85-0.99), camera distance to the rack front,
     camera height, focal length per pixel of image width; and the framing, which every photo
     determines (near-frontal ones too): the width in the image of the part of the bay that the
@@ -20,7 +20,8 @@ sampled from each recipe (`racklay.synth.scene.sample_scene`, no rendering):
     board to the top of the highest level, at the drawn part's middle) over the image height, and
     how far the drawn part's centre lies from the image's centre.
 
-It prints, per recipe and quantity, the recipe's 5-95 % and min-max range, how many photo values
+It prints, per recipe and quantity, the recipe's 5-95 % and min-max range, its median and the
+photos' (the support can hold every photo while the bulk of the renders sits elsewhere), how many photo values
 fall inside [min, max] (the recipe's support) and which photos fall outside, and draws one panel
 per quantity (recipe histograms over every photo value and the recipes' middle 99 %, their far
 tails piled into the end bins; photo values as ticks; red = outside every recipe given).
@@ -52,6 +53,7 @@ QUANTITIES = {   # key: (label, unit)
     "box_width": ("box width", "m"),
     "run_width": ("box run width", "m"),
     "load_cover": ("level length under loads", ""),
+    "run_gap": ("gap between box runs", "m"),
     "box_height": ("box height", "m"),
     "box_depth": ("box depth", "m"),
     "cam_distance": ("camera distance", "m"),
@@ -83,6 +85,14 @@ def run_spans(intervals) -> list[tuple[float, float]]:
 def run_widths(intervals) -> list[float]:
     """Widths of the runs of `run_spans`."""
     return [x1 - x0 for x0, x1 in run_spans(intervals)]
+
+
+def run_gaps(intervals, x0: float = -np.inf, x1: float = np.inf) -> list[float]:
+    """The empty stretches between neighbouring runs of `run_spans` (each >= RUN_GAP), those that
+    lie within x0..x1 (the part of the level the layouts draw): what the front layout must draw as
+    background between two loads."""
+    runs = run_spans(intervals)
+    return [b0 - a1 for (_, a1), (b0, _) in zip(runs, runs[1:]) if a1 >= x0 and b0 <= x1]
 
 
 def load_cover(intervals, x0: float, x1: float, snap: float = 0.0) -> float:
@@ -143,6 +153,7 @@ def photo_quantities(project: Path) -> tuple[dict, list[str]]:
             cut_spans = [(b.u0, b.u1) for b in on if cut[b.id][0]]
             q["run_width"] += [x1 - x0 for x0, x1 in run_spans(spans)
                                if not any(x0 - 1e-9 <= c0 and c1 <= x1 + 1e-9 for c0, c1 in cut_spans)]
+            q["run_gap"] += run_gaps(spans)              # between two seen loads, so seen whole
         lo, hi = sc.shelf_v[0], sc.shelf_v[-1] + sc.clear[-1]
         w, h = ann["image_size"]
         q.update(framing_quantities(sc.plane.to_image, 0.0, sc.width, lo, hi, w, h))
@@ -188,6 +199,7 @@ def recipe_quantities(name: str, n: int, seed: int, sets=(), snap: float = 0.0) 
                 q["box_depth"].append(b.sy)
                 spans.append(b.x_range())                # its footprint along x (yaw included)
             q["run_width"] += run_widths(spans)
+            q["run_gap"] += run_gaps(spans, x0, x1)
             q["load_cover"].append(load_cover(spans, x0, x1, snap))
         lo = s.shelves[s.visible[0]].board_top
         top = s.shelves[s.visible[-1]]
@@ -243,8 +255,9 @@ def main(argv=None) -> int:
 
     for name in recipes:
         print(f"\nrecipe {name} ({args.n} scenes, seed {args.seed})")
-        print("| quantity | recipe 5-95 % | recipe min-max | photo values inside | photos outside |")
-        print("|---|---|---|---|---|")
+        print("| quantity | recipe 5-95 % | recipe min-max | recipe median; photos' | photo values inside | "
+              "photos outside |")
+        print("|---|---|---|---|---|---|")
         for key, (label, unit) in QUANTITIES.items():
             p5, p95 = np.percentile(rq[name][key], [5, 95])
             lo, hi = support[name][key]
@@ -253,7 +266,9 @@ def main(argv=None) -> int:
             total = sum(len(f) for f in flags.values())
             bad = [photo.split(".")[0] for photo, f in flags.items() if not all(f)]
             u = f" {unit}" if unit else ""
-            print(f"| {label} | {p5:.2f}-{p95:.2f}{u} | {lo:.2f}-{hi:.2f}{u} | {n_in} / {total} | "
+            pv = [x for q in photos.values() for x in q[key]]
+            med = f"{np.median(rq[name][key]):.2f}; {np.median(pv):.2f}" if pv else "-"
+            print(f"| {label} | {p5:.2f}-{p95:.2f}{u} | {lo:.2f}-{hi:.2f}{u} | {med} | {n_in} / {total} | "
                   f"{', '.join(bad) if bad else '-'} |")
 
     # values no recipe given covers: the union's gaps
