@@ -583,11 +583,11 @@ def train_step(run: Run, gen, disc, batch) -> dict[str, float]:
     kd = {}
     if run.teacher is not None:
         # --distill-on replay: only the renders; a batch with none adds a zero the step still records
-        on = batch["replay"].to(device) if cfg.distill_on == "replay" else None
-        if on is None or bool(on.any()):
+        keep = batch["replay"].to(device) if cfg.distill_on == "replay" else slice(None)
+        if len(x[keep]):
             with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
-                t_out = run.teacher(x if on is None else x[on])
-            kd["kd"] = sum(distill_loss(out[v] if on is None else out[v][on], t_out[v]) for v in cfg.views)
+                t_out = run.teacher(x[keep])
+            kd["kd"] = sum(distill_loss(out[v][keep], t_out[v]) for v in cfg.views)
         else:
             kd["kd"] = torch.zeros((), device=device)
         loss = loss + cfg.distill_weight * kd["kd"]

@@ -10,8 +10,8 @@ sampled from each recipe (`racklay.synth.scene.sample_scene`, no rendering):
     shelves, level height (board to board, shelves below the top one), box width / height /
     depth, box run width (boxes on one shelf that touch or overlap along it, less than RUN_GAP
     apart, merged: what the front layout draws as one run and what a labeller draws as one box
-    for a wall of cartons), the gap between neighbouring runs, the fraction of each level's drawn length under loads (empty levels
-    0; a full pallet bay 0.85-0.99), camera distance to the rack front,
+    for a wall of cartons), the gap between neighbouring runs, the fraction of each level's drawn
+    length under loads (empty levels 0; a full pallet bay 0.85-0.99), camera distance to the rack front,
     camera height, focal length per pixel of image width; and the framing, which every photo
     determines (near-frontal ones too): the width in the image of the part of the bay that the
     layouts draw (at the height of the middle of its levels) over the image width (a labelled
@@ -21,8 +21,8 @@ sampled from each recipe (`racklay.synth.scene.sample_scene`, no rendering):
     how far the drawn part's centre lies from the image's centre.
 
 It prints, per recipe and quantity, the recipe's 5-95 % and min-max range, its median and the
-photos' (the support can hold every photo while the bulk of the renders sits elsewhere), how many photo values
-fall inside [min, max] (the recipe's support) and which photos fall outside, and draws one panel
+photos' (the support can hold every photo while the bulk of the renders sits elsewhere), how
+many photo values fall inside [min, max] (the recipe's support) and which photos fall outside, and draws one panel
 per quantity (recipe histograms over every photo value and the recipes' middle 99 %, their far
 tails piled into the end bins; photo values as ticks; red = outside every recipe given).
 
