@@ -363,6 +363,11 @@ class TrainConfig:
              "of the way back to its --init value (a decoupled L2 pull toward the start, L2-SP); in a photo step it "
              "cost separations and render scores, docs/training.md (default {default}: off)",
         lo=0, keep=True)
+    train_only: tuple = option(
+        (), "with --init: train only the weights whose names contain one of these comma-separated parts (e.g. "
+            "gap_head: the gap output alone, so boxes stay the init's and only where they are cut changes); the "
+            "rest, BatchNorm statistics included, keeps the init's values (default: everything trains)",
+        parse=names_arg, metavar="PARTS", keep=True)
     freeze_encoder_epochs: int = option(0, "keep the encoder frozen for the first N epochs (fine-tuning; "
                                            "default {default})", lo=0, keep=True)
     freeze_bn: bool = option(
@@ -444,6 +449,11 @@ class TrainConfig:
         self.amp = check_precision(self.amp, "amp")
         if self.anchor_weight and not self.init:
             raise ValueError("anchor_weight pulls the weights toward --init: give init too")
+        self.train_only = tuple(self.train_only)
+        if self.train_only and not self.init:
+            raise ValueError("train_only trains part of a model and keeps the rest: give init too")
+        if self.train_only and (self.freeze_encoder_epochs or self.disc):
+            raise ValueError("train_only sets what trains for the whole run: drop freeze_encoder_epochs and disc")
         if self.distill_on == "replay" and not (self.teacher and self.replay):
             raise ValueError("distill_on replay distils the teacher on the --replay renders: give teacher and replay")
         if self.label_weight == 0 and not self.teacher:

@@ -342,7 +342,7 @@ def param_groups(model: torch.nn.Module, cfg: TrainConfig, init_names: set | Non
     checkpoint's model tensor names where the caller has read it; None (a `--resume`, which
     restores its weights from the run's own checkpoint) reads them from `cfg.init`, so a resumed
     run has the same groups."""
-    named = list(model.named_parameters())
+    named = [(n, p) for n, p in model.named_parameters() if p.requires_grad]   # `freeze_to` left these
     if not cfg.init or cfg.new_lr_mult == 1.0:
         return [{"params": [p for _, p in named], "lr_mult": 1.0}]
     if init_names is None:
@@ -355,6 +355,20 @@ def param_groups(model: torch.nn.Module, cfg: TrainConfig, init_names: set | Non
                          "(every tensor is in the checkpoint)")
     return [{"params": [p for n, p in named if n in init_names], "lr_mult": 1.0},
             {"params": new, "lr_mult": cfg.new_lr_mult}]
+
+
+def freeze_to(model: torch.nn.Module, parts: tuple) -> None:
+    """`--train-only`: every weight whose name contains none of `parts` stops training (the
+    optimiser never sees it; `models_for_epoch` also keeps the BatchNorm layers with no trainable
+    weight in eval mode, so their statistics stay the init's too). A part that names no weight is
+    an error, so a typo cannot silently train nothing."""
+    names = [n for n, _ in model.named_parameters()]
+    unknown = [part for part in parts if not any(part in n for n in names)]
+    if unknown:
+        raise ValueError(f"train_only: no weight of this model is named like {', '.join(map(repr, unknown))} "
+                         f"(names look like {names[0]!r})")
+    for n, p in model.named_parameters():
+        p.requires_grad_(any(part in n for part in parts))
 
 
 def build_run(cfg: TrainConfig, dist: Dist, run_dir: Path, t_start: float, init: bool) -> Run:
@@ -393,6 +407,8 @@ def build_run(cfg: TrainConfig, dist: Dist, run_dir: Path, t_start: float, init:
         held = (ck if init else load_checkpoint(cfg.init)).section("model")   # a resumed run pulls toward --init too
         anchor = {p: torch.empty_like(p).copy_(held[n]) for n, p in model.named_parameters()
                   if n in held and held[n].shape == p.shape}
+    if cfg.train_only:
+        freeze_to(model, cfg.train_only)
     optimizers = {"gen": torch.optim.Adam(param_groups(model, cfg, init_names), lr=cfg.lr, weight_decay=cfg.weight_decay)}
     if disc is not None:
         optimizers["disc"] = torch.optim.Adam(disc.parameters(), lr=cfg.disc_lr, betas=(0.5, 0.999))
@@ -530,8 +546,8 @@ def start_run_dir(run: Run, n_train: int, n_val: int, n_replay: int = 0) -> None
 
 def models_for_epoch(run: Run, epoch: int):
     """(generator, discriminators or None) as trained in `epoch`: the encoder frozen during the
-    first `freeze_encoder_epochs`, every BatchNorm in eval mode with `freeze_bn`, the
-    discriminators from `disc_start` on; DDP-wrapped in a
+    first `freeze_encoder_epochs`, every BatchNorm in eval mode with `freeze_bn` (with `train_only`,
+    those with no trainable weight), the discriminators from `disc_start` on; DDP-wrapped in a
     multi-process run (re-wrapped when the trainable set changes)."""
     from torch.nn.parallel import DistributedDataParallel as DDP
 
@@ -539,8 +555,9 @@ def models_for_epoch(run: Run, epoch: int):
     ids = [dist.device.index] if dist.device.type == "cuda" else None
     frozen = epoch < cfg.freeze_encoder_epochs
     if frozen != run.frozen:
-        for p in run.model.encoder.parameters():
-            p.requires_grad_(not frozen)
+        if cfg.freeze_encoder_epochs:    # (`train_only`, which excludes it, set what trains once: `freeze_to`)
+            for p in run.model.encoder.parameters():
+                p.requires_grad_(not frozen)
         run.gen = DDP(run.model, device_ids=ids) if dist.enabled else run.model
         run.frozen = frozen
     disc = None
@@ -549,10 +566,10 @@ def models_for_epoch(run: Run, epoch: int):
     run.model.train()
     if frozen:
         run.model.encoder.eval()
-    if cfg.freeze_bn:
-        for m in run.model.modules():
-            if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-                m.eval()
+    for m in run.model.modules():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm) and (
+                cfg.freeze_bn or (cfg.train_only and not any(p.requires_grad for p in m.parameters()))):
+            m.eval()
     return run.gen, disc
 
 

@@ -262,6 +262,25 @@ def test_anchor_weight_pulls_a_fine_tune_back_toward_its_init(tmp_path, toy):
         TrainConfig(data="x", anchor_weight=1.0)
 
 
+def test_train_only_trains_the_named_weights_and_keeps_the_rest_of_the_init(tmp_path, toy):
+    """--train-only gap_head: after a fine-tune every other tensor of the checkpoint, BatchNorm
+    statistics included, is the init's exactly and the gap heads have moved; a part that names no
+    weight, or --train-only without --init, is refused before the run."""
+    cfg0 = ModelConfig(R=4, image_size=64, layout_size=32, decoder="struct", struct_width=16, struct_gap=True)
+    init = save_checkpoint(tmp_path / "gap.safetensors", RackLayNet(cfg0), cfg0)
+    common = dict(data=str(toy), out=str(tmp_path), init=str(init), decoder="struct", struct_width=16,
+                  struct_gap=True, lr=1e-2, epochs=1, disc=False, patience=None, checkpoint_every=0, **TINY)
+    tuned, _, _ = load_model(train(TrainConfig(name="gap", train_only=("gap_head",), **common)) / "last.safetensors")
+    start, end = load_model(init)[0].state_dict(), tuned.state_dict()
+    moved = {n for n in start if not torch.equal(start[n], end[n])}
+    assert moved and all("gap_head" in n for n in moved)
+    assert {n for n in start if "gap_head" in n and n.endswith("weight")} <= moved
+    with pytest.raises(ValueError, match="train_only: no weight .* 'gap_haed'"):
+        train(TrainConfig(name="typo", train_only=("gap_haed",), **common))
+    with pytest.raises(ValueError, match="train_only .* init"):
+        TrainConfig(data="x", train_only=("gap_head",))
+
+
 def test_new_lr_mult_gives_the_grown_branch_its_own_learning_rate(tmp_path):
     """--new-lr-mult: with --init, the tensors the checkpoint lacks (the grown branch, here the
     brightness cue) form a second Adam group whose rate is that multiple of the schedule's, every
