@@ -336,13 +336,13 @@ def open_resume(cfg: TrainConfig, run_dir: Path, main: bool):
 
 
 def param_groups(model: torch.nn.Module, cfg: TrainConfig, init_names: set | None = None) -> list[dict]:
-    """The generator's Adam parameter groups: one, or with `--init` and `--new-lr-mult` a second
-    for the tensors the init checkpoint lacks (the branches the model grows), whose learning rate
-    is `new_lr_mult` times the schedule's (`lr_mult`, applied each step). `init_names`: the init
-    checkpoint's model tensor names where the caller has read it; None (a `--resume`, which
-    restores its weights from the run's own checkpoint) reads them from `cfg.init`, so a resumed
-    run has the same groups."""
-    named = [(n, p) for n, p in model.named_parameters() if p.requires_grad]   # `freeze_to` left these
+    """The generator's Adam parameter groups over the weights that train (`--train-only` leaves
+    out the rest): one, or with `--init` and `--new-lr-mult` a second for the tensors the init
+    checkpoint lacks (the branches the model grows), whose learning rate is `new_lr_mult` times
+    the schedule's (`lr_mult`, applied each step). `init_names`: the init checkpoint's model
+    tensor names where the caller has read it; None (a `--resume`, which restores its weights from
+    the run's own checkpoint) reads them from `cfg.init`, so a resumed run has the same groups."""
+    named = [(n, p) for n, p in model.named_parameters() if p.requires_grad]
     if not cfg.init or cfg.new_lr_mult == 1.0:
         return [{"params": [p for _, p in named], "lr_mult": 1.0}]
     if init_names is None:
