@@ -449,7 +449,6 @@ class TrainConfig:
         self.amp = check_precision(self.amp, "amp")
         if self.anchor_weight and not self.init:
             raise ValueError("anchor_weight pulls the weights toward --init: give init too")
-        self.train_only = tuple(self.train_only)
         if self.train_only and not self.init:
             raise ValueError("train_only trains part of a model and keeps the rest: give init too")
         if self.train_only and (self.freeze_encoder_epochs or self.disc):
