@@ -57,6 +57,11 @@ def check_fractions(fractions: dict[str, float], what: str = "--split-fractions"
         raise ValueError(f"{what}: the fractions must sum to 1, but {given} sum to {total:.6g}")
 
 
+#: the split of a project's SOURCES.tsv that holds sites kept apart from every training run: scored
+#: for release decisions only, never trained on (docs/real-dataset.md, "Holdout")
+HOLDOUT_SPLIT = "holdout"
+
+
 def read_split_file(path: str | os.PathLike) -> dict[str, str]:
     """photo file name -> split name, from a tab-separated file with a header row naming a `file`
     and a `split` column (e.g. a project's SOURCES.tsv with a split chosen by site). Strict: a

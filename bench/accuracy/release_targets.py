@@ -12,11 +12,13 @@
    temporary RackLay dataset; its test split when the project's SOURCES.tsv gives a split per
    photo, all of them otherwise), scored at their own resolution: dataset-level IoU, precision,
    recall and AP, metric and of the shape alone (`--scale-from-truth`), and on how many photos
-   whose labels show separate boxes on a shelf the model shows them too.
+   whose labels show separate boxes on a shelf the model shows them too. The project's `holdout`
+   split (HOLDOUT_SPLIT: photos of sites no released model was trained on, kept apart for release
+   decisions) is scored the same way, after the test split.
 4. The model issue's targets for the shipped model (SHIPPED_TARGETS: complex box IoU >= 60 / 70,
    proxy-real box IoU >= 45 / 50, real photos box IoU >= 35 / 35 and, shape alone, shelf >= 70 and
    box >= 50), the real-photo ones only for a model that never saw the photos nor others of their
-   site.
+   site: for the shipped model that is the holdout split.
 Missing data sets are rendered first (about 3 min on 2 cores). Prints a table and MET / NOT MET;
 asserts nothing. Precision follows the machine (`--precision auto`) unless set.
 """
@@ -30,6 +32,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from annotate.dataset import HOLDOUT_SPLIT
 from bench.common import REPO
 from racklay.predict import add_precision_args
 
@@ -46,7 +49,11 @@ def ensure(root: Path, args: list[str]) -> None:
     subprocess.run(cmd, check=True)
 
 
-#: the model issue's targets for the shipped model: (set, class, {view: minimum dataset-level IoU})
+#: the photo splits scored (the holdout: sites kept apart from every training run, where the
+#: real-photo targets can be scored honestly), each with the name its rows carry ("<name>" metric, "<name>, shape")
+PHOTO_SETS = (("test", "real photos"), (HOLDOUT_SPLIT, "unseen sites"))
+#: the model issue's targets for the shipped model: (set, class, {view: minimum dataset-level IoU});
+#: a "real photos" target applies to every photo set of PHOTO_SETS
 SHIPPED_TARGETS = [("complex", "box", {"top": 60.0, "front": 70.0}),
                    ("proxy-real", "box", {"top": 45.0, "front": 50.0}),
                    ("real photos", "box", {"top": 35.0, "front": 35.0}),
@@ -54,10 +61,10 @@ SHIPPED_TARGETS = [("complex", "box", {"top": 60.0, "front": 70.0}),
                    ("real photos, shape", "box", {"top": 50.0, "front": 50.0})]
 
 
-def print_model_issue_targets(rows: list[dict], saw_photos: bool) -> None:
-    """MET / NOT MET against SHIPPED_TARGETS. Real-photo targets count only for a model that never
-    saw the photos nor other photos of their site (otherwise bench/accuracy/real_photo_cv.py gives
-    the honest number)."""
+def print_model_issue_targets(rows: list[dict], seen: dict[str, bool]) -> None:
+    """MET / NOT MET against SHIPPED_TARGETS. Real-photo targets count only for a photo set
+    (`seen`: its name -> whether the model saw those photos or other photos of their sites) the
+    model never saw (otherwise bench/accuracy/real_photo_cv.py gives the honest number)."""
     def value(set_, cls, view):
         for r in rows:
             if r["set"] != set_ or r["view"] != view:
@@ -71,11 +78,18 @@ def print_model_issue_targets(rows: list[dict], saw_photos: bool) -> None:
     print("\nthe model issue's targets for the shipped model (dataset-level IoU, top / front)")
     print("| set | class | target | measured | |")
     print("|---|---|---|---|---|")
-    for set_, cls, tgt in SHIPPED_TARGETS:
+    lines = []
+    for target_set, cls, tgt in SHIPPED_TARGETS:
+        if target_set.startswith("real photos"):
+            sets = [(target_set.replace("real photos", name), name) for _, name in PHOTO_SETS]
+        else:
+            sets = [(target_set, None)]
+        lines += [(set_, photos, cls, tgt) for set_, photos in sets]
+    for set_, photos, cls, tgt in lines:
         got = {v: value(set_, cls, v) for v in tgt}
         if any(g is None for g in got.values()):
             continue
-        if set_.startswith("real photos") and saw_photos:
+        if photos is not None and seen.get(photos, True):
             verdict = "in-sample or a seen site: see bench/accuracy/real_photo_cv.py"
         else:
             miss = [f"{v} {got[v] - tgt[v]:+.1f}" for v in tgt if got[v] < tgt[v]]
@@ -83,7 +97,7 @@ def print_model_issue_targets(rows: list[dict], saw_photos: bool) -> None:
         print(f"| {set_} | {cls} | >= {tgt['top']:g} / {tgt['front']:g} | {got['top']:.1f} / {got['front']:.1f} | {verdict} |")
 
 
-def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
+def print_separate_boxes(truth_root: Path, pred_root: Path, split: str = "test") -> dict:
     """The model issue's "separate boxes where the photo shows separate boxes", counted: a photo
     shows them when some shelf of its front-view labels holds two or more box runs along x
     (`racklay.layout.box_runs`); the model shows them there when it separates that same shelf
@@ -94,8 +108,8 @@ def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
 
     truth, pred = RackLayRoot(truth_root), RackLayRoot(pred_root)
     want, got, placed, elsewhere, extra = [], [], [], [], []
-    # the test split, or its first --limit photos (the prediction root holds layouts, no images)
-    for sid in [s for s in truth.resolve("test") if pred.layout_path("front", s).is_file()]:
+    # the split, or its first --limit photos (the prediction root holds layouts, no images)
+    for sid in [s for s in truth.resolve(split) if pred.layout_path("front", s).is_file()]:
         name = (truth.read_meta(sid) or {}).get("source_image", sid).split(".")[0]
         sep = L.separated_shelves(truth.read_layouts("front", sid), pred.read_layouts("front", sid))
         if sep.truth.any():
@@ -118,6 +132,55 @@ def print_separate_boxes(truth_root: Path, pred_root: Path) -> dict:
           f"the model on the same shelf on {len(got)} of these ({names(got)}), with its gaps where the labels "
           f"have theirs on {len(placed)} ({names(placed)}){also}")
     return {"labelled": want, "predicted": got, "placed": placed, "other_shelf": elsewhere, "extra": extra}
+
+
+def photos_seen(rr, split: str, project: Path, meta: dict) -> bool:
+    """Whether the model (its checkpoint `meta`) was fine-tuned on photos of `split` of the exported
+    photos `rr`, or on other photos of their sites (by the project's SOURCES.tsv `site` column);
+    prints which."""
+    photos = {(rr.read_meta(s) or {}).get("source_image") for s in rr.resolve(split)}
+    tuned = set(meta.get("fine_tuned_on_photos", []))
+    if tuned & photos:
+        print(f"IN-SAMPLE: this model was fine-tuned on {len(tuned & photos)} of these photos "
+              f"({', '.join(sorted(tuned & photos)[:3])}, ...); bench/accuracy/real_photo_cv.py gives the "
+              "estimate for photos from a source it has not seen")
+        return True
+    if tuned and (project / "SOURCES.tsv").is_file():
+        from bench.accuracy.real_photo_cv import source_column
+
+        site_of = source_column(project)
+        sites = sorted({site_of[n] for n in photos if n in site_of} & {site_of[n] for n in tuned if n in site_of})
+        if sites:
+            print(f"SEEN SITE: this model was fine-tuned on other photos of these photos' sites ({', '.join(sites)}); "
+                  "the scores above are for new views of a known site, not a new one "
+                  "(bench/accuracy/real_photo_cv.py: sources it has not seen)")
+            return True
+    return False
+
+
+def report_photos(out: dict, name: str, split: str, real: Path, pred_root: Path, project: Path, meta: dict) -> list[dict]:
+    """Print one photo split's scores (metric, shape alone, separate boxes); its rows for the targets."""
+    r, sh = out[name]["result"], out[f"{name}, shape"]["result"]
+    print(f"\nhand-labelled real photos ({project}, {split} split: {name}), {r['top']['images']} images, "
+          "their own resolution")
+    print("| view | shelf IoU | box IoU | box precision / recall | box AP | paper-protocol rack / box mIoU |")
+    print("|---|---|---|---|---|---|")
+    rows = []
+    for view in ("top", "front"):
+        d = r[view]["dataset"]
+        print(f"| {view} | {100 * d['shelf']['IoU']:.2f} | {100 * d['box']['IoU']:.2f} | "
+              f"{100 * d['box']['precision']:.1f} / {100 * d['box']['recall']:.1f} | {100 * d['box']['AP']:.2f} | "
+              f"{100 * r[view]['paper']['rack']['mIoU']:.2f} / {100 * r[view]['paper']['box']['mIoU']:.2f} |")
+        rows.append({"set": name, "view": view, "shelf_IoU": 100 * d["shelf"]["IoU"], "box_IoU": 100 * d["box"]["IoU"]})
+    print("shape alone (each predicted shelf scaled to its labelled length, `racklay eval --scale-from-truth`): "
+          + "; ".join(f"{v} shelf / box IoU {100 * sh[v]['dataset']['shelf']['IoU']:.2f} / "
+                      f"{100 * sh[v]['dataset']['box']['IoU']:.2f}" for v in ("top", "front")))
+    for view in ("top", "front"):
+        d = sh[view]["dataset"]
+        rows.append({"set": f"{name}, shape", "view": view, "shelf_IoU": 100 * d["shelf"]["IoU"],
+                     "box_IoU": 100 * d["box"]["IoU"]})
+    print_separate_boxes(real, pred_root, split)
+    return rows
 
 
 def main() -> int:
@@ -148,21 +211,25 @@ def main() -> int:
           f"layouts {pred.layout_size}", flush=True)
     out = {}
     tmp = tempfile.TemporaryDirectory(prefix="racklay-real-")
-    sets = [("complex", args.complex, True, False), ("proxy-real", args.proxy_real, False, False)]
+    sets = [("complex", args.complex, "test", True, False), ("proxy-real", args.proxy_real, "test", False, False)]
+    real = Path(tmp.name) / "real"
+    photo_sets = []
     if str(args.real_photos) not in ("", "."):
         from annotate.cli import main as annotate_main
+        from racklay.data import RackLayRoot
 
-        real = Path(tmp.name) / "real"
         src = args.real_photos / "SOURCES.tsv"
         by_site = src.is_file() and "split" in src.read_text(encoding="utf-8").split("\n", 1)[0].split("\t")
         split_args = ["--split-file", str(src)] if by_site else ["--split-fractions", "test=1"]
         if annotate_main(["export", str(args.real_photos), "--out", str(real)] + split_args) != 0:
             raise SystemExit(f"{args.real_photos}: annotate export failed")
-        sets += [("real photos", real, True, False), ("real photos, shape", real, True, True)]
-    for name, root, native, scale_from_truth in sets:
+        photo_sets = [(split, name) for split, name in PHOTO_SETS if (real / "splits" / f"{split}.txt").is_file()]
+        for split, name in photo_sets:
+            sets += [(name, real, split, True, False), (f"{name}, shape", real, split, True, True)]
+    for name, root, split, native, scale_from_truth in sets:
         t0 = time.time()
-        pred_out = Path(tmp.name) / "pred" if name == "real photos" else None
-        res = evaluate(pred, root, split="test", native=native, limit=args.limit, progress=True,
+        pred_out = Path(tmp.name) / f"pred-{split}" if any(name == n for _, n in photo_sets) else None
+        res = evaluate(pred, root, split=split, native=native, limit=args.limit, progress=True,
                        scale_from_truth=scale_from_truth, pred_out=pred_out)
         out[name] = {"result": res, "seconds": time.time() - t0}
 
@@ -193,49 +260,11 @@ def main() -> int:
               f"{b:.2f} {'MET' if b >= 40 else f'NOT MET ({b - 40:+.2f})'} | "
               f"{100 * p[view]['paper']['rack']['mIoU']:.2f} / {100 * p[view]['paper']['box']['mIoU']:.2f} |")
         rows.append({"set": "proxy-real", "view": view, "shelf_IoU": s, "box_IoU": b})
-    if "real photos" in out:
-        r = out["real photos"]["result"]
-        print(f"\nhand-labelled real photos ({args.real_photos}, test split), {r['top']['images']} images, "
-              "their own resolution")
-        from racklay.data import RackLayRoot
-
-        rr = RackLayRoot(real)
-        test_photos = {(rr.read_meta(s) or {}).get("source_image") for s in rr.resolve("test")}
-        tuned = set(pred.meta.get("fine_tuned_on_photos", []))
-        seen = sorted(tuned & test_photos)
-        if seen:
-            print(f"IN-SAMPLE: this model was fine-tuned on {len(seen)} labelled photos ({', '.join(seen[:3])}, ...); "
-                  "bench/accuracy/real_photo_cv.py gives the estimate for photos from a source it has not seen")
-        elif tuned and (args.real_photos / "SOURCES.tsv").is_file():
-            from bench.accuracy.real_photo_cv import source_column
-
-            site_of = source_column(args.real_photos)
-            sites = sorted({site_of[n] for n in test_photos if n in site_of} & {site_of[n] for n in tuned if n in site_of})
-            if sites:
-                seen = sites
-                print(f"SEEN SITE: this model was fine-tuned on other photos of the test photos' site ({', '.join(sites)}); "
-                      "the scores below are for new views of a known site, not a new one "
-                      "(bench/accuracy/real_photo_cv.py: sources it has not seen)")
-        print("| view | shelf IoU | box IoU | box precision / recall | box AP | paper-protocol rack / box mIoU |")
-        print("|---|---|---|---|---|---|")
-        for view in ("top", "front"):
-            d = r[view]["dataset"]
-            print(f"| {view} | {100 * d['shelf']['IoU']:.2f} | {100 * d['box']['IoU']:.2f} | "
-                  f"{100 * d['box']['precision']:.1f} / {100 * d['box']['recall']:.1f} | {100 * d['box']['AP']:.2f} | "
-                  f"{100 * r[view]['paper']['rack']['mIoU']:.2f} / {100 * r[view]['paper']['box']['mIoU']:.2f} |")
-            rows.append({"set": "real photos", "view": view, "shelf_IoU": 100 * d["shelf"]["IoU"],
-                         "box_IoU": 100 * d["box"]["IoU"]})
-        sh = out["real photos, shape"]["result"]
-        print("shape alone (each predicted shelf scaled to its labelled length, `racklay eval --scale-from-truth`): "
-              + "; ".join(f"{v} shelf / box IoU {100 * sh[v]['dataset']['shelf']['IoU']:.2f} / "
-                          f"{100 * sh[v]['dataset']['box']['IoU']:.2f}" for v in ("top", "front")))
-        for view in ("top", "front"):
-            d = sh[view]["dataset"]
-            rows.append({"set": "real photos, shape", "view": view, "shelf_IoU": 100 * d["shelf"]["IoU"],
-                         "box_IoU": 100 * d["box"]["IoU"]})
-    if "real photos" in out:
-        print_separate_boxes(Path(tmp.name) / "real", Path(tmp.name) / "pred")
-    print_model_issue_targets(rows, bool(seen) if "real photos" in out else False)
+    seen = {}
+    for split, name in photo_sets:
+        rows += report_photos(out, name, split, real, Path(tmp.name) / f"pred-{split}", args.real_photos, pred.meta)
+        seen[name] = photos_seen(RackLayRoot(real), split, args.real_photos, pred.meta)
+    print_model_issue_targets(rows, seen)
     tmp.cleanup()
     if args.json:
         Path(args.json).write_text(json.dumps({"weights": str(weights), "rows": rows, "raw": out}, indent=1))
