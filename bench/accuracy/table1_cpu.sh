@@ -6,13 +6,13 @@
 #   kill -INT <pid>   (or the session ends)      # any time: the run keeps last.safetensors
 #   bench/accuracy/table1_cpu.sh                 # next session: continues where it stopped
 # The learning rate follows one cosine over all EPOCHS, whatever the number of calls; a call that
-# finds OUT/NAME/last.safetensors resumes it (the same settings: the trainer refuses others).
+# finds $RUNS/$NAME/last.safetensors resumes it (the same settings: the trainer refuses others).
 # Score the best epoch so far against the paper's row on the `complex` test set of
 # bench/accuracy/release_targets.py (seed 2027, D = 512; that script renders it if missing):
 #   .venv/bin/python -c "from racklay.release import make_release; make_release('/work/runs/table1-light/best.safetensors', 'l.safetensors')"
 #   .venv/bin/python -m racklay eval --weights l.safetensors --data /work/data/complex-test --split test --native --limit 400
-# One 8,000-image epoch takes ~11 min on a 2-core Zen 4 in bf16 (the first fills the cache: slower).
-# The GPU recipe (bench/accuracy/table1_gpu.sh) is the same but for the batch of 16 here.
+# One 8,000-image epoch takes ~17 min on a 2-core Zen 4 in bf16, validation included (the first fills the cache: slower).
+# The GPU recipe (bench/accuracy/table1_gpu.sh) is the same but for the batch (16 here) and its time schedule.
 set -euo pipefail
 DATA=${DATA:-/work/data/complex8k}
 RUNS=${RUNS:-/work/runs}
