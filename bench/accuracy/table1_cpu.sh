@@ -11,7 +11,7 @@
 # bench/accuracy/release_targets.py (seed 2027, D = 512; that script renders it if missing):
 #   .venv/bin/python -c "from racklay.release import make_release; make_release('/work/runs/table1-light/best.safetensors', 'l.safetensors')"
 #   .venv/bin/python -m racklay eval --weights l.safetensors --data /work/data/complex-test --split test --native --limit 400
-# One 8,000-image epoch takes ~17 min on a 2-core Zen 4 in bf16, validation included (the first fills the cache: slower).
+# One 8,000-image epoch takes ~9 min on a 2-core Zen 4 in bf16 with nothing else running, validation included (the first fills the cache; sharing the cores doubles it).
 # The GPU recipe (bench/accuracy/table1_gpu.sh) is the same but for the batch (16 here) and its time schedule.
 set -euo pipefail
 DATA=${DATA:-/work/data/complex8k}
