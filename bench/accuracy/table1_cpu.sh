@@ -4,6 +4,7 @@
 # (8,000 train / 2,000 val, seed 11, 256² layouts: the set of the GPU runs) for EPOCHS epochs.
 #   bench/accuracy/table1_cpu.sh                 # render if missing, train or continue the run
 #   kill <pid>   (or the session ends)           # any time: the run keeps last.safetensors
+#   (SIGTERM; a background job ignores SIGINT: the shell sets it to ignored for `&` jobs)
 #   bench/accuracy/table1_cpu.sh                 # next session: continues where it stopped
 # The learning rate follows one cosine over all EPOCHS, whatever the number of calls; a call that
 # finds $RUNS/$NAME/last.safetensors resumes it (the same settings: the trainer refuses others).
