@@ -20,6 +20,12 @@ from racklay.runtime import MALLOC_ENV  # the one home of the allocator settings
 #: the repository root (datasets/, docs/img/ are found from here)
 REPO = Path(__file__).resolve().parents[1]
 
+#: the paper's best row of Table 1 (RackLay-D-disc on its `complex` test set, paper-protocol mIoU %):
+#: what the reproduction row is compared with
+PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
+#: the model issue's dataset-level box IoU target (%) for the same reproduction row
+REPRODUCTION_BOX_TARGET = {"top": 70.0, "front": 75.0}
+
 
 def ensure_malloc_env() -> None:
     """Re-exec this script with the MALLOC_* variables set (once), unless disabled with

@@ -33,10 +33,9 @@ import time
 from pathlib import Path
 
 from annotate.dataset import HOLDOUT_SPLIT
-from bench.common import REPO
+from bench.common import PAPER_ROW, REPO, REPRODUCTION_BOX_TARGET
 from racklay.predict import add_precision_args
 
-PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
 NO_EXTRAS = ["--set", "write_depth=false", "--set", "write_normals=false", "--set", "write_semantic=false",
              "--set", "write_instance=false", "--set", "write_kitti=false", "--set", "write_coco=false"]
 
@@ -244,7 +243,7 @@ def main() -> int:
             m = 100 * c[view]["paper"][cls]["mIoU"]
             iou = 100 * c[view]["dataset"][key]["IoU"]
             ref = PAPER_ROW[f"{view} {cls}"]
-            tgt = {"top": 70.0, "front": 75.0}[view] if cls == "box" else None
+            tgt = REPRODUCTION_BOX_TARGET[view] if cls == "box" else None
             ok_m = m >= ref
             line = f"| {view} {cls} | {m:.2f} ({'MET' if ok_m else f'NOT MET, {m - ref:+.2f}'}) | {ref:.2f} | {iou:.2f} |"
             line += (f" box IoU >= {tgt:g}: {'MET' if iou >= tgt else f'NOT MET ({iou - tgt:+.2f})'} |" if tgt else " - |")

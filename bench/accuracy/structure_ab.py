@@ -51,10 +51,9 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.common import PAPER_ROW
+from bench.common import REPRODUCTION_BOX_TARGET as BOX_TARGET
 from racklay.predict import add_precision_args
-
-PAPER_ROW = {"top rack": 93.15, "top box": 95.07, "front rack": 90.75, "front box": 94.29}
-BOX_TARGET = {"top": 70.0, "front": 75.0}            # reproduction row, dataset-level box IoU
 
 
 def separation(res: dict, unit: str = "shelves") -> dict | None:
