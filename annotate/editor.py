@@ -58,7 +58,7 @@ class Tool:
         self.gap_split = G.GapSplit()
         self._images: OrderedDict[str, np.ndarray] = OrderedDict()
         self._photo_b64: OrderedDict[str, str] = OrderedDict()
-        self._preds: OrderedDict[str, dict] = OrderedDict()
+        self._preds: OrderedDict[tuple, dict] = OrderedDict()   # (photo, rack corners or None)
         self._luma: OrderedDict[str, np.ndarray] = OrderedDict()
         self._derived: OrderedDict[str, _Derived] = OrderedDict()
         self._lock = threading.RLock()
@@ -848,16 +848,29 @@ class Tool:
         raise ValueError(f"unknown field {field!r}")
 
     # --- proposals ---------------------------------------------------------------------------
-    def prediction(self, name: str) -> dict:
+    def prediction(self, name: str, corners=None) -> dict:
+        """The model's prediction for a photo; with the rack's corners (stored pixels, as the
+        annotation keeps them) it reads the photo cropped to the outlined rack (`racklay predict
+        --rack-box`: on photos of sites no model saw, 3-5 box-IoU points more than the whole frame,
+        docs/eval-predict.md), else the whole photo."""
         with self._lock:
-            if name not in self._preds:
+            key = (name, None if corners is None else tuple(map(tuple, np.round(np.asarray(corners, float), 1))))
+            if key not in self._preds:
                 # the model sees the photo as taken (a squeezed photo un-squeezed); its layouts are
                 # metric and reach the photo through the rack plane, whatever the pixel aspect
-                self._preds[name] = self.predictor.predict(
-                    G.restore_aspect(self.image(name), S.pixel_aspect(self.project.settings)))
+                image = self.image(name)
+                rgb = G.restore_aspect(image, S.pixel_aspect(self.project.settings))
+                box = None
+                if corners is not None:
+                    c = np.asarray(corners, float) * [rgb.shape[1] / image.shape[1], 1.0]
+                    box = (*c.min(0), *c.max(0))
+                try:
+                    self._preds[key] = self.predictor.predict(rgb, rack_box=box, source=name)
+                except ValueError:      # corners that miss the photo: read the whole of it
+                    self._preds[key] = self.predictor.predict(rgb, source=name)
                 while len(self._preds) > 8:
                     self._preds.popitem(last=False)
-            return self._preds[name]
+            return self._preds[key]
 
     def luma(self, name: str) -> np.ndarray:
         """The photo's luminance (uint8, H x W) as the labeller sees it (a squeezed photo
@@ -880,7 +893,7 @@ class Tool:
         if scene is None:
             ann["proposals"] = []
             return ""
-        pred = self.prediction(ann["image"])
+        pred = self.prediction(ann["image"], ann["rack"]["corners"])
         if "front" not in pred:
             return "model has no front view: no proposals"
         if not scene.shelf_v:

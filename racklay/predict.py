@@ -53,6 +53,65 @@ def add_shelf_length_arg(p) -> None:
                         "(default: the model's own estimate)")
 
 
+#: `--rack-box`: the rack's box is grown by this share of its width and height on every side
+#: before it is grown to the model's input aspect (RULE18, docs/eval-predict.md)
+RACK_BOX_MARGIN = 0.1
+
+
+def rack_box_arg(text: str) -> tuple[float, float, float, float]:
+    """argparse type: 'X0,Y0,X1,Y1', the rack's box in image pixels (x0 < x1, y0 < y1)."""
+    import argparse
+
+    parts = text.replace(" ", "").split(",")
+    try:
+        box = tuple(float(v) for v in parts)
+    except ValueError:
+        box = ()
+    if len(box) != 4 or not all(np.isfinite(box)):
+        raise argparse.ArgumentTypeError(f"expected four numbers X0,Y0,X1,Y1 (pixels), got {text!r}")
+    if not (box[0] < box[2] and box[1] < box[3]):
+        raise argparse.ArgumentTypeError(f"expected X0 < X1 and Y0 < Y1 (the box's left, top, right, bottom "
+                                         f"in pixels), got {text!r}")
+    return box
+
+
+def add_rack_box_arg(p) -> None:
+    """--rack-box X0,Y0,X1,Y1 for commands that run a model on photos."""
+    p.add_argument("--rack-box", type=rack_box_arg, default=None, metavar="X0,Y0,X1,Y1",
+                   help="the rack to read, as a box in the photo's pixels (left, top, right, bottom; the "
+                        "bays you want the layouts of, as a labeller would outline them): the model reads "
+                        "the photo cropped to it, grown by 10%% on every side and to the model's input "
+                        "aspect, instead of the whole frame. For wide frames with several bays or racks: on "
+                        "photos of sites no model saw it read 3-5 box-IoU points more (docs/eval-predict.md)"
+                        "; the same box applies to every input photo (default: the whole photo)")
+
+
+def rack_crop(box, width: int, height: int, aspect: float, margin: float = RACK_BOX_MARGIN,
+              source: str = "image") -> tuple[int, int, int, int]:
+    """The crop (x0, y0, x1, y1, integer pixels) that a model reads for a rack box (x0, y0, x1,
+    y1) in a width x height photo: the box grown by `margin` of its size on every side, then its
+    shorter side grown to `aspect` (width / height, the model's input) about its centre, then
+    shifted to lie inside the photo and clipped where it is larger. A box that misses the photo
+    is a ValueError naming `source`."""
+    x0, y0, x1, y1 = map(float, box)
+    if not (x0 < x1 and y0 < y1):
+        raise ValueError(f"{source}: rack box {tuple(box)} is empty (need x0 < x1, y0 < y1)")
+    if x1 <= 0 or y1 <= 0 or x0 >= width or y0 >= height:
+        raise ValueError(f"{source}: rack box {tuple(box)} lies outside the {width}x{height} photo")
+    w, h = x1 - x0, y1 - y0
+    w, h = w * (1 + 2 * margin), h * (1 + 2 * margin)
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    if w / h < aspect:
+        w = h * aspect
+    else:
+        h = w / aspect
+    w, h = min(w, width), min(h, height)
+    left = min(max(cx - w / 2, 0.0), width - w)
+    top = min(max(cy - h / 2, 0.0), height - h)
+    c = (int(round(left)), int(round(top)), int(round(left + w)), int(round(top + h)))
+    return c[0], c[1], max(c[2], c[0] + 1), max(c[3], c[1] + 1)
+
+
 def add_flip_average_arg(p) -> None:
     """--flip-average for commands that run a model (torch backend)."""
     p.add_argument("--flip-average", action="store_true",
@@ -244,15 +303,28 @@ class Predictor:
         img = prepare_image(as_rgb_uint8(image, source), self.image_size, self.cfg.letterbox)
         return image_to_tensor(img)[None]
 
-    def predict(self, image: np.ndarray, shelf_length: float | None = None) -> dict:
+    def crop_for(self, image: np.ndarray, rack_box, source: str = "image") -> tuple[int, int, int, int]:
+        """The region of `image` the model reads for a rack box (`rack_crop` at the model's aspect)."""
+        h, w = self.image_size
+        return rack_crop(rack_box, image.shape[1], image.shape[0], w / h, source=source)
+
+    def predict(self, image: np.ndarray, shelf_length: float | None = None, rack_box=None,
+                source: str = "image") -> dict:
         """One RGB uint8 (H, W, 3) photo -> {"top", "front" (views the model has): (R, S, S)
         class ids; "probs": {view: (R, 3, S, S)}; "grid": Grid}. shelf_length: the shelves' known
         length in metres; it fixes the scale (every shelf scaled about its origin to that length,
-        `with_shelf_length`), the shape stays as predicted."""
-        classes, probs = self.predict_batch(self.prepare(image))
+        `with_shelf_length`), the shape stays as predicted. rack_box: (x0, y0, x1, y1) pixels, the
+        rack to read: the model sees the photo cropped to `crop_for` it (returned as "crop")."""
+        crop = None
+        if rack_box is not None:
+            crop = self.crop_for(image, rack_box, source)
+            image = image[crop[1]:crop[3], crop[0]:crop[2]]
+        classes, probs = self.predict_batch(self.prepare(image, source))
         out: dict = {v: classes[v][0] for v in self.views}
         out["probs"] = {v: probs[v][0] for v in self.views}
         out["grid"] = self.grid
+        if crop is not None:
+            out["crop"] = crop
         return with_shelf_length(out, shelf_length) if shelf_length is not None else out
 
 
@@ -364,11 +436,14 @@ def resize_prediction(pred: dict, size: int) -> dict:
 
 def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], out, figure: bool = True,
                    png: bool = True, crop: bool = True, progress: bool = True, log=None,
-                   layout_size: int | None = None, shelf_length: float | None = None) -> PredictReport:
+                   layout_size: int | None = None, shelf_length: float | None = None,
+                   rack_box=None) -> PredictReport:
     """Predict every input file; a file that cannot be read gets one line via `log` (default:
     stderr) and the rest still run. layout_size: write layouts at this D (nearest resize of the
     model's S x S output), e.g. a ground-truth dataset's D so `racklay score` can compare.
-    shelf_length: the shelves' known length in metres (fixes the scale, `Predictor.predict`)."""
+    shelf_length: the shelves' known length in metres (fixes the scale, `Predictor.predict`).
+    rack_box: (x0, y0, x1, y1) pixels, the rack to read in every photo (`Predictor.predict`); the
+    sample's image is then the crop the model read, and its meta records both."""
     import sys
 
     from .atomic import WriteError
@@ -410,11 +485,17 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
                 h, w = predictor.image_size
                 log(f"warning: {path}: {image.shape[1]}x{image.shape[0]} pixels is far smaller than the model's "
                     f"{w}x{h} input; its layouts say little about a rack")
-            pred = predictor.predict(image, shelf_length=shelf_length)
+            pred = predictor.predict(image, shelf_length=shelf_length, rack_box=rack_box, source=str(path))
+            meta = extra
+            if "crop" in pred:
+                x0, y0, x1, y1 = pred["crop"]
+                meta = {**extra, "rack_box_px": [float(v) for v in rack_box], "crop_px": [x0, y0, x1, y1],
+                        "photo_size": [int(image.shape[1]), int(image.shape[0])]}
+                image = image[y0:y1, x0:x1]
             if layout_size:
                 pred = resize_prediction(pred, layout_size)
             write_prediction(out, sid, image, pred, predictor.views, source=str(path), figure=figure,
-                             png=png, crop=crop, extra_meta=extra)
+                             png=png, crop=crop, extra_meta=meta)
             rep.done.append(sid)
         except WriteError:
             # the output cannot be written (disk full, read-only): every next photo would fail the

@@ -271,12 +271,13 @@ class StandIn:
     """Follows racklay.predict.Predictor's contract; returns the true scene's layouts."""
 
     def __init__(self, scale: float = 1.0):
-        self.calls, self.scale, self.shapes = 0, scale, []
+        self.calls, self.scale, self.shapes, self.boxes = 0, scale, [], []
 
-    def predict(self, rgb):
+    def predict(self, rgb, rack_box=None, source="image"):
         assert rgb.dtype == np.uint8 and rgb.ndim == 3
         self.calls += 1
         self.shapes.append(rgb.shape)
+        self.boxes.append(rack_box)
         top, front = (L.scale_about_origin(a, [self.scale] * len(a)) for a in true_layouts())
         probs = {v: np.eye(3, dtype=np.float32)[a].transpose(0, 3, 1, 2) for v, a in (("top", top), ("front", front))}
         return {"top": top, "front": front, "probs": probs, "grid": GRID}
@@ -680,6 +681,9 @@ def test_squeezed_photos_pixel_aspect_depth_clicks_model_and_export(tmp_path):
         st = tool.click(st, *sq(CAM.project([[(x0 + x1) / 2, o + d, zb + z1]]))[0])
         depth[aspect] = proj.load("r.png")["boxes"][0]["depth"]
         assert pred.shapes == [(480, round(320 * aspect), 3)]
+        # the model reads the rack the labeller outlined, in the photo as taken
+        c = np.asarray(ann["rack"]["corners"]) * [aspect, 1.0]
+        np.testing.assert_allclose(pred.boxes, [[*c.min(0), *c.max(0)]], atol=0.1)
     import argparse
     for bad, why in (("wide", "not a pixel aspect"), ("16:0", "not a pixel aspect"), ("9", "outside")):
         with pytest.raises(argparse.ArgumentTypeError, match=why):

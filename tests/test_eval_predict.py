@@ -458,3 +458,54 @@ def test_saved_predictions_are_at_the_dataset_size_and_score_as_eval_native(toy,
     for v in ("top", "front"):
         for c in ("background", "shelf", "box"):
             assert sc[v]["dataset"][c]["IoU"] == pytest.approx(ev["metrics"][v]["dataset"][c]["IoU"])
+
+
+def test_rack_box_reads_the_outlined_rack_and_says_so(ckpt, toy, tmp_path, capsys):
+    """`predict --rack-box X0,Y0,X1,Y1`: the model reads the photo cropped to the box (grown by
+    the margin and to the model's aspect, inside the photo), exactly as if the user had cropped
+    it; the sample's image is that crop and its meta records box and crop; a box that misses a
+    photo is a one-line error naming it, and a malformed box is refused before any work."""
+    import cv2
+
+    from racklay.predict import RACK_BOX_MARGIN, rack_crop
+
+    root = RackLayRoot(toy)
+    img = root.image_path(root.ids()[0])
+    photo = read_image(img)
+    H, W = photo.shape[:2]
+    box = (0.30 * W, 0.25 * H, 0.70 * W, 0.45 * H)
+    c = rack_crop(box, W, H, 1.0)                       # the tiny model's input is square
+    assert c[0] <= box[0] and c[1] <= box[1] and c[2] >= box[2] and c[3] >= box[3]
+    assert 0 <= c[0] < c[2] <= W and 0 <= c[1] < c[3] <= H
+    assert abs((c[2] - c[0]) / (c[3] - c[1]) - 1.0) < 0.1
+    assert (c[2] - c[0]) >= (box[2] - box[0]) * (1 + 2 * RACK_BOX_MARGIN) - 1
+    # a box at the photo's edge is shifted inside, not padded
+    assert rack_crop((0, 0, 10, 10), W, H, 2.0)[:2] == (0, 0)
+
+    cropped = tmp_path / "cropped.png"
+    cv2.imwrite(str(cropped), cv2.cvtColor(photo[c[1]:c[3], c[0]:c[2]], cv2.COLOR_RGB2BGR))
+    o1, o2 = tmp_path / "boxed", tmp_path / "by_hand"
+    arg = ",".join(f"{v:g}" for v in box)
+    assert racklay_main(["predict", str(img), "--weights", str(ckpt), "--out", str(o1), "--fp32",
+                         "--no-figure", "--no-png", "--rack-box", arg]) == 0
+    assert "read in the rack box" in capsys.readouterr().out
+    assert racklay_main(["predict", str(cropped), "--weights", str(ckpt), "--out", str(o2), "--fp32",
+                         "--no-figure", "--no-png"]) == 0
+    a, b = RackLayRoot(o1), RackLayRoot(o2)
+    for v in ("top", "front"):
+        np.testing.assert_array_equal(np.load(a.layout_path(v, img.stem)), np.load(b.layout_path(v, "cropped")))
+    meta = a.read_meta(img.stem)
+    assert meta["crop_px"] == list(c) and meta["rack_box_px"] == pytest.approx(list(box), abs=1e-3)
+    assert meta["photo_size"] == [W, H] and meta["input_size"] == [c[2] - c[0], c[3] - c[1]]
+    np.testing.assert_array_equal(a.read_image(img.stem), photo[c[1]:c[3], c[0]:c[2]])
+
+    capsys.readouterr()
+    assert racklay_main(["predict", str(img), "--weights", str(ckpt), "--out", str(tmp_path / "off"),
+                         "--rack-box", f"{W + 5},0,{W + 50},10"]) == 1
+    err = capsys.readouterr().err
+    assert f"{img}: rack box" in err and "lies outside" in err and not (tmp_path / "off").exists()
+    for bad in ("1,2,3", "5,5,1,1", "a,b,c,d"):
+        with pytest.raises(SystemExit):
+            racklay_main(["predict", str(img), "--weights", str(ckpt), "--out", str(tmp_path / "x"),
+                          "--rack-box", bad])
+        assert "--rack-box" in capsys.readouterr().err

@@ -6,7 +6,7 @@ from racklay.config import at_least
 
 
 def register(sub) -> None:
-    from racklay.predict import add_flip_average_arg, add_precision_args, add_shelf_length_arg
+    from racklay.predict import add_flip_average_arg, add_precision_args, add_rack_box_arg, add_shelf_length_arg
     from racklay.release import add_weights_arg
 
     p = sub.add_parser(
@@ -28,6 +28,7 @@ def register(sub) -> None:
                    help="write layouts at D x D (nearest resize of the model's output, same metric extent), "
                         "e.g. 512 to score against the original RackLay data (default: the model's size)")
     add_shelf_length_arg(p)
+    add_rack_box_arg(p)
     add_precision_args(p)
     add_flip_average_arg(p)
     p.add_argument("--threads", type=at_least(1), default=None, help="intra-op threads (default: library default)")
@@ -66,10 +67,12 @@ def run(args) -> int:
                      precision=args.precision, flip_average=args.flip_average)
     rep = predict_folder(pred, args.inputs, args.out, figure=not args.no_figure, png=not args.no_png,
                          crop=not args.full, layout_size=args.layout_size, shelf_length=args.shelf_length,
+                         rack_box=args.rack_box,
                          progress=show_progress(args))
     D = args.layout_size or pred.layout_size
     scale = f", shelves scaled to {args.shelf_length:g} m" if args.shelf_length else ""
     scale += ", flip-averaged" if args.flip_average else ""
+    scale += ", read in the rack box" if args.rack_box else ""
     print(f"{rep.summary()} -> {args.out} (backend {pred.backend}, "
           f"{pred.image_size[1]}x{pred.image_size[0]} input, {D}x{D} layouts{scale})")
     return 0 if rep.ok else 1
