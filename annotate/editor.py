@@ -56,6 +56,8 @@ class Tool:
         self.reasoning = replace(ReasoningConfig(), split_step_m=0.0)
         #: how a proposal is cut where the photo shows a gap along it (depth 0: never)
         self.gap_split = G.GapSplit()
+        #: the model reads the photo cropped to the rack the labeller outlined (False: the whole photo)
+        self.read_rack_crop = True
         self._images: OrderedDict[str, np.ndarray] = OrderedDict()
         self._photo_b64: OrderedDict[str, str] = OrderedDict()
         self._preds: OrderedDict[tuple, dict] = OrderedDict()   # (photo, rack corners or None)
@@ -893,7 +895,7 @@ class Tool:
         if scene is None:
             ann["proposals"] = []
             return ""
-        pred = self.prediction(ann["image"], ann["rack"]["corners"])
+        pred = self.prediction(ann["image"], ann["rack"]["corners"] if self.read_rack_crop else None)
         if "front" not in pred:
             return "model has no front view: no proposals"
         if not scene.shelf_v:

@@ -504,6 +504,14 @@ def test_rack_box_reads_the_outlined_rack_and_says_so(ckpt, toy, tmp_path, capsy
                          "--rack-box", f"{W + 5},0,{W + 50},10"]) == 1
     err = capsys.readouterr().err
     assert f"{img}: rack box" in err and "lies outside" in err and not (tmp_path / "off").exists()
+    # analyze takes the same box, and names the photo a box misses
+    assert racklay_main(["analyze", str(img), "--weights", str(ckpt), "--out", str(tmp_path / "a1"),
+                         "--no-render", "--format", "none", "--rack-box", arg]) == 0
+    assert racklay_main(["analyze", str(img), "--weights", str(ckpt), "--out", str(tmp_path / "a2"),
+                         "--no-render", "--format", "none", "--rack-box", f"0,{H + 1},5,{H + 9}"]) == 1
+    assert f"{img}: rack box" in capsys.readouterr().err
+    assert racklay_main(["analyze", "--layouts", str(toy), "--out", str(tmp_path / "b"), "--rack-box", arg]) == 2
+    assert "--rack-box tells a model which rack to read" in capsys.readouterr().err
     for bad in ("1,2,3", "5,5,1,1", "a,b,c,d"):
         with pytest.raises(SystemExit):
             racklay_main(["predict", str(img), "--weights", str(ckpt), "--out", str(tmp_path / "x"),

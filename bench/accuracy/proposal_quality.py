@@ -100,6 +100,9 @@ def main(argv=None) -> int:
     ap.add_argument("--flip-average", action="store_true",
                     help="the model predicts with test-time flip averaging (`racklay predict --flip-average`; "
                          "whether the annotator's proposals would gain from it)")
+    ap.add_argument("--whole-photo", action="store_true",
+                    help="the model reads the whole photo, not the crop around the labeller's rack (as the "
+                         "annotator did before it read the outlined rack, `racklay predict --rack-box`)")
     add_precision_args(ap)
     args = ap.parse_args(argv)
 
@@ -116,6 +119,7 @@ def main(argv=None) -> int:
     names = labelled_photos(proj, args.split, args.limit)
     weights = resolve_weights(args.weights)
     tool = Tool(proj, Predictor(weights, precision=args.precision, flip_average=args.flip_average))
+    tool.read_rack_crop = not args.whole_photo
     steps = args.split_step or [0.0, ReasoningConfig().split_step_m]
     depths = args.gap_depth or [0.0, G.GapSplit().depth]
     settings = [(s, d) for s in steps for d in depths]

@@ -13,7 +13,7 @@ KNOBS = ("open_m", "min_box_area_m2", "split_step_m", "min_stack_m")
 
 
 def register(sub) -> None:
-    from racklay.predict import add_flip_average_arg, add_shelf_length_arg
+    from racklay.predict import add_flip_average_arg, add_rack_box_arg, add_shelf_length_arg
     from racklay.reasoning import ReasoningConfig
     from racklay.release import add_weights_arg
 
@@ -36,6 +36,7 @@ def register(sub) -> None:
     p.add_argument("--backend", choices=("torch", "onnx"), default=None,
                    help="inference backend (default: onnx for .onnx files, else torch)")
     add_shelf_length_arg(p)
+    add_rack_box_arg(p)
     add_flip_average_arg(p)
     p.add_argument("--layouts", metavar="ROOT", help="analyse the ground-truth layouts of this RackLay dataset")
     p.add_argument("--split", default=None,
@@ -142,7 +143,10 @@ def _samples_from_photos(args):
 
     def one(path):
         image = read_image(path)
-        pred = predictor.predict(image, shelf_length=args.shelf_length)
+        pred = predictor.predict(image, shelf_length=args.shelf_length, rack_box=args.rack_box, source=str(path))
+        if "crop" in pred:          # the render shows the photo the layouts describe: the rack's crop
+            x0, y0, x1, y1 = pred["crop"]
+            image = image[y0:y1, x0:x1]
         result = analyze_layouts(pred.get("top"), pred.get("front"), pred["grid"], cfg, source=str(path))
         return result, image, None
 
@@ -160,6 +164,8 @@ def run(args) -> int:
         raise CLIError("--weights is for photos; --layouts ROOT analyses ground-truth layouts (no model)")
     if args.layouts and args.shelf_length:
         raise CLIError("--shelf-length scales a model's predictions; --layouts are ground truth, already metric")
+    if args.layouts and args.rack_box:
+        raise CLIError("--rack-box tells a model which rack to read; --layouts are ground truth")
     if args.layouts and args.flip_average:
         raise CLIError("--flip-average is how a model predicts; --layouts are ground truth")
     if not args.layouts:
