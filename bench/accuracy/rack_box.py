@@ -24,9 +24,12 @@ from pathlib import Path
 from bench.common import REPO
 
 
-def cropped_copy(data: Path, project: Path, out: Path, aspect: float, split: str) -> list[float]:
+def cropped_copy(data: Path, project: Path, out: Path, aspect: float, split: str, jitter: float = 0.0,
+                 seed: int = 0) -> list[float]:
     """`out` = `data` with the images of `split` cropped to their labelled rack (symlinks for the
-    layouts, meta and splits); returns each crop's share of its photo's area."""
+    layouts, meta and splits); returns each crop's share of its photo's area. jitter: each edge of
+    the labels' box moved by a uniform random share of the box's width (x) or height (y) in
+    [-jitter, jitter], seeded: a box drawn by hand."""
     import numpy as np
 
     from racklay.atomic import atomic_save_png
@@ -38,6 +41,7 @@ def cropped_copy(data: Path, project: Path, out: Path, aspect: float, split: str
     for d in ("topLayouts", "frontLayouts", "meta", "splits"):
         os.symlink((data / d).resolve(), out / d)
     crops = []
+    rng = np.random.default_rng(seed)
     for sid in src.split_ids(split):
         meta = src.read_meta(sid)
         name = meta.get("source_image")
@@ -48,8 +52,10 @@ def cropped_copy(data: Path, project: Path, out: Path, aspect: float, split: str
         image = src.read_image(sid)
         corners = np.asarray(ann["rack"]["corners"], float)
         corners *= [image.shape[1] / ann["image_size"][0], image.shape[0] / ann["image_size"][1]]
-        c = rack_crop((*corners.min(0), *corners.max(0)), image.shape[1], image.shape[0], aspect,
-                      source=str(ann_path))
+        box = np.array([*corners.min(0), *corners.max(0)])
+        size = np.tile(box[2:] - box[:2], 2)
+        box += rng.uniform(-jitter, jitter, 4) * size
+        c = rack_crop(box, image.shape[1], image.shape[0], aspect, source=str(ann_path))
         atomic_save_png(out / "Images" / f"{sid}.png", image[c[1]:c[3], c[0]:c[2]])
         crops.append((c[2] - c[0]) * (c[3] - c[1]) / (image.shape[0] * image.shape[1]))
     return crops
@@ -63,6 +69,10 @@ def main(argv=None) -> int:
                     help="the annotate project the export came from (its annotations hold the racks' corners)")
     ap.add_argument("--arm", action="append", default=None, metavar="NAME=WEIGHTS",
                     help="a model to score (repeatable; default: the shipped one)")
+    ap.add_argument("--jitter", type=float, default=0.0, metavar="F",
+                    help="move each edge of the labels' box by up to F of its width or height (uniform, "
+                         "seeded): a box drawn by hand (default 0: the labels' tight box)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of --jitter")
     ap.add_argument("--keep", type=Path, default=None, help="write the cropped copy here and keep it")
     args = ap.parse_args(argv)
 
@@ -73,8 +83,9 @@ def main(argv=None) -> int:
     h, w = load_checkpoint(arms[0].split("=", 1)[1]).cfg.image_size
     with tempfile.TemporaryDirectory(prefix="rack_box_") as tmp:
         crop_root = args.keep or Path(tmp) / "crops"
-        areas = sorted(cropped_copy(args.data, args.project, crop_root, w / h, args.split))
-        print(f"{len(areas)} {args.split} photos cropped to their labelled rack at the input's aspect {w}:{h} "
+        areas = sorted(cropped_copy(args.data, args.project, crop_root, w / h, args.split, args.jitter, args.seed))
+        rough = f", each edge moved by up to {args.jitter:g} of the box's size (seed {args.seed})" if args.jitter else ""
+        print(f"{len(areas)} {args.split} photos cropped to their labelled rack at the input's aspect {w}:{h}{rough} "
               f"(crop / photo area: median {areas[len(areas) // 2]:.2f}, min {areas[0]:.2f})\n", flush=True)
         for what, root in (("whole photos", args.data), ("cropped to the labelled rack", crop_root)):
             print(f"## {what}", flush=True)
