@@ -875,12 +875,11 @@ class Tool:
             return self._preds[key]
 
     def luma(self, name: str) -> np.ndarray:
-        """The photo's luminance (uint8, H x W) as the labeller sees it (a squeezed photo
-        un-squeezed, the rack plane's pixels): what the proposals' gap cut reads."""
+        """The photo's luminance (uint8, H x W) in its stored pixels, where the rack plane (the
+        labeller's corners) lives, also for a squeezed photo: what the gap cuts read."""
         with self._lock:
             if name not in self._luma:
-                rgb = G.restore_aspect(self.image(name), S.pixel_aspect(self.project.settings))
-                self._luma[name] = np.clip(luminance(rgb) + 0.5, 0, 255).astype(np.uint8)
+                self._luma[name] = np.clip(luminance(self.image(name)) + 0.5, 0, 255).astype(np.uint8)
                 while len(self._luma) > 8:
                     self._luma.popitem(last=False)
             self._luma.move_to_end(name)

@@ -752,3 +752,36 @@ def test_a_photo_deleted_while_open_is_not_annotated(proj):
     st = tool.click(st, 100.0, 100.0)
     assert st.msg.startswith("⚠ not saved: r.png: the photo is no longer in the project")
     assert not proj.annotation_path("r.png").exists()
+
+
+def test_a_squeezed_photos_gaps_are_read_where_the_rack_is(tmp_path):
+    """In a project of squeezed photos (`serve --pixel-aspect 2:1`) the rack plane lives in the
+    stored pixels: `W` reads the photo's slots there and cuts the row where an unsqueezed photo of
+    the same rack is cut."""
+    import cv2
+
+    from annotate.commands.serve import pixel_aspect_value
+
+    truth = clicks(CAM)
+    s_, x0, x1, top = 2, 0.50, 1.50, 0.45
+    rgb = cv2.imdecode(np.frombuffer(slot_photo(G.build_scene(truth, Project(tmp_path / "p0").settings).plane,
+                                                [(0.78, 0.82), (1.10, 1.16)], BOARDS[s_], BOARDS[s_] + top),
+                                     np.uint8), cv2.IMREAD_COLOR)
+    (tmp_path / "sq.png").write_bytes(encode_png(cv2.resize(rgb, (320, 480), interpolation=cv2.INTER_AREA)))
+
+    def sq(p):
+        return (np.asarray(p, float) * [0.5, 1.0]).tolist()
+    ann = dict(truth, image="sq.png", boxes=[], image_size=[320, 480])
+    ann["rack"] = dict(ann["rack"], corners=sq(ann["rack"]["corners"]))
+    ann["shelves"] = [dict(x, point=sq([x["point"]])[0]) for x in ann["shelves"]]
+    proj = Project(tmp_path / "p")
+    proj.add_image("sq.png", (tmp_path / "sq.png").read_bytes())
+    proj.save_settings(dict(proj.settings, pixel_aspect=pixel_aspect_value("2:1")))
+    tool = Tool(proj)
+    st = label_by_clicks(tool, tool.open("sq.png"), ann)
+    p = sq(CAM.project([[x0, 0.0, BOARDS[s_]], [x1, 0.0, BOARDS[s_] + top]]))
+    st.mode = "boxes"
+    st = tool.drag(st, p[0], p[1])
+    st = tool.apply(st, [{"kind": "act", "name": "split_at_gaps", "seq": 1}])
+    spans = sorted((m.u0, m.u1) for m in G.build_scene(proj.load("sq.png"), proj.settings).boxes)
+    np.testing.assert_allclose(spans, [[0.50, 0.78], [0.82, 1.10], [1.16, 1.50]], atol=0.02), st.msg
