@@ -6,6 +6,7 @@
 #   kill <pid>   (or the session ends)           # any time: the run keeps last.safetensors
 #   (SIGTERM; a background job ignores SIGINT: the shell sets it to ignored for `&` jobs)
 #   bench/accuracy/table1_cpu.sh                 # next session: continues where it stopped
+# ($RUNS and $DATA live on the machine: a session that comes up on a new machine starts over.)
 # The learning rate follows one cosine over all EPOCHS, whatever the number of calls; a call that
 # finds $RUNS/$NAME/last.safetensors resumes it (the same settings: the trainer refuses others).
 # Score the best epoch so far against the paper's row on the `complex` test set of
