@@ -133,9 +133,16 @@ def reference_model(cfg):
 
 
 def forward_runner(model, x, bf16: bool):
-    """A no-argument call that runs `model(x)` as `racklay predict` does (inference mode, bf16
-    autocast when `bf16`), for `interleaved`."""
+    """A no-argument call that runs `model(x)` as `racklay predict` does (inference mode; when
+    `bf16`, bf16 autocast with the model's convolution and linear weights cast to bf16 once, here:
+    `racklay.precision.cast_for_autocast`), for `interleaved`. Build every other use of the model
+    (an ONNX export, an fp32 run) before this."""
     import torch
+
+    if bf16:
+        from racklay.precision import cast_for_autocast
+
+        cast_for_autocast(model)
 
     def f():
         with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):

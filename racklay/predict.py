@@ -22,7 +22,7 @@ import numpy as np
 
 from . import layout as L
 from .onnx import export_onnx_bytes, onnx_session
-from .precision import PRECISIONS, resolve_precision  # noqa: F401  (the one home of precision)
+from .precision import PRECISIONS, cast_for_autocast, resolve_precision  # noqa: F401  (the one home of precision)
 
 BACKENDS = ("torch", "onnx")
 #: photos with a shorter side than this are predicted with a warning (upscaled, they hold no rack)
@@ -167,7 +167,9 @@ class Predictor:
     The torch backend runs the model it loads in channels_last memory format (oneDNN's native
     layout on CPU: 1.2-1.5x faster than the default layout, same logits to ~1e-5,
     docs/benchmarks.md), with its batch norms folded into the convolutions before them
-    (`racklay.model.fold_batchnorm`: the same argmax, ~1.1x faster).
+    (`racklay.model.fold_batchnorm`: the same argmax, ~1.1x faster) and, in bf16, its convolution
+    and linear weights stored in bf16 (`racklay.precision.cast_for_autocast`: the same logits bit
+    for bit, not cast again on every call).
     cut_gaps: False draws a struct model's boxes from its box output alone, without the gap
     output's cuts (torch backend; `RackLayNet.set_gap_cut`).
     flip_average: predict each photo together with its mirror image and average the two (torch
@@ -228,10 +230,12 @@ class Predictor:
 
     def _set_model(self, model, channels_last: bool, fold: bool = False) -> None:
         model.eval()
-        if fold:
+        if fold:   # a model loaded for inference alone (not one still in training)
             from .model import fold_batchnorm
 
             fold_batchnorm(model)
+            if self.precision == "bf16" and self.backend == "torch":
+                cast_for_autocast(model)
         if channels_last:
             import torch
 

@@ -172,6 +172,34 @@ def test_predictor_any_size_and_bad_weights(ckpt, tmp_path):
         Predictor(bad_onnx)
 
 
+@pytest.mark.parametrize("decoder", ["light", "struct"])
+def test_bf16_predictor_keeps_its_weights_in_bf16_with_autocasts_own_logits(tmp_path, decoder):
+    """In bf16 the loaded model keeps its convolution and linear weights in bf16 (autocast would
+    cast them on every call) and gives, bit for bit, the logits bf16 autocast gives with fp32
+    weights; fp32 keeps fp32 weights."""
+    from racklay.checkpoint import load_model, save_checkpoint
+    from racklay.model import ModelConfig, RackLayNet, fold_batchnorm
+
+    torch.manual_seed(1)
+    cfg = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder=decoder)
+    path = tmp_path / "m.safetensors"
+    save_checkpoint(path, RackLayNet(cfg).eval(), cfg)
+    p = Predictor(path, precision="bf16")
+    convs = [m for m in p.model.modules() if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear))]
+    assert convs and all(m.weight.dtype == torch.bfloat16 for m in convs)
+    model = load_model(path)[0].eval()
+    fold_batchnorm(model)
+    model = model.to(memory_format=torch.channels_last)
+    x = torch.randn(2, 3, 64, 128)
+    with torch.inference_mode(), torch.autocast("cpu", dtype=torch.bfloat16):
+        want = model(x.contiguous(memory_format=torch.channels_last))
+    got = p.logits(x)
+    for v in cfg.views:
+        np.testing.assert_array_equal(got[v], want[v].float().numpy())
+    assert all(m.weight.dtype == torch.float32 for m in Predictor(path, precision="fp32").model.modules()
+               if isinstance(m, torch.nn.Conv2d))
+
+
 def test_predictor_runs_channels_last_with_the_models_own_logits(ckpt):
     """The loaded model runs in oneDNN's layout (faster on CPU) and gives the logits the model gives
     in PyTorch's default layout; a wrapped in-training model keeps its layout in fp32."""
