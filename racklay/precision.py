@@ -69,4 +69,3 @@ def cast_for_autocast(model) -> int:
             mod.to(torch.bfloat16)
             n += 1
     return n
-
