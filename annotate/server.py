@@ -20,12 +20,12 @@ def launch_kwargs(host: str = "127.0.0.1", port: int = 7860, auth=None) -> dict:
                 ssr_mode=False, max_file_size=MAX_UPLOAD_BYTES, show_error=True, quiet=True, footer_links=[])
 
 
-def load_predictor(model: str | None, backend: str = "torch"):
+def load_predictor(model: str | None, backend: str = "torch", precision: str = "fp32"):
     if not model:
         return None
     from racklay.predict import Predictor
 
-    return Predictor(model, backend=backend)
+    return Predictor(model, backend=backend, precision=precision)
 
 
 class PortError(ValueError):
@@ -89,16 +89,17 @@ def _drop_temp_dir(path: str, env_before: str | None) -> None:
 
 
 def serve(project_dir, host: str = "127.0.0.1", port: int = 7860, model: str | None = None,
-          backend: str = "torch", auth=None, block: bool = True, gap_split=None):
+          backend: str = "torch", auth=None, block: bool = True, gap_split=None, precision: str = "fp32"):
     """Serve the tool. `auth`: None (no login) or an annotate.auth.Authenticator (several users,
     throttled failed logins; each save records the logged-in user); `gap_split`: how proposals and
-    `W` cut at the photo's gaps (annotate.geometry.GapSplit; default its defaults)."""
+    `W` cut at the photo's gaps (annotate.geometry.GapSplit; default its defaults); `precision`:
+    the model's, as `racklay.predict.Predictor` takes it (the command line's default is `auto`)."""
     check_port(host, port)
     project = Project(project_dir)
     env_before = os.environ.get("GRADIO_TEMP_DIR")
     tmp = run_temp_dir()
     try:
-        demo = build_app(project, load_predictor(model, backend), gap_split=gap_split)   # gradio files go to $GRADIO_TEMP_DIR = tmp
+        demo = build_app(project, load_predictor(model, backend, precision), gap_split=gap_split)   # gradio files go to $GRADIO_TEMP_DIR = tmp
         kw = launch_kwargs(host, port, auth.check if auth is not None else None)
         try:
             demo.launch(prevent_thread_lock=True, **kw)

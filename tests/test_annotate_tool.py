@@ -452,6 +452,28 @@ def test_serve_gap_cut_flags_reach_the_tool_and_bad_values_are_refused(proj, mon
     err = capsys.readouterr().err
     assert e.value.code == 2 and "argument --gap-depth: must be >= 0, got -1" in err
 
+
+def test_serve_runs_the_model_at_the_precision_asked(proj, monkeypatch, tmp_path):
+    """`annotate serve` takes `--precision` as `racklay predict` does (default auto: bf16 where
+    the CPU has it) and its pre-labelling model runs at that precision."""
+    import annotate.server as A
+    from annotate.cli import main as annotate_main
+    from racklay.checkpoint import save_checkpoint
+    from racklay.model import ModelConfig, RackLayNet
+
+    got = {}
+    monkeypatch.setattr(A, "serve", lambda *a, **kw: got.update(kw))
+    assert annotate_main(["serve", str(proj.root), "--no-model"]) == 0
+    assert got["precision"] == "auto"
+    assert annotate_main(["serve", str(proj.root), "--no-model", "--fp32"]) == 0
+    assert got["precision"] == "fp32"
+    cfg = ModelConfig(R=2, image_size=(64, 128), layout_size=32)
+    ckpt = tmp_path / "m.safetensors"
+    save_checkpoint(ckpt, RackLayNet(cfg).eval(), cfg)
+    assert A.load_predictor(str(ckpt), precision="bf16").precision == "bf16"
+    assert A.load_predictor(str(ckpt), backend="onnx", precision="auto").precision == "fp32"
+
+
 @pytest.mark.parametrize("checked", [True, False])
 def test_serve_busy_port_one_line(proj, monkeypatch, capsys, checked):
     """A busy port is refused before the app is built, and gradio's own port error (the race

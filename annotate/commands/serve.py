@@ -37,6 +37,7 @@ def pixel_aspect_value(text: str) -> float:
 def register(sub) -> None:
     from annotate.geometry import GapSplit
     from racklay.config import add_flags
+    from racklay.predict import add_precision_args
 
     p = sub.add_parser(
         "serve", help="open the annotation tool in the browser",
@@ -52,6 +53,7 @@ def register(sub) -> None:
                    help="checkpoint for model-assisted pre-labels (default: the shipped model, docs/model-card.md)")
     p.add_argument("--no-model", action="store_true", help="no model-assisted pre-labels")
     p.add_argument("--backend", default="torch", choices=("torch", "onnx"), help="prediction backend for --model")
+    add_precision_args(p)
     p.add_argument("--pixel-aspect", type=pixel_aspect_value, default=None, metavar="W:H",
                    help="the project's photos are stored squeezed: width / height of one stored pixel, as a "
                         "ratio (16:9 for 16:9 frames stored as squares) or a number; saved in project.json, so "
@@ -92,5 +94,5 @@ def run(args) -> int:
     gap_split = GapSplit(**{k: getattr(args, k) for k in ("depth", "close_m", "min_part_m")
                             if getattr(args, k) is not None})      # the flags' bounds are checked by argparse
     serve(args.project, host=args.host, port=args.port, model=model, backend=args.backend, auth=auth,
-          gap_split=gap_split)
+          gap_split=gap_split, precision=args.precision)
     return 0
