@@ -57,8 +57,8 @@ def cast_for_autocast(model) -> int:
     autocast runs those layers in bf16 whatever their weights' dtype, so the logits are bit for
     bit the same; a model with the brightness cue, `--struct-cue`, subtracts that layer's bias
     once more outside it, now at its bf16 rounding: the gap logit moves by at most that). On a
-    2-core Xeon with AMX the shipped model ran 1.12-1.19x faster, the reference architecture
-    1.2x (docs/benchmarks.md, "Weights kept in bf16"). The model must then always run under bf16
+    2-core Xeon with AMX the shipped model ran 1.16x faster, the reference architecture
+    1.27-1.29x (docs/benchmarks.md, "Weights kept in bf16"). The model must then always run under bf16
     autocast (`racklay.predict.Predictor` does). Returns how many layers it cast."""
     import torch
     from torch import nn
