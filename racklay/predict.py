@@ -234,7 +234,7 @@ class Predictor:
             from .model import fold_batchnorm
 
             fold_batchnorm(model)
-            if self.precision == "bf16" and self.backend == "torch":
+            if self.precision == "bf16":    # (only the torch backend takes bf16: __init__ refuses it for onnx)
                 cast_for_autocast(model)
         if channels_last:
             import torch
