@@ -188,7 +188,8 @@ def main() -> int:
     ap.add_argument("--complex", default="/work/data/complex-test", type=Path,
                     help="WareSynth complex test set (rendered with seed 2027 if missing)")
     ap.add_argument("--proxy-real", default="/work/data/proxy_real", type=Path,
-                    help="proxy-real set of bench/accuracy/transfer_table2.sh (rendered with seed 1 if missing)")
+                    help="proxy-real set of bench/accuracy/transfer_table2.sh (rendered with seed 1 if missing; "
+                         "'' to skip: with --real-photos '' only the Table 1 row, as table1_cpu.sh prints it)")
     ap.add_argument("--real-photos", default=REPO / "datasets" / "real-photos", type=Path,
                     help="annotate project with the labelled real photos ('' to skip)")
     ap.add_argument("--limit", type=int, default=None, help="score only the first N test images of each set")
@@ -203,14 +204,18 @@ def main() -> int:
     from racklay.release import resolve_weights
 
     ensure(args.complex, ["--recipe", "complex", "--n", "2000", "--seed", "2027", "--set", "splits={test: 1.0}", *NO_EXTRAS])
-    ensure(args.proxy_real, ["--recipe", "proxy_real", "--n", "542", "--seed", "1", "--set", "layout_size=256"])
+    with_proxy = str(args.proxy_real) not in ("", ".")
+    if with_proxy:
+        ensure(args.proxy_real, ["--recipe", "proxy_real", "--n", "542", "--seed", "1", "--set", "layout_size=256"])
     weights = resolve_weights(args.weights)
     pred = Predictor(str(weights), precision=args.precision, flip_average=args.flip_average)
     print(f"model {weights} ({pred.precision}{', flip-averaged' if args.flip_average else ''}), input {pred.image_size[1]}x{pred.image_size[0]}, "
           f"layouts {pred.layout_size}", flush=True)
     out = {}
     tmp = tempfile.TemporaryDirectory(prefix="racklay-real-")
-    sets = [("complex", args.complex, "test", True, False), ("proxy-real", args.proxy_real, "test", False, False)]
+    sets = [("complex", args.complex, "test", True, False)]
+    if with_proxy:
+        sets.append(("proxy-real", args.proxy_real, "test", False, False))
     real = Path(tmp.name) / "real"
     photo_sets = []
     if str(args.real_photos) not in ("", "."):
@@ -249,21 +254,23 @@ def main() -> int:
             line += (f" box IoU >= {tgt:g}: {'MET' if iou >= tgt else f'NOT MET ({iou - tgt:+.2f})'} |" if tgt else " - |")
             print(line)
             rows.append({"set": "complex", "view": view, "class": cls, "paper_mIoU": m, "dataset_IoU": iou})
-    p = out["proxy-real"]["result"]
-    print(f"\nproxy-real test split (cross-domain, no fine-tuning), {p['top']['images']} images")
-    print("| view | shelf IoU (>= 60) | box IoU (>= 40) | paper-protocol rack / box mIoU |")
-    print("|---|---|---|---|")
-    for view in ("top", "front"):
-        s, b = 100 * p[view]["dataset"]["shelf"]["IoU"], 100 * p[view]["dataset"]["box"]["IoU"]
-        print(f"| {view} | {s:.2f} {'MET' if s >= 60 else f'NOT MET ({s - 60:+.2f})'} | "
-              f"{b:.2f} {'MET' if b >= 40 else f'NOT MET ({b - 40:+.2f})'} | "
-              f"{100 * p[view]['paper']['rack']['mIoU']:.2f} / {100 * p[view]['paper']['box']['mIoU']:.2f} |")
-        rows.append({"set": "proxy-real", "view": view, "shelf_IoU": s, "box_IoU": b})
+    if with_proxy:
+        p = out["proxy-real"]["result"]
+        print(f"\nproxy-real test split (cross-domain, no fine-tuning), {p['top']['images']} images")
+        print("| view | shelf IoU (>= 60) | box IoU (>= 40) | paper-protocol rack / box mIoU |")
+        print("|---|---|---|---|")
+        for view in ("top", "front"):
+            s, b = 100 * p[view]["dataset"]["shelf"]["IoU"], 100 * p[view]["dataset"]["box"]["IoU"]
+            print(f"| {view} | {s:.2f} {'MET' if s >= 60 else f'NOT MET ({s - 60:+.2f})'} | "
+                  f"{b:.2f} {'MET' if b >= 40 else f'NOT MET ({b - 40:+.2f})'} | "
+                  f"{100 * p[view]['paper']['rack']['mIoU']:.2f} / {100 * p[view]['paper']['box']['mIoU']:.2f} |")
+            rows.append({"set": "proxy-real", "view": view, "shelf_IoU": s, "box_IoU": b})
     seen = {}
     for split, name in photo_sets:
         rows += report_photos(out, name, split, real, Path(tmp.name) / f"pred-{split}", args.real_photos, pred.meta)
         seen[name] = photos_seen(RackLayRoot(real), split, args.real_photos, pred.meta)
-    print_model_issue_targets(rows, seen)
+    if with_proxy or photo_sets:
+        print_model_issue_targets(rows, seen)
     tmp.cleanup()
     if args.json:
         Path(args.json).write_text(json.dumps({"weights": str(weights), "rows": rows, "raw": out}, indent=1))

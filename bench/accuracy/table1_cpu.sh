@@ -4,15 +4,16 @@
 # (8,000 train / 2,000 val, seed 11, 256² layouts: the set of the GPU runs) for EPOCHS epochs.
 #   bench/accuracy/table1_cpu.sh                 # render if missing, train or continue the run
 #   kill <pid>   (or the session ends)           # any time: the run keeps last.safetensors
-#   (SIGTERM; a background job ignores SIGINT: the shell sets it to ignored for `&` jobs)
+#   (SIGTERM to the script or to its `racklay train`; Ctrl-C in a terminal)
 #   bench/accuracy/table1_cpu.sh                 # next session: continues where it stopped
 # ($RUNS and $DATA live on the machine: a session that comes up on a new machine starts over.)
 # The learning rate follows one cosine over all EPOCHS, whatever the number of calls; a call that
 # finds $RUNS/$NAME/last.safetensors resumes it (the same settings: the trainer refuses others).
-# Score the best epoch so far against the paper's row on the `complex` test set of
-# bench/accuracy/release_targets.py (seed 2027, D = 512; that script renders it if missing):
-#   .venv/bin/python -c "from racklay.release import make_release; make_release('/work/runs/table1-light/best.safetensors', 'l.safetensors')"
-#   .venv/bin/python -m racklay eval --weights l.safetensors --data /work/data/complex-test --split test --native --limit 400
+# When the last of the EPOCHS epochs is done, the script scores the best epoch against the paper's
+# row on the first LIMIT (400) images of the `complex` test set of bench/accuracy/release_targets.py
+# (seed 2027, D = 512; rendered if missing) and prints the Table 1 row. The best epoch so far,
+# any time (SCORE_ONLY=1 skips training):
+#   SCORE_ONLY=1 bench/accuracy/table1_cpu.sh
 # One 8,000-image epoch takes ~9 min on a 2-core Zen 4 in bf16 with nothing else running, validation included (the first fills the cache; sharing the cores doubles it).
 # The GPU recipe (bench/accuracy/table1_gpu.sh) is the same but for the batch (16 here) and its time schedule.
 set -euo pipefail
@@ -27,8 +28,23 @@ if [ ! -f "$DATA/splits/val.txt" ]; then
     --set write_normals=false --set write_semantic=false --set write_instance=false --set write_kitti=false \
     --set write_coco=false --no-progress
 fi
+LIMIT=${LIMIT:-400}
+score() {
+  $PY -m bench.accuracy.release_targets --weights "$RUNS/$NAME/best.safetensors" --limit "$LIMIT" \
+    --proxy-real '' --real-photos ''
+}
+if [ -n "${SCORE_ONLY:-}" ]; then score; exit; fi
 RESUME=""
 [ -f "$RUNS/$NAME/last.safetensors" ] && RESUME="--resume"
-exec $PY -m racklay train --data "$DATA" --out "$RUNS" --name "$NAME" --decoder light --no-disc \
+$PY -m racklay train --data "$DATA" --out "$RUNS" --name "$NAME" --decoder light --no-disc \
   --image-size 160x256 --layout-size 256 --augment paper --class-weights 1,5,10 --batch-size 16 --lr 1e-3 \
-  --warmup-steps 200 --epochs "$EPOCHS" --patience 0 --checkpoint-every 100 --seed 0 --no-progress $RESUME
+  --warmup-steps 200 --epochs "$EPOCHS" --patience 0 --checkpoint-every 100 --seed 0 --no-progress $RESUME &
+train=$!
+# `kill <this script's pid>` (or Ctrl-C) stops the training, which saves last.safetensors and exits
+trap 'kill -TERM "$train" 2>/dev/null' TERM INT
+rc=0; wait "$train" || rc=$?
+if kill -0 "$train" 2>/dev/null; then rc=0; wait "$train" || rc=$?; fi   # the first wait ended at the signal
+[ "$rc" -eq 0 ] || exit "$rc"
+# a stopped run exits 0 as well: score only when every planned epoch is in metrics.csv
+done_epochs=$(( $(wc -l < "$RUNS/$NAME/metrics.csv") - 1 ))
+if [ "$done_epochs" -ge "$(sed -n 's/^epochs: //p' "$RUNS/$NAME/config.yaml")" ]; then score; fi
