@@ -48,10 +48,24 @@ def write_history(run_dir: Path, history: list[dict]) -> None:
         print(f"warning: could not draw curves: {e}")
 
 
+def validation_series(history: list[dict]) -> dict[str, list[str]]:
+    """The columns of metrics.csv that `metrics.png` draws, per panel: the dataset-level IoU per
+    view and class with the validation score (what runs are compared by), and the paper-protocol
+    mIoU per view and class (Table 1's cells). Training columns (`train_iou` is the soft-IoU loss
+    term, not a validation IoU) are never among them."""
+    keys: list[str] = []
+    for row in history:
+        keys += [k for k in row if k not in keys and not k.startswith("train_")]
+    return {"dataset-level IoU": [k for k in keys if k.endswith("_iou") and not k.endswith("paper_miou")]
+            + (["val_score"] if "val_score" in keys else []),
+            "paper-protocol mIoU": [k for k in keys if k.endswith("_paper_miou")]}
+
+
 def plot_curves(run_dir: Path, history: list[dict]) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     from .viz import save_figure
 
@@ -62,6 +76,7 @@ def plot_curves(run_dir: Path, history: list[dict]) -> None:
         if any(y == y for y in ys):
             ax.plot(ep, ys, marker="o", label=k)
     ax.set_xlabel("epoch")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel("loss")
     ax.set_title("losses")
     ax.legend()
@@ -69,19 +84,23 @@ def plot_curves(run_dir: Path, history: list[dict]) -> None:
     fig.tight_layout()
     save_figure(fig, run_dir / "loss.png")
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    keys = [k for k in history[-1] if k.endswith("_iou") and not k.endswith("paper_miou")]
-    for k in keys + ["val_score"]:
-        ax.plot(ep, [r.get(k, float("nan")) for r in history], marker="o", label=k,
-                lw=2.5 if k == "val_score" else 1.2)
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("dataset-level IoU (validation)")
-    ax.set_ylim(0, 1)
-    ax.set_title("validation metrics")
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
+    panels = {title: keys for title, keys in validation_series(history).items() if keys}
+    if not panels:
+        return
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4), squeeze=False)
+    for ax, (title, keys) in zip(axes[0], panels.items()):
+        for k in keys:
+            ax.plot(ep, [r.get(k, float("nan")) for r in history], marker="o",
+                    label=k.removesuffix("_paper_miou"), lw=2.5 if k == "val_score" else 1.2)
+        ax.set_xlabel("epoch")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_ylabel(f"{title} (validation)")
+        ax.set_ylim(0, 1)
+        ax.set_title(title)
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
     fig.tight_layout()
     save_figure(fig, run_dir / "metrics.png")
 
 
-__all__ = ["history_row", "write_history", "plot_curves"]
+__all__ = ["history_row", "write_history", "plot_curves", "validation_series"]

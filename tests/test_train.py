@@ -83,6 +83,36 @@ def test_overfit_a_handful_of_samples(tmp_path, toy):
         assert (run / f).stat().st_size > 0, f
 
 
+def test_curves_plot_validation_scores_never_the_training_iou_term(tmp_path):
+    """metrics.png draws what a run is judged by: the dataset-level IoU and the paper-protocol
+    mIoU per view, on validation; `train_iou` (the soft-IoU loss term, 0 when it is off) is not
+    a validation curve. A run that never validated gets no metrics figure, only its losses."""
+    from racklay.history import history_row, validation_series, write_history
+
+    def result(x):
+        return {"dataset": {"shelf": {"IoU": x}, "box": {"IoU": x / 2}},
+                "paper": {"rack": {"mIoU": x}, "box": {"mIoU": x}}}
+
+    hist = [history_row(e, 10 * (e + 1), 1e-3, {"loss": 1.0 / (e + 1), "iou": 0.0},
+                        {"loss": 0.5, "score": 0.1 * e, "result": {"top": result(0.1 * e), "front": result(0.2)}},
+                        seconds=1.0, elapsed=60.0 * e) for e in range(3)]
+    series = validation_series(hist)
+    assert not any(k.startswith("train_") for keys in series.values() for k in keys)
+    assert series["dataset-level IoU"] == ["top_shelf_iou", "top_box_iou", "front_shelf_iou", "front_box_iou",
+                                           "val_score"]
+    assert series["paper-protocol mIoU"] == ["top_rack_paper_miou", "top_box_paper_miou", "front_rack_paper_miou",
+                                             "front_box_paper_miou"]
+    write_history(tmp_path, hist)
+    assert (tmp_path / "metrics.png").stat().st_size > 0 and (tmp_path / "loss.png").stat().st_size > 0
+    rows = metrics_rows(tmp_path)
+    assert [r["top_box_paper_miou"] for r in rows] == ["0", "0.1", "0.2"]
+
+    bare = tmp_path / "no-val"
+    bare.mkdir()
+    write_history(bare, [history_row(0, 10, 1e-3, {"loss": 1.0}, None, seconds=1.0, elapsed=60.0)])
+    assert (bare / "loss.png").is_file() and not (bare / "metrics.png").exists()
+
+
 def _cli(*args, env=None, torchrun=False):
     if not torchrun:
         return run_module("racklay", *args, env=env)
