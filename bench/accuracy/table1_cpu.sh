@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Table 1's reproduction row on a CPU, one session at a time: RackLay-D (the shipped Lite0 encoder,
-# the `light` decoder, no discriminators) trained on a paper-sized WareSynth `complex` set
-# (8,000 train / 2,000 val, seed 11, 256² layouts: the set of the GPU runs) for EPOCHS epochs.
+# the `light` decoder, or with DECODER=struct the shipped model's; no discriminators) trained on a
+# paper-sized WareSynth `complex` set (8,000 train / 2,000 val, seed 11, 256² layouts: the set of
+# the GPU runs) for EPOCHS epochs, in the run $RUNS/table1-$DECODER.
 #   bench/accuracy/table1_cpu.sh                 # render if missing, train or continue the run
 #   kill <pid>   (or the session ends)           # any time: the run keeps last.safetensors
 #   (SIGTERM to the script or to its `racklay train`; Ctrl-C in a terminal)
@@ -19,7 +20,8 @@
 set -euo pipefail
 DATA=${DATA:-/work/data/complex8k}
 RUNS=${RUNS:-/work/runs}
-NAME=${NAME:-table1-light}
+DECODER=${DECODER:-light}
+NAME=${NAME:-table1-$DECODER}
 EPOCHS=${EPOCHS:-30}
 PY=${PY:-.venv/bin/python}
 if [ ! -f "$DATA/splits/val.txt" ]; then
@@ -36,7 +38,7 @@ score() {
 if [ -n "${SCORE_ONLY:-}" ]; then score; exit; fi
 RESUME=""
 [ -f "$RUNS/$NAME/last.safetensors" ] && RESUME="--resume"
-$PY -m racklay train --data "$DATA" --out "$RUNS" --name "$NAME" --decoder light --no-disc \
+$PY -m racklay train --data "$DATA" --out "$RUNS" --name "$NAME" --decoder "$DECODER" --no-disc \
   --image-size 160x256 --layout-size 256 --augment paper --class-weights 1,5,10 --batch-size 16 --lr 1e-3 \
   --warmup-steps 200 --epochs "$EPOCHS" --patience 0 --checkpoint-every 100 --seed 0 --no-progress $RESUME &
 train=$!
