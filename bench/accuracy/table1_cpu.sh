@@ -42,11 +42,12 @@ $PY -m racklay train --data "$DATA" --out "$RUNS" --name "$NAME" --decoder "$DEC
   --image-size 160x256 --layout-size 256 --augment paper --class-weights 1,5,10 --batch-size 16 --lr 1e-3 \
   --warmup-steps 200 --epochs "$EPOCHS" --patience 0 --checkpoint-every 100 --seed 0 --no-progress $RESUME &
 train=$!
-# `kill <this script's pid>` (or Ctrl-C) stops the training, which saves last.safetensors and exits
+# `kill <this script's pid>` (or Ctrl-C) stops the training (SIGTERM: it exits 143 and keeps its last
+# checkpoint, written every 100 steps) and the script exits with the trainer's status, unscored
 trap 'kill -TERM "$train" 2>/dev/null' TERM INT
 rc=0; wait "$train" || rc=$?
 if kill -0 "$train" 2>/dev/null; then rc=0; wait "$train" || rc=$?; fi   # the first wait ended at the signal
 [ "$rc" -eq 0 ] || exit "$rc"
-# a stopped run exits 0 as well: score only when every planned epoch is in metrics.csv
+# score only when every planned epoch is in metrics.csv
 done_epochs=$(( $(wc -l < "$RUNS/$NAME/metrics.csv") - 1 ))
 if [ "$done_epochs" -ge "$(sed -n 's/^epochs: //p' "$RUNS/$NAME/config.yaml")" ]; then score; fi
