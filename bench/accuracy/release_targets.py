@@ -40,6 +40,11 @@ NO_EXTRAS = ["--set", "write_depth=false", "--set", "write_normals=false", "--se
              "--set", "write_instance=false", "--set", "write_kitti=false", "--set", "write_coco=false"]
 
 
+def skipped(path: Path) -> bool:
+    """A set's folder option given as '' (which argparse's Path makes '.'): that set is not scored."""
+    return str(path) in ("", ".")
+
+
 def ensure(root: Path, args: list[str]) -> None:
     if (root / "splits" / "test.txt").is_file():
         return
@@ -204,7 +209,7 @@ def main() -> int:
     from racklay.release import resolve_weights
 
     ensure(args.complex, ["--recipe", "complex", "--n", "2000", "--seed", "2027", "--set", "splits={test: 1.0}", *NO_EXTRAS])
-    with_proxy = str(args.proxy_real) not in ("", ".")
+    with_proxy = not skipped(args.proxy_real)
     if with_proxy:
         ensure(args.proxy_real, ["--recipe", "proxy_real", "--n", "542", "--seed", "1", "--set", "layout_size=256"])
     weights = resolve_weights(args.weights)
@@ -218,7 +223,7 @@ def main() -> int:
         sets.append(("proxy-real", args.proxy_real, "test", False, False))
     real = Path(tmp.name) / "real"
     photo_sets = []
-    if str(args.real_photos) not in ("", "."):
+    if not skipped(args.real_photos):
         from annotate.cli import main as annotate_main
         from racklay.data import RackLayRoot
 
