@@ -211,16 +211,16 @@ def load_grown(model: RackLayNet, sd: dict, decoder: str, path) -> None:
     """Load a checkpoint's weights into `model`. Same decoder, or one with the same tensors arranged
     differently (SAME_TENSOR_DECODERS: the model starts close to the checkpoint): every tensor,
     strictly. A decoder grown from the checkpoint's (GROWABLE_DECODERS, or a struct decoder given
-    the 1/4 detail branch or the gap output, `ModelConfig.struct_fine` / `struct_gap`): every
-    tensor the checkpoint has, strictly; the new branches keep their initialisation (made so that
-    the model starts by computing what the checkpoint computed: a zero last layer, the gap output's
-    bias at -6)."""
+    the 1/4 detail branch, the gap output or the back interval, `ModelConfig.struct_fine` /
+    `struct_gap` / `struct_back`): every tensor the checkpoint has, strictly; the new branches keep
+    their initialisation (made so that the model starts by computing what the checkpoint computed:
+    a zero last layer, the gap output's and the back interval's logit bias at -6)."""
     own = model.state_dict()
     extra = sorted(set(sd) - set(own))
     if extra:
         raise ValueError(f"{path}: tensors {extra[:3]} have no place in a {model.cfg.decoder} model"
-                         + (" (a struct model with the 1/4 detail branch, the gap output or the brightness cue? "
-                            "train with --struct-fine / --struct-gap / --struct-cue)"
+                         + (" (a struct model with the 1/4 detail branch, the gap output, the brightness cue or the "
+                            "back interval? train with --struct-fine / --struct-gap / --struct-cue / --struct-back)"
                             if any(f".{sub}." in k for k in extra for sub in StructDecoder.GROWN) else ""))
     grown = grown_tensor_names(model) if (decoder, model.cfg.decoder) not in SAME_TENSOR_DECODERS else set()
     lacking = sorted(set(own) - set(sd) - grown)   # only the new branches may be new

@@ -316,6 +316,11 @@ class TrainConfig:
                "by its own loss; a confident gap cuts the box run there, so loads a hand's width apart come out "
                "as separate boxes; grows from a struct checkpoint without it via --init (default {default})",
         keep=True)
+    struct_back: bool = option(
+        False, "struct decoder, top view: a second depth interval per position, for a box standing behind the "
+               "front one (the front box's own depth is then learnt apart from whether something stands behind "
+               "it, instead of one interval over both); grows from a struct checkpoint without it via --init "
+               "(default {default})", keep=True)
     struct_width: int = option(
         128, "struct decoder: channels of its fuse conv and 1-D convs; narrower is faster (per-layer overhead "
              "soon dominates: bench/speed/decoder_cost.py) and is best trained from a wider model by "
@@ -525,6 +530,7 @@ class ModelConfig:
               "None: plain argmax. Probabilities (and so average precision) are not changed by it.")
     struct_fine: bool = shared("struct_fine")
     struct_gap: bool = shared("struct_gap")
+    struct_back: bool = shared("struct_back")
     struct_width: int = shared("struct_width")
     struct_fuse_k: int = shared("struct_fuse_k")
     struct_joint: bool = shared("struct_joint")
@@ -541,10 +547,13 @@ class ModelConfig:
         bad = [v for v in self.views if v not in VIEWS]
         if not self.views or bad or len(set(self.views)) != len(self.views):
             raise ValueError(f"views must be a non-empty subset of {VIEWS}, got {self.views}")
-        for k, plain in (("struct_fine", False), ("struct_gap", False), ("struct_width", 128), ("struct_fuse_k", 3),
-                         ("struct_joint", False), ("struct_cue", False)):
+        for k, plain in (("struct_fine", False), ("struct_gap", False), ("struct_back", False), ("struct_width", 128),
+                         ("struct_fuse_k", 3), ("struct_joint", False), ("struct_cue", False)):
             if getattr(self, k) != plain and self.decoder != "struct":
                 raise ValueError(f"{k} needs the struct decoder, got {self.decoder!r}")
+        if self.struct_back and "top" not in self.views:
+            raise ValueError(f"struct_back is a second depth interval of the top view; this model predicts only "
+                             f"{'/'.join(self.views)}")
         if self.struct_cue and not self.struct_gap:
             raise ValueError("struct_cue is a second gap detector: it needs the gap output (struct_gap)")
         if self.struct_joint and self.struct_cue:
@@ -622,7 +631,7 @@ def check_decision_bias(bias, views) -> dict:
 #: run does not choose: extent, decision_bias): `TrainConfig.model_config` builds the model from
 #: them, and a fine-tune takes them from its checkpoint (transfer.workflow.train_on_real)
 ARCH_FIELDS = ("R", "image_size", "layout_size", "views", "decoder", "disc", "encoder", "letterbox",
-               "struct_fine", "struct_gap", "struct_width", "struct_fuse_k", "struct_joint", "struct_cue")
+               "struct_fine", "struct_gap", "struct_back", "struct_width", "struct_fuse_k", "struct_joint", "struct_cue")
 #: fields a resumed run must share with the run it continues (declared keep=True; others, e.g.
 #: epochs or max_minutes, may change on resume)
 RUN_DEFINING = run_defining(TrainConfig)

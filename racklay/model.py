@@ -35,6 +35,7 @@ Decoders (each outputs 3·R channels: 3 classes per shelf, reshaped to (N, R, 3,
   both grown from a struct checkpoint (StructDecoder); `ModelConfig.struct_cue` a second gap
   detector that reads only the photo's brightness along each shelf (grown from a checkpoint with
   the gap output; measured, not adopted: docs/results/2026-12-05-forty-fifth-session.md);
+  `ModelConfig.struct_back` a second depth interval in the top view, for a box behind the front one;
   `ModelConfig.struct_joint` gives both views one trunk (`RackLayNet.structures`).
 - `fast`: `light`'s layers (the same tensors) with its last conv3x3-BN-ReLU and 1x1 head run at
   the 1/2-input resolution of the last stage; only the 3·R logits are resized to S x S (bilinear,
@@ -448,6 +449,15 @@ class StructDecoder(nn.Module):
     (`--gap-weight` does that, and costs box IoU). Its bias starts at -6: a checkpoint without it
     starts computing what it computed.
 
+    `back=True` (`ModelConfig.struct_back`, top view only) adds a second depth interval per
+    position: the logit that a box stands behind the front one and that box's near / far fractions.
+    With one interval per position a column holding a front and a back box is one span over both,
+    and a model that cannot see whether something stands behind the front box learns a far edge
+    between the two cases (on WareSynth `complex`, boxes drawn too deep where one box stands and
+    back boxes cut short where two do). With it the front box's far edge is learnt on its own and
+    what stands behind is a probability. Its logit's bias starts at -6: a checkpoint without it
+    starts computing what it computed, up to the front interval now being the front box's.
+
     `cue=True` (`ModelConfig.struct_cue`) adds a brightness cue: the input's luminance at 1/2
     resolution, pooled over each shelf's rows with the same row attention and read at each of the
     T positions over its own width along the shelf, as three per-position channels (darkness
@@ -469,7 +479,7 @@ class StructDecoder(nn.Module):
     heads; `RackLayNet.structures` feeds it the first view's trunk (`trunk`, `read`, `heads`)."""
 
     #: the submodules a checkpoint without the detail branch / the gap output lacks (see `grown_tensor_names`)
-    GROWN = ("red4", "detail", "gap_head", "cue")
+    GROWN = ("red4", "detail", "gap_head", "cue", "back_head")
     #: per-position channels of the brightness cue (`cue_features`)
     N_CUE = 3
     #: with a gap output, draw boxes cut at its gaps (False: the box output alone; `RackLayNet.set_gap_cut`)
@@ -477,12 +487,13 @@ class StructDecoder(nn.Module):
 
     def __init__(self, view: str, R: int, layout_size: int, extent: float, enc_channels, T: int = DEFAULT_T,
                  width: int = 128, fine: bool = False, gap: bool = False, fuse_k: int = 3, trunk: bool = True,
-                 cue: bool = False):
+                 cue: bool = False, back: bool = False):
         super().__init__()
         if cue and not trunk:
             raise ValueError("the brightness cue needs a struct decoder with a trunk of its own (not struct_joint)")
         self.view, self.R, self.layout_size, self.extent, self.T = view, R, layout_size, extent, T
         self.fine, self.gap, self.has_trunk, self.has_cue = fine and trunk, gap, trunk, cue
+        self.back = back and view == "top"
         n_pos = 4 if view == "front" else 6                  # sin/cos of t at a few frequencies
         self.n_freq = n_pos // 2
         if trunk:
@@ -505,6 +516,8 @@ class StructDecoder(nn.Module):
         self.pos_head = nn.Conv1d(width, 2 if view == "front" else 3, 1)
         if gap:
             self.gap_head = nn.Conv1d(width, 1, 1)
+        if self.back:                             # a box behind the front one: logit, near and far fractions
+            self.back_head = nn.Conv1d(width, 3, 1)
         if cue:
             self.cue = nn.Sequential(_conv1d_bn_relu(self.N_CUE, 32, 5), _conv1d_bn_relu(32, 32, 5),
                                      nn.Conv1d(32, 1, 1))                        # -> the cue's gap logit
@@ -587,6 +600,9 @@ class StructDecoder(nn.Module):
             st["height"] = torch.sigmoid(out[:, :, 1])
         else:
             st["near"], st["far"] = torch.sigmoid(out[:, :, 1]), torch.sigmoid(out[:, :, 2])
+            if self.back:
+                b = self.back_head(h).float().reshape(N, R, 3, T)
+                st["back"], st["back_near"], st["back_far"] = b[:, :, 0], torch.sigmoid(b[:, :, 1]), torch.sigmoid(b[:, :, 2])
         return st
 
     def cue_features(self, tr: dict, shelf: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
@@ -639,6 +655,9 @@ class StructDecoder(nn.Module):
         if self.gap:
             self.gap_head.weight.zero_()
             self.gap_head.bias.fill_(-6.0)
+        if self.back:                             # nothing behind yet (a checkpoint without it draws the same)
+            self.back_head.weight.zero_()
+            self.back_head.bias.copy_(torch.tensor([-6.0, 0.0, 2.0]))
         if self.has_cue:                          # no evidence yet; the cue's own logit starts at the gaps' prior
             self.cue[-1].weight.zero_()
             self.cue[-1].bias.fill_(-3.0)
@@ -695,7 +714,7 @@ class RackLayNet(nn.Module):
                 return StructDecoder(view, cfg.R, cfg.layout_size, cfg.extent, self.encoder.channels,
                                      width=cfg.struct_width, fine=cfg.struct_fine, gap=cfg.struct_gap,
                                      fuse_k=cfg.struct_fuse_k, trunk=self.trunk_view(view) == view,
-                                     cue=cfg.struct_cue)
+                                     cue=cfg.struct_cue, back=cfg.struct_back)
             if cfg.decoder == "paper":
                 return PaperDecoder(out, cfg.layout_size, cin)
             if cfg.decoder == "columns":

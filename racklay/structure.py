@@ -12,7 +12,10 @@ Per shelf channel and view (the layout convention of racklay.layout; grid of S p
 - per relative position t in [0, 1) along the shelf (x = (t - 0.5) L), sampled at T bin centres:
   `box`: a box occupies that position; front view: `height`, the box top above the board as a
   fraction of E (boxes stand on the board); top view: `near`, `far`, the box's depth interval as
-  fractions of E measured from the board's front edge.
+  fractions of E measured from the board's front edge. With a back interval (`ModelConfig.struct_back`)
+  `near`, `far` are the front box's (the run of box pixels nearest the camera) and `back` (logit: a
+  box stands behind it), `back_near`, `back_far` the interval of what stands behind; without one
+  they span every box in the column.
 - the struct decoder's structures also carry the shelf's placement in the image, where it reads
   the shelf: `centre` (image widths from the image's centre) and `half` (half-width, image
   widths), one per shelf per view. The truth's is the rack's span across the image at each level
@@ -105,12 +108,19 @@ def rasterize(view: str, st: dict, S: int, extent: float, tau_px: float = DEFAUL
         band = _sig(((E - v) / tau).unsqueeze(-1))                                      # (N, R, h, 1) rows
         box_rows = _sig(((h * E).unsqueeze(2) - v[:, None]) / tau)                      # (N, R, h, w)
     else:
-        fields = torch.stack([st["box"], st["near"], st["far"]], 2).float()
-        q, near, far = sample_positions(fields, t).unbind(2)
+        back = "back" in st
+        keys = ("box", "near", "far") + (("back", "back_near", "back_far") if back else ())
+        fields = sample_positions(torch.stack([st[k] for k in keys], 2).float(), t).unbind(2)
+        q = fields[0]
         above = (torch.ones((), device=dev), torch.zeros((), device=dev))
         band = _sig(((E / 2 - v.abs()) / tau).unsqueeze(-1))
-        y0, y1 = ((near - 0.5) * E).unsqueeze(2), ((far - 0.5) * E).unsqueeze(2)
-        box_rows = _and(_sig((v[:, None] - y0) / tau), _sig((y1 - v[:, None]) / tau))
+
+        def interval(near, far):                                                        # (N, R, h, w) rows
+            y0, y1 = ((near - 0.5) * E).unsqueeze(2), ((far - 0.5) * E).unsqueeze(2)
+            return _and(_sig((v[:, None] - y0) / tau), _sig((y1 - v[:, None]) / tau))
+        box_rows = interval(*fields[1:3])
+        if back:                                   # or a box behind it: (its logit) and (its interval)
+            box_rows = _or(box_rows, _and(_sig(fields[3].unsqueeze(2)), interval(*fields[4:6])))
     # the board edge (front) multiplies shelf and box alike, so it never tips shelf against box
     col = _and(_and(pres, inside), above)
     qb = _and(_sig(q.unsqueeze(2)), box_rows)
@@ -147,11 +157,20 @@ def _and(a: tuple, b: tuple) -> tuple:
     return a[0] * b[0], a[1] + a[0] * b[1]
 
 
-def truth_structure(view: str, layouts: torch.Tensor, extent: float, T: int = DEFAULT_T) -> dict:
+def _or(a: tuple, b: tuple) -> tuple:
+    """(p, 1 - p) of the union of two independent events given as (p, 1 - p)."""
+    return a[0] + a[1] * b[0], a[1] * b[1]
+
+
+def truth_structure(view: str, layouts: torch.Tensor, extent: float, T: int = DEFAULT_T, back: bool = False) -> dict:
     """The structure of ground-truth class-id layouts (N, R, S, S): `presence` (N, R) bool,
     `length`, `extent` metres (N, R), and per position, sampled at the truth's own length (so shape
     is compared with shape whatever the predicted scale): `box` (N, R, T) bool and `height` or
-    `near` / `far` fractions (N, R, T). A shelf is the contiguous run its pixels span."""
+    `near` / `far` fractions (N, R, T). A shelf is the contiguous run its pixels span. Top view
+    with `back`: `near` / `far` are the front box's (the column's run of box pixels nearest the
+    camera), `back` (N, R, T) bool whether box pixels lie behind that run and `back_near` /
+    `back_far` their span (0 where there are none); without it `near` / `far` span every box
+    pixel of the column."""
     N, R, S, _ = layouts.shape
     res = extent / S
     fg = layouts > 0
@@ -174,11 +193,24 @@ def truth_structure(view: str, layouts: torch.Tensor, extent: float, T: int = DE
         big = torch.full_like(box, S, dtype=torch.long)
         r_first = torch.where(box, rows[None, None, :, None], big).amin(2)           # far edge row
         r_last = torch.where(box, rows[None, None, :, None], -big).amax(2)           # near edge row
-        y_far = (S / 2 - r_first.float()) * res
-        y_near = (S / 2 - (r_last.float() + 1)) * res
         half = ext.unsqueeze(-1) / 2
-        out["near"] = ((y_near.gather(2, cols) + half) / safe_e).clamp(0, 1)
-        out["far"] = ((y_far.gather(2, cols) + half) / safe_e).clamp(0, 1)
+
+        def frac(r):                               # a row edge (S / 2 - r pixels from the map centre) -> fraction of E
+            return (((S / 2 - r.float()) * res).gather(2, cols) + half) / safe_e
+
+        out["near"] = frac(r_last + 1).clamp(0, 1)
+        if back:                                   # the near run starts at the last box row whose row above is no box
+            above_box = torch.cat([torch.zeros_like(box[:, :, :1]), box[:, :, :-1]], 2)
+            r_run = torch.where(box & ~above_box, rows[None, None, :, None], -big).amax(2)
+            behind = box & (rows[None, None, :, None] < r_run.unsqueeze(2))
+            b_last = torch.where(behind, rows[None, None, :, None], -big).amax(2)
+            has = behind.any(2)
+            out["far"] = frac(r_run).clamp(0, 1)
+            out["back"] = has.gather(2, cols)
+            out["back_near"] = (frac(b_last + 1) * out["back"]).clamp(0, 1)
+            out["back_far"] = (frac(r_first) * out["back"]).clamp(0, 1)
+        else:
+            out["far"] = frac(r_first).clamp(0, 1)
     return out
 
 
@@ -219,7 +251,8 @@ def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, ga
                    placement_weight: float = 0.0) -> torch.Tensor:
     """Direct supervision of a predicted structure with the truth's: BCE on shelf presence; for
     shelves that exist, L1 of log length and log extent (scale) and, per position, BCE on box and
-    L1 of the box fractions where a box is (shape, sampled at the true length). `gap_weight`
+    L1 of the box fractions where a box is (shape, sampled at the true length); with a back interval
+    (`st["back"]`), BCE on it where a box is and L1 of its fractions where one stands behind. `gap_weight`
     weights the box BCE at the gaps between boxes (`gap_positions`): a gap of 10 cm is ~4 of the 96
     positions of a 2.3 m shelf, so without it bridging two boxes costs the loss next to nothing.
     A structure with a gap output (`StructDecoder(gap=True)`: "gap" and "box_raw") has its box BCE
@@ -231,7 +264,7 @@ def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, ga
     shelf's placement in the image is supervised too (a shelf read from the wrong image columns
     sees the wrong boxes, however well it reads them)."""
     T = st["box"].shape[-1]
-    tr = truth_structure(view, layouts, extent, T)
+    tr = truth_structure(view, layouts, extent, T, back="back" in st)
     pres = tr["presence"]
     loss = F.binary_cross_entropy_with_logits(st["presence"].float(), pres.float())
     if not pres.any():
@@ -260,11 +293,18 @@ def structure_loss(view: str, st: dict, layouts: torch.Tensor, extent: float, ga
     if has_box.any():
         for k in (("height",) if view == "front" else ("near", "far")):
             loss = loss + (st[k].float()[has_box] - tr[k][has_box]).abs().mean()
+        if "back" in st:                           # whether a box stands behind the front one, and where
+            loss = loss + F.binary_cross_entropy_with_logits(st["back"].float()[has_box], tr["back"][has_box].float())
+            has_back = has_box & tr["back"]
+            if has_back.any():
+                for k in ("back_near", "back_far"):
+                    loss = loss + (st[k].float()[has_back] - tr[k][has_back]).abs().mean()
     return loss
 
 
 #: structure fields a distilled student matches (`distill_structure_loss`); each view has those it predicts
-DISTILL_FIELDS = ("presence", "length", "extent", "centre", "half", "box_raw", "box", "gap", "height", "near", "far")
+DISTILL_FIELDS = ("presence", "length", "extent", "centre", "half", "box_raw", "box", "gap", "height", "near", "far",
+                  "back", "back_near", "back_far")
 
 
 def distill_structure_loss(view: str, st: dict, teacher: dict, gap_weight: float = 1.0) -> torch.Tensor:
@@ -272,7 +312,8 @@ def distill_structure_loss(view: str, st: dict, teacher: dict, gap_weight: float
     logit on the teacher's presence probability; for each shelf weighted by that probability, L1 of
     log length, log extent, log half-width and of the placement centre; per position, BCE of the box
     logit (before the gap cut, where there is a gap output) and of the gap logit on the teacher's
-    probabilities, and L1 of the box fractions (height, or near and far) where the teacher sees a
+    probabilities, and L1 of the box fractions (height, or near and far; with a back interval its
+    logit's BCE and its fractions too) where the teacher sees a
     box. Soft targets: the loss does not reach 0 where the teacher is unsure. `gap_weight` weights
     the gap BCE at each position by 1 + (gap_weight - 1) x the teacher's gap probability: gaps are a
     few positions of a shelf, and a student fitted on the mean learns to miss them."""
@@ -292,6 +333,16 @@ def distill_structure_loss(view: str, st: dict, teacher: dict, gap_weight: float
     wb = wpos * torch.sigmoid(teacher[box].float())
     for k in ("height",) if view == "front" else ("near", "far"):
         loss = loss + ((st[k].float() - teacher[k].float()).abs() * wb).sum() / wb.sum().clamp_min(1e-3)
+    if "back" in teacher:                          # a box behind the front one: where the teacher sees a box
+        if "back" not in st:
+            raise ValueError("the teacher has a back interval (struct_back) and the student none: give the "
+                             "student --struct-back")
+        target = torch.sigmoid(teacher["back"].float())
+        loss = loss + (F.binary_cross_entropy_with_logits(st["back"].float(), target, reduction="none") * wb).sum() \
+            / wb.sum().clamp_min(1e-3)
+        wk = wb * target
+        for k in ("back_near", "back_far"):
+            loss = loss + ((st[k].float() - teacher[k].float()).abs() * wk).sum() / wk.sum().clamp_min(1e-3)
     return loss
 
 

@@ -541,7 +541,7 @@ def start_run_dir(run: Run, n_train: int, n_val: int, n_replay: int = 0) -> None
     write_config(run.dir, cfg)
     hw = mcfg.input_hw
     replay = f" + {n_replay} replay from {' + '.join(cfg.replay)} (new each epoch)" if n_replay else ""
-    print(f"{mcfg.variant()} ({cfg.encoder} encoder, {cfg.decoder}{' + 1/4 detail' if cfg.struct_fine else ''}{' + gap output' if cfg.struct_gap else ''} decoder), {n_train} train{replay} / "
+    print(f"{mcfg.variant()} ({cfg.encoder} encoder, {cfg.decoder}{' + 1/4 detail' if cfg.struct_fine else ''}{' + gap output' if cfg.struct_gap else ''}{' + back interval' if cfg.struct_back else ''} decoder), {n_train} train{replay} / "
           f"{n_val} val images, {hw[1]}x{hw[0]}->{cfg.layout_size}, {'bf16' if run.bf16 else 'fp32'}, "
           f"{run.dist.world} process(es) on {run.dist.device}, "
           f"{torch.get_num_threads()} thread(s) each -> {run.dir}")

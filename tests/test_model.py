@@ -203,6 +203,49 @@ def test_struct_gap_output_grows_from_a_struct_checkpoint_and_cuts_box_runs():
         ModelConfig(decoder="light", struct_gap=True)
 
 
+def test_struct_back_interval_grows_from_a_struct_checkpoint_and_draws_a_box_behind():
+    """`struct_back` (a second depth interval in the top view) grown from a struct checkpoint starts
+    by predicting the same layouts (its logit's bias is -6); the front view has none; once its logit
+    says a box stands behind, the top view draws box over the back interval, and only there; it
+    learns from the structure loss; it needs the struct decoder and a top view, and its checkpoint
+    does not load into a model without it (the error names the flag)."""
+    from racklay.checkpoint import load_grown
+    from racklay.layout import BOX
+    from racklay.structure import structure_loss
+
+    a, b, x = _struct_grown_with("struct_back")
+    with torch.no_grad():
+        ya, (yb, sb) = a(x), b(x, with_structure=True)
+    for v in ("top", "front"):
+        assert torch.equal(ya[v].argmax(2), yb[v].argmax(2))
+        assert torch.allclose(ya[v].exp(), yb[v].exp(), atol=0.01)           # probabilities within 1 %
+    assert "back" in sb["top"] and "back" not in sb["front"]
+    dec = b.decoders["top"]
+    with torch.no_grad():
+        dec.pos_head.bias[0] = 8.0                                     # a box at every position ...
+        dec.back_head.bias.copy_(torch.tensor([8.0, 0.0, 4.0]))        # ... and one behind it, to the back edge
+        st = b(x, with_structure=True)[1]["top"]
+        top = b(x)["top"].argmax(2)
+        dec.back_head.bias[0] = -8.0
+        top_none = b(x)["top"].argmax(2)
+    added = (top == BOX) & (top_none != BOX)
+    assert added.any() and not ((top_none == BOX) & (top != BOX)).any()
+    assert (st["back_far"] > st["back_near"]).all()
+    b.train()
+    truth = torch.zeros(2, 2, 32, 32, dtype=torch.long)
+    truth[:, 0, 13:19, 6:26] = 1                                       # a shelf 6 px deep
+    truth[:, 0, 13:14, 8:20] = 2                                       # a back box ...
+    truth[:, 0, 16:19, 8:20] = 2                                       # ... behind a front box
+    structure_loss("top", b.decoders["top"].structure(b.features(x)), truth, b.cfg.extent).backward()
+    assert dec.back_head.weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="no place in a struct model.*--struct-back"):
+        load_grown(a, b.state_dict(), "struct", "back.safetensors")
+    with pytest.raises(ValueError, match="struct_back needs the struct decoder"):
+        ModelConfig(decoder="light", struct_back=True)
+    with pytest.raises(ValueError, match="struct_back is a second depth interval of the top view"):
+        ModelConfig(decoder="struct", struct_back=True, views=("front",))
+
+
 def test_struct_brightness_cue_grows_from_a_struct_checkpoint_and_reads_dark_slots():
     """`struct_cue` (the brightness cue, a second gap detector) grown from a struct checkpoint with
     a gap output predicts exactly what the checkpoint did (its evidence starts at zero); the drawn

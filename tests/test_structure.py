@@ -53,7 +53,44 @@ def test_structure_of_a_layout_draws_it_back_with_its_separate_boxes(view):
     assert not (drawn[1] == L.BOX).any() and not drawn[2].any()
 
 
-@pytest.mark.parametrize("view", ["front", "top"])
+def _front_and_back_boxes(length=2.0, depth=0.8, clear=0.5):
+    """Top view of a shelf with a box behind another over part of its length (a gap in depth
+    between them), and a single box beside them."""
+    boxes = [L.Box(-0.45, -0.25, 0.9, 0.25, 0.3), L.Box(-0.45, 0.25, 0.9, 0.2, 0.4), L.Box(0.5, -0.2, 0.6, 0.35, 0.3)]
+    shelf = L.Shelf(length, depth, clear)
+    top, _ = L.stack_shelves([L.rasterize_shelf(shelf, boxes, G), L.rasterize_shelf(shelf, [], G)], R=2, grid=G)
+    return torch.from_numpy(top)[None].long()
+
+
+def test_a_back_interval_draws_a_box_behind_another_and_one_interval_cannot():
+    """Top view, a box behind the front one in the same columns: with the back interval
+    (`truth_structure(back=True)`, the struct_back form) the structure draws both boxes and the
+    free board between them; with one interval per position the two merge into one span (the
+    board between them drawn as box). The single box beside them has nothing behind it."""
+    lay = _front_and_back_boxes()
+    truth = lay[0, 0].numpy()
+    gap_cols = (truth == L.BOX).any(0) & ((np.diff((truth == L.BOX).astype(np.int8), axis=0) > 0).sum(0) == 2)
+    assert gap_cols.sum() > 10                                     # the layout has columns with two boxes in depth
+    hull = rasterize("top", _as_prediction(truth_structure("top", lay, EXT, T=S)), S, EXT, tau_px=0.01)
+    back_tr = truth_structure("top", lay, EXT, T=S, back=True)
+    both = rasterize("top", _as_prediction(back_tr), S, EXT, tau_px=0.01)
+    hull, both = hull.argmax(2)[0, 0].numpy(), both.argmax(2)[0, 0].numpy()
+    assert (both == truth).mean() > 0.998
+    assert ((both[:, gap_cols] == L.BOX) == (truth[:, gap_cols] == L.BOX)).mean() > 0.99
+    assert (hull[:, gap_cols] == L.BOX).sum() > (truth[:, gap_cols] == L.BOX).sum() + 2 * gap_cols.sum()
+    assert back_tr["back"][0, 0].any() and not back_tr["back"][0, 1].any()      # the empty shelf: nothing behind
+    assert (back_tr["box"][0, 0] & ~back_tr["back"][0, 0]).any()                   # the single box: nothing behind
+    single = truth_structure("top", lay, EXT, T=S)                 # near/far of a column with one box: the same
+    one = back_tr["box"][0, 0] & ~back_tr["back"][0, 0]
+    for k in ("near", "far"):
+        assert torch.allclose(back_tr[k][0, 0][one], single[k][0, 0][one])
+    good = structure_loss("top", _as_prediction(back_tr), lay, EXT)
+    wrong = _as_prediction(back_tr)
+    wrong["back"] = -wrong["back"]
+    assert good < 1e-3 and structure_loss("top", wrong, lay, EXT) > good + 1.0
+
+
+@pytest.mark.parametrize("view", ["front", "top", "top-back"])
 @pytest.mark.parametrize("tau", [DEFAULT_TAU_PX, HARD_TAU_PX])
 def test_rasterize_draws_the_same_layouts_in_its_window_as_on_the_whole_grid(view, tau):
     """Drawing only the window the shelves can reach (the default, for speed) gives the whole
@@ -67,6 +104,11 @@ def test_rasterize_draws_the_same_layouts_in_its_window_as_on_the_whole_grid(vie
         st["height"] = torch.rand(N, R, T, generator=g)
     else:
         st["near"], st["far"] = torch.rand(N, R, T, generator=g) * 0.5, 0.5 + torch.rand(N, R, T, generator=g) * 0.5
+    if view == "top-back":
+        st["back"] = torch.randn(N, R, T, generator=g) * 3
+        st["back_near"] = 0.5 + torch.rand(N, R, T, generator=g) * 0.3
+        st["back_far"] = st["back_near"] + torch.rand(N, R, T, generator=g) * (1 - st["back_near"])
+    view = view[:3] if view != "front" else view
     drawn, grads = [], []
     for window in (True, False):
         leaves = {k: v.clone().requires_grad_() for k, v in st.items()}
@@ -386,6 +428,23 @@ def test_struct_model_exports_to_onnx_with_the_same_layouts(struct_ckpt, tmp_pat
 
     x = torch.randn(2, 3, 64, 64)
     a, b = Predictor(struct_ckpt).predict_batch(x)[0], Predictor(out).predict_batch(x)[0]
+    for v in ("top", "front"):
+        assert (a[v] == b[v]).mean() > 0.999
+
+
+def test_struct_model_with_a_back_interval_exports_to_onnx_and_draws_the_same(tmp_path):
+    from racklay.checkpoint import save_checkpoint
+    from racklay.predict import Predictor
+
+    net = _struct_net(R=2, img=64, lay=64, struct_back=True)
+    with torch.no_grad():                   # something behind the front box at about half the positions
+        net.decoders["top"].back_head.weight.normal_(0, 0.5)
+        net.decoders["top"].back_head.bias.copy_(torch.tensor([0.0, 0.0, 3.0]))
+    ck = save_checkpoint(tmp_path / "back.safetensors", net, net.cfg)
+    out = tmp_path / "back.onnx"
+    assert racklay_main(["export", "--weights", str(ck), "--onnx", str(out)]) == 0
+    x = torch.randn(2, 3, 64, 64)
+    a, b = Predictor(ck).predict_batch(x)[0], Predictor(out).predict_batch(x)[0]
     for v in ("top", "front"):
         assert (a[v] == b[v]).mean() > 0.999
 

@@ -16,6 +16,8 @@
 # any time (SCORE_ONLY=1 skips training):
 #   SCORE_ONLY=1 bench/accuracy/table1_cpu.sh
 # One 8,000-image epoch takes ~9 min on a 2-core Zen 4 in bf16 with nothing else running, validation included (the first fills the cache; sharing the cores doubles it).
+# FLAGS adds racklay train options to the recipe (an arm: e.g. FLAGS=--struct-back NAME=table1-struct-back
+# with DECODER=struct); a resumed run must be given the same FLAGS (the trainer refuses others).
 # The GPU recipe (bench/accuracy/table1_gpu.sh) is the same but for the batch (16 here) and its time schedule.
 set -euo pipefail
 DATA=${DATA:-/work/data/complex8k}
@@ -23,6 +25,7 @@ RUNS=${RUNS:-/work/runs}
 DECODER=${DECODER:-light}
 NAME=${NAME:-table1-$DECODER}
 EPOCHS=${EPOCHS:-30}
+FLAGS=${FLAGS:-}
 PY=${PY:-.venv/bin/python}
 if [ ! -f "$DATA/splits/val.txt" ]; then
   $PY -m racklay synth --recipe complex --n 10000 --seed 11 --out "$DATA" --workers "$(nproc)" \
@@ -40,7 +43,7 @@ RESUME=""
 [ -f "$RUNS/$NAME/last.safetensors" ] && RESUME="--resume"
 $PY -m racklay train --data "$DATA" --out "$RUNS" --name "$NAME" --decoder "$DECODER" --no-disc \
   --image-size 160x256 --layout-size 256 --augment paper --class-weights 1,5,10 --batch-size 16 --lr 1e-3 \
-  --warmup-steps 200 --epochs "$EPOCHS" --patience 0 --checkpoint-every 100 --seed 0 --no-progress $RESUME &
+  --warmup-steps 200 --epochs "$EPOCHS" --patience 0 --checkpoint-every 100 --seed 0 --no-progress $RESUME $FLAGS &
 train=$!
 # `kill <this script's pid>` (or Ctrl-C) stops the training (SIGTERM: it exits 143 and keeps its last
 # checkpoint, written every 100 steps) and the script exits with the trainer's status, unscored
