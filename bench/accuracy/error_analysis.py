@@ -6,7 +6,11 @@ Per view, on N images spread over the split: dataset-level shelf / box / footpri
 IoU; box IoU inside the true footprint and the box-vs-shelf accuracy there; visible-shelf
 channels in truth and prediction; per shelf channel, the footprint IoU before and after the x / y
 rescale about the map centre (0.6-1.6) that fits the truth best, the median best scale, and box
-IoU after applying that scale. docs/results/2026-11-22-to-26-accuracy-log.md ("Where the error is") was measured with it.
+IoU after applying that scale. Top view: where the box error lies in depth, as shares of the true
+box pixels missed (FN) and drawn wrongly (FP) in columns where truth and prediction disagree on
+whether a box stands, in columns with one box in depth and in columns with a box behind another
+(where a one-interval structure must hedge; `--struct-back`).
+docs/results/2026-11-22-to-26-accuracy-log.md ("Where the error is") was measured with it.
 Prints numbers; asserts nothing.
 """
 import argparse
@@ -84,3 +88,15 @@ for v in cfg.views:
     print(f"  per-channel footprint IoU (both non-empty, {len(base)}): mean {base.mean():.3f}; with the best "
           f"x/y scale {best.mean():.3f}; median best scale x {bsx.median():.2f} y {bsy.median():.2f}; "
           f"|log s| > 0.1 in {((bsx.log().abs() > 0.1) | (bsy.log().abs() > 0.1)).float().mean():.2f}")
+    if v == "top":                                                 # rows are depth, columns run along the shelf
+        pb, gb = p == 2, g == 2
+        runs = (gb & ~F.pad(gb, (0, 0, 1, 0))[..., :-1, :]).sum(2)  # (N, R, S) separate box runs per column
+        agree = pb.any(2) & gb.any(2)
+        fn, fp, total = gb & ~pb, pb & ~gb, max(gb.sum().item(), 1)
+        parts = (("presence disagrees", ~agree), ("one box in depth", agree & (runs == 1)),
+                 ("a box behind another", agree & (runs >= 2)))
+        print(f"  box error in depth (shares of the {total} true box pixels; columns with a box behind another: "
+              f"{(runs >= 2).sum().item()} of {(runs >= 1).sum().item()}):")
+        for name, cols in parts:
+            m = cols.unsqueeze(2)
+            print(f"    {name:<22} FN {(fn & m).sum().item() / total:.3f}  FP {(fp & m).sum().item() / total:.3f}")
