@@ -171,7 +171,8 @@ def prune_decoder(src, dst) -> None:
         k = conv_bn(src.pos_seq[i], dst.pos_seq[i], k)
     dst.shelf_head.weight.copy_(src.shelf_head.weight[:, k4])
     dst.shelf_head.bias.copy_(src.shelf_head.bias)
-    for h in ("pos_head", "gap_head") if src.gap and dst.gap else ("pos_head",):
+    heads = ("pos_head",) + (("gap_head",) if src.gap and dst.gap else ()) + (("back_head",) if src.back and dst.back else ())
+    for h in heads:
         getattr(dst, h).weight.copy_(getattr(src, h).weight[:, k])
         getattr(dst, h).bias.copy_(getattr(src, h).bias)
 

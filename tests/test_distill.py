@@ -102,6 +102,31 @@ def test_pruned_student_starts_from_the_teachers_own_channels(setup, tmp_path):
         student_for(teacher, tcfg, replace(cfg, struct_joint=True))
 
 
+def test_a_pruned_student_of_a_teacher_with_a_back_interval_keeps_it(setup, tmp_path):
+    """A teacher with the top view's back interval (`struct_back`): the student has one too, and cut
+    to the teacher's width it computes the teacher's back fields; the distillation loss reaches them."""
+    from racklay.distill import student_for
+
+    data, _ = setup
+    tcfg = ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="struct", struct_back=True)
+    torch.manual_seed(0)
+    teacher = RackLayNet(tcfg).eval()
+    with torch.no_grad():
+        teacher.decoders["top"].back_head.weight.normal_(0, 0.5)
+    x = torch.rand(2, 3, 64, 128)
+    want = teacher.structures(teacher.encoder(x))["top"]
+    cfg = DistillConfig(out=str(tmp_path / "s.safetensors"), data=(str(data),), init="pruned",
+                        struct_width=tcfg.struct_width, struct_fuse_k=tcfg.struct_fuse_k)
+    student, _ = student_for(teacher, tcfg, cfg)
+    got = student.eval().structures(student.encoder(x))["top"]
+    for k in ("back", "back_near", "back_far"):
+        torch.testing.assert_close(got[k], want[k], rtol=1e-4, atol=1e-4)
+    fresh, _ = student_for(teacher, tcfg, replace(cfg, init="random"))
+    st = fresh.train().structures(fresh.encoder(x))["top"]
+    distill_structure_loss("top", st, {k: v.detach() for k, v in want.items()}).backward()
+    assert fresh.decoders["top"].back_head.weight.grad.abs().sum() > 0
+
+
 def test_distill_refuses_what_it_cannot_use(setup, tmp_path, tmp_path_factory, capsys):
     data, teacher = setup
     light = tmp_path / "light.safetensors"
