@@ -189,10 +189,14 @@ def truth_structure(view: str, layouts: torch.Tensor, extent: float, T: int = DE
         heights = box.sum(2).float() * res                # boxes stand on the board: their top
         out["height"] = (heights.gather(2, cols) / safe_e).clamp(0, 1)
     else:
-        rows = torch.arange(S, device=layouts.device)
+        rows = torch.arange(S, device=layouts.device)[None, None, :, None]            # row index, per column
         big = torch.full_like(box, S, dtype=torch.long)
-        r_first = torch.where(box, rows[None, None, :, None], big).amin(2)           # far edge row
-        r_last = torch.where(box, rows[None, None, :, None], -big).amax(2)           # near edge row
+
+        def last_row(m):                           # per column, the last row where m holds (-S where none)
+            return torch.where(m, rows, -big).amax(2)
+
+        r_first = torch.where(box, rows, big).amin(2)                                   # far edge row
+        r_last = last_row(box)                                                          # near edge row
         half = ext.unsqueeze(-1) / 2
 
         def frac(r):                               # a row edge (S / 2 - r pixels from the map centre) -> fraction of E
@@ -201,9 +205,9 @@ def truth_structure(view: str, layouts: torch.Tensor, extent: float, T: int = DE
         out["near"] = frac(r_last + 1).clamp(0, 1)
         if back:                                   # the near run starts at the last box row whose row above is no box
             above_box = torch.cat([torch.zeros_like(box[:, :, :1]), box[:, :, :-1]], 2)
-            r_run = torch.where(box & ~above_box, rows[None, None, :, None], -big).amax(2)
-            behind = box & (rows[None, None, :, None] < r_run.unsqueeze(2))
-            b_last = torch.where(behind, rows[None, None, :, None], -big).amax(2)
+            r_run = last_row(box & ~above_box)
+            behind = box & (rows < r_run.unsqueeze(2))
+            b_last = last_row(behind)
             has = behind.any(2)
             out["far"] = frac(r_run).clamp(0, 1)
             out["back"] = has.gather(2, cols)
