@@ -7,15 +7,23 @@ import csv
 import io
 from pathlib import Path
 
+#: metrics.csv's columns that differ between two runs of the same recipe on the same data: the
+#: clock and the threads the machine gave the run
+MACHINE_COLUMNS = ("seconds", "elapsed_min", "val_seconds", "threads")
 
-def history_row(epoch, step, lr, tr: dict, val: dict | None, seconds, elapsed, val_seconds=None) -> dict:
+
+def history_row(epoch, step, lr, tr: dict, val: dict | None, seconds, elapsed, val_seconds=None,
+                threads=None) -> dict:
     """One epoch's row of metrics.csv: step, learning rate, training losses, time (the epoch's,
-    of it validation's, and the run's), and the validation loss, score and per-view IoU when the
-    epoch was validated."""
+    of it validation's, and the run's), the CPU threads that trained it (torch threads x
+    processes, on a CPU), and the validation loss, score and per-view IoU when the epoch was
+    validated."""
     row = {"epoch": epoch, "step": step, "lr": lr, **{f"train_{k}": v for k, v in tr.items()},
            "seconds": round(seconds, 1), "elapsed_min": round(elapsed / 60, 2)}
     if val_seconds is not None:
         row["val_seconds"] = round(val_seconds, 1)
+    if threads is not None:
+        row["threads"] = int(threads)
     if val is not None:
         row["val_loss"] = val["loss"]
         row["val_score"] = val["score"]
@@ -46,6 +54,45 @@ def write_history(run_dir: Path, history: list[dict]) -> None:
         plot_curves(run_dir, history)
     except Exception as e:  # noqa: BLE001 - a figure must never stop training
         print(f"warning: could not draw curves: {e}")
+
+
+def read_history(path: str | Path) -> list[dict]:
+    """A run's metrics.csv read back (PATH: the run folder or the file itself), one dict per epoch
+    with its numbers as floats (`epoch` and `step` as ints; empty cells left out). A missing,
+    empty or foreign file is a one-line error naming it."""
+    path = Path(path)
+    f = path / "metrics.csv" if path.is_dir() else path
+    if not f.is_file():
+        raise SystemExit(f"{f}: no such file (a `racklay train` run folder or its metrics.csv)")
+    with open(f, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        raise SystemExit(f"{f}: no epochs recorded yet")
+    if "epoch" not in rows[0] or "elapsed_min" not in rows[0]:
+        raise SystemExit(f"{f}: not a run's metrics.csv (no epoch / elapsed_min column)")
+    out = []
+    for i, r in enumerate(rows, 2):
+        try:
+            out.append({k: (int(v) if k in ("epoch", "step") else float(v)) for k, v in r.items() if v not in ("", None)})
+        except ValueError as e:
+            raise SystemExit(f"{f}: line {i}: {e}") from None
+    return out
+
+
+def cpu_minutes(history: list[dict], threads: int | None = None) -> list[float | None]:
+    """The run's CPU-minutes (wall time x threads x processes) at the end of each epoch: from the
+    `threads` metrics.csv records per epoch (so a run resumed on another machine adds each part at
+    its own thread count), else the run's wall minutes x `threads` (its config's, where set).
+    None where neither says how many threads ran (runs recorded before the column, on the
+    default thread count); GPU runs record none."""
+    if all("threads" in r for r in history):
+        total, last, out = 0.0, 0.0, []
+        for r in history:   # elapsed_min carries an epoch's time from before a resume; seconds do not
+            total += (r["elapsed_min"] - last) * r["threads"]
+            last = r["elapsed_min"]
+            out.append(total)
+        return out
+    return [r["elapsed_min"] * threads if threads else None for r in history]
 
 
 def validation_series(history: list[dict]) -> dict[str, list[str]]:
@@ -103,4 +150,5 @@ def plot_curves(run_dir: Path, history: list[dict]) -> None:
     save_figure(fig, run_dir / "metrics.png")
 
 
-__all__ = ["history_row", "write_history", "plot_curves", "validation_series"]
+__all__ = ["MACHINE_COLUMNS", "history_row", "write_history", "plot_curves", "validation_series",
+           "read_history", "cpu_minutes"]

@@ -691,7 +691,8 @@ def record_epoch(run: Run, st: RunState, tr: dict, val_loader, total_steps: int,
     val = validate(run.model, val_loader, cfg, run.weight, run.dist.device, progress=cfg.progress, bf16=run.bf16)
     val_s = time.time() - t_val
     row = history_row(epoch, st.step, lr_at(max(0, st.global_step - 1), total_steps, cfg, st.elapsed_s),
-                       tr, val, time.time() - t_epoch, st.elapsed_s, val_seconds=val_s)
+                       tr, val, time.time() - t_epoch, st.elapsed_s, val_seconds=val_s,
+                       threads=torch.get_num_threads() * run.dist.world if run.dist.device.type == "cpu" else None)
     st.history.append(row)
     improved = val["score"] > st.best_score
     if improved:

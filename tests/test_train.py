@@ -21,6 +21,7 @@ from conftest import ENV, make_toy, metrics_rows, run_module
 from racklay.checkpoint import load_checkpoint, load_model, save_checkpoint
 from racklay.data import RackLayRoot
 from racklay.distributed import epoch_batches
+from racklay.history import MACHINE_COLUMNS
 from racklay.model import ModelConfig, RackLayNet
 from racklay.train import TrainConfig, train
 
@@ -113,6 +114,57 @@ def test_curves_plot_validation_scores_never_the_training_iou_term(tmp_path):
     assert (bare / "loss.png").is_file() and not (bare / "metrics.png").exists()
 
 
+def test_cpu_minutes_follow_the_threads_of_each_part_of_a_run(tmp_path):
+    """Time to accuracy is read in CPU-minutes: a run trained on 2 threads, then resumed on 4,
+    counts each epoch's wall time (from elapsed_min, which keeps an epoch's time from before a
+    resume) at its own thread count; a run recorded without the column falls back to the
+    config's threads, or says it cannot tell. metrics.csv round-trips as numbers."""
+    from racklay.history import cpu_minutes, history_row, read_history, write_history
+
+    hist = [history_row(e, 10 * (e + 1), 1e-3, {"loss": 1.0}, None, seconds=50.0, elapsed=60.0 * (e + 1),
+                        threads=2 if e < 2 else 4) for e in range(3)]
+    write_history(tmp_path, hist)
+    back = read_history(tmp_path)
+    assert [r["epoch"] for r in back] == [0, 1, 2] and back[2]["threads"] == 4.0
+    assert cpu_minutes(back) == [2.0, 4.0, 8.0]
+    old = [{k: v for k, v in r.items() if k != "threads"} for r in back]
+    assert cpu_minutes(old, threads=2) == [2.0, 4.0, 6.0]
+    assert cpu_minutes(old) == [None, None, None]
+    (tmp_path / "empty.csv").write_text("epoch,step,elapsed_min\n")
+    with pytest.raises(SystemExit, match="empty.csv: no epochs recorded yet"):
+        read_history(tmp_path / "empty.csv")
+    with pytest.raises(SystemExit, match="nope: no such file"):
+        read_history(tmp_path / "nope")
+
+
+def test_run_curves_compares_runs_by_epoch_and_by_cpu_minutes(tmp_path, capsys):
+    """bench.figures.run_curves: two runs' validation curves side by side, as a table and a figure,
+    along epochs or CPU-minutes (a run on 1 thread costs half the CPU-minutes of the same wall
+    time on 2); a metric no run has is refused by name."""
+    from bench.figures.run_curves import main
+    from racklay.history import history_row, write_history
+
+    def result(x):
+        return {"dataset": {"shelf": {"IoU": x}, "box": {"IoU": x / 2}},
+                "paper": {"rack": {"mIoU": x}, "box": {"mIoU": x}}}
+
+    for name, threads, acc in (("a", 1, 0.4), ("b", 2, 0.6)):
+        hist = [history_row(e, e + 1, 1e-3, {"loss": 1.0}, {"loss": 0.5, "score": acc + 0.1 * e,
+                            "result": {"top": result(acc + 0.1 * e)}}, seconds=60.0, elapsed=60.0 * (e + 1),
+                            threads=threads) for e in range(2)]
+        write_history(tmp_path / name, hist)
+    out = tmp_path / "curves.png"
+    assert main([f"A={tmp_path / 'a'}", str(tmp_path / "b" / "metrics.csv"), "--metrics", "top_box_iou,val_score",
+                 "--x", "cpu-minutes", "--out", str(out)]) == 0
+    table = capsys.readouterr().out.splitlines()
+    assert table[0] == ("| epoch | A: top_box_iou | A: val_score | metrics: top_box_iou | metrics: val_score "
+                        "| A: CPU-min | metrics: CPU-min |")
+    assert table[2:4] == ["| 1 | 20.0 | 40.0 | 30.0 | 60.0 | 1 | 2 |", "| 2 | 25.0 | 50.0 | 35.0 | 70.0 | 2 | 4 |"]
+    assert out.stat().st_size > 0
+    with pytest.raises(SystemExit, match="'front_box_iou' is in no run's metrics.csv"):
+        main([str(tmp_path / "a"), "--metrics", "front_box_iou"])
+
+
 def _cli(*args, env=None, torchrun=False):
     if not torchrun:
         return run_module("racklay", *args, env=env)
@@ -152,7 +204,7 @@ def test_sigkill_then_resume_matches_uninterrupted_run(tmp_path, toy):
     ra, rb = _rows(ref), _rows(tmp_path / "crash")
     assert len(ra) == len(rb) == 2
     for x, y in zip(ra, rb):
-        assert {k: v for k, v in x.items() if k not in WALL_CLOCK} == {k: v for k, v in y.items() if k not in WALL_CLOCK}
+        assert {k: v for k, v in x.items() if k not in MACHINE_COLUMNS} == {k: v for k, v in y.items() if k not in MACHINE_COLUMNS}
     # resuming a finished run is a no-op with a message
     r = _cli("train", "--out", str(tmp_path), "--name", "crash", "--resume", "--no-progress")
     assert r.returncode == 0 and "already finished" in r.stdout
@@ -170,6 +222,7 @@ def test_torchrun_two_processes(tmp_path, toy):
     assert rows[0]["step"] == str(len(epoch_batches(14, 4, 0, 0, 2, 0))) == "2"
     model, cfg, meta = load_model(run / "best.safetensors")
     assert cfg.R == 4 and meta["epoch"] == 0
+    assert rows[0]["threads"] == "2"    # 1 thread in each of 2 processes: the run's CPU-minutes count both
 
 
 def test_init_checks_and_run_guards(tmp_path, toy):
@@ -473,14 +526,14 @@ def test_stale_checkpoint_temp_files_removed_at_next_start(tmp_path, toy):
     assert load_checkpoint(run / "last.safetensors").meta["global_step"] == 1
 
 
-# the golden run: a fixed-seed 2-epoch run whose metrics.csv (every column but the wall-clock ones)
+# the golden run: a fixed-seed 2-epoch run whose metrics.csv (every column but the machine's:
+# clock and threads)
 # was recorded before train() was restructured; behaviour is unchanged while it still matches.
 # It covers a frozen-encoder epoch, the discriminators joining in epoch 2, paper augmentation and
 # mid-epoch checkpoints. fp32 on one thread; CPUs differ in the last bits, hence the tolerance.
 GOLDEN = Path(__file__).parent / "data" / "train_golden_metrics.json"
 GOLDEN_CFG = dict(epochs=2, disc=True, disc_start=1, freeze_encoder_epochs=1, augment="paper", amp="fp32",
                   checkpoint_every=3, seed=5, **TINY)
-WALL_CLOCK = ("seconds", "elapsed_min", "val_seconds")
 
 
 #: The golden numbers were recorded with PyTorch's AVX2 kernels. AVX-512 kernels (e.g. on an AMD
@@ -503,7 +556,7 @@ def golden_rows(toy, out) -> list[dict]:
     r = subprocess.run([sys.executable, "-c", code, json.dumps(cfg)], env={**ENV, **GOLDEN_KERNELS},
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
-    return [{k: (int(v) if k in ("epoch", "step") else float(v)) for k, v in row.items() if k not in WALL_CLOCK}
+    return [{k: (int(v) if k in ("epoch", "step") else float(v)) for k, v in row.items() if k not in MACHINE_COLUMNS}
             for row in _rows(Path(out) / "golden")]
 
 

@@ -27,7 +27,8 @@ held-out split of `--data` (WareSynth `complex` for the reproduction row):
   else the box logit, negated; 0.5 is no skill), sampled along each true shelf as the structure
   loss is, so it reads the shape whatever the metric size. It needs no threshold: an arm that
   separates no shelf may still carry a signal a threshold or a photo step could use, or may not;
-- time to accuracy: the run's CPU-minutes (wall minutes x threads x processes) and CPU-minutes per
+- time to accuracy: the run's CPU-minutes (wall minutes x threads x processes, as metrics.csv
+  records them; `-` for a run recorded before it did, on the default threads) and CPU-minutes per
   point of validation score (mean of shelf and box IoU, x100);
 - with `--photos` (an annotate project, e.g. the labelled real photos): metric and scale-from-truth
   IoU on them (out of domain: the arms were trained on renders only), and the photos whose labels
@@ -43,7 +44,6 @@ Targets of the issue are printed beside the numbers (MET / NOT MET); nothing is 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import tempfile
@@ -135,19 +135,16 @@ def gap_cell(g: dict | None) -> str:
     return f"{g['auc']:.2f} ({g['median_shelf']:.2f}; {g['shelves']:g})" if g else "-"
 
 
-def run_cost(run: Path) -> tuple[float, float]:
-    """(CPU-minutes of the run, best validation score x 100) from config.yaml and metrics.csv."""
+def run_cost(run: Path) -> tuple[float | None, float]:
+    """(CPU-minutes of the run, None where its metrics.csv and config.yaml do not say how many
+    threads trained it (`racklay.history.cpu_minutes`); best validation score x 100)."""
+    from racklay.history import cpu_minutes, read_history
     from racklay.yamlfile import read_yaml_mapping
 
     cfg = read_yaml_mapping(run / "config.yaml", "run config")
-    with open(run / "metrics.csv") as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
-        raise SystemExit(f"{run}/metrics.csv: no epochs recorded yet")
-    minutes = max(float(r["elapsed_min"]) for r in rows)
-    threads = int(cfg.get("threads") or 1)
-    best = max(float(r["val_score"]) for r in rows if r.get("val_score"))
-    return minutes * threads, 100 * best
+    rows = read_history(run)
+    best = max((r["val_score"] for r in rows if "val_score" in r), default=float("nan"))
+    return cpu_minutes(rows, cfg.get("threads"))[-1], 100 * best
 
 
 def scores(res: dict) -> dict:
@@ -288,8 +285,9 @@ def main() -> int:
     for name, r in out.items():
         m = r["metric"]
         paper = " / ".join(f"{m[v]['rack_mIoU']:.1f}, {m[v]['box_mIoU']:.1f}" for v in ("top", "front") if v in m)
-        cost = ("- | - | -" if r["cpu_minutes"] is None else f"{r['cpu_minutes']:.0f} | {r['best_val']:.1f} | "
-                f"{r['cpu_minutes'] / max(r['best_val'], 1e-9):.2f}")
+        cpu, best = r["cpu_minutes"], r["best_val"]
+        cost = (f"{'-' if cpu is None else f'{cpu:.0f}'} | {'-' if best is None else f'{best:.1f}'} | "
+                f"{'-' if cpu is None or best is None else f'{cpu / max(best, 1e-9):.2f}'}")
         print(f"| {name} | {fmt(m)} | {fmt_ap(m)} | {fmt(r['shape'])} | {paper} | {sep_cell(r['separation'])} | {gap_cell(r['gap_auc'])} | {cost} |")
     print(f"(placed: the arm's gaps where the truth's are, within {L.GAP_TOLERANCE:.0%} of the shelf's length; "
           f"one cut in the middle of every shelf would place {centre_cut(args.data, args.split, args.limit, pred.layout_size)})")
