@@ -85,8 +85,12 @@ def main(argv=None) -> int:
 
         from racklay.viz import save_figure
 
-        fig, axes = plt.subplots(1, len(metrics), figsize=(3.6 * len(metrics), 3.4), squeeze=False)
-        for ax, m in zip(axes[0], metrics):
+        cols = min(3, len(metrics))
+        rows = -(-len(metrics) // cols)
+        fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.3 * rows), squeeze=False)
+        for ax in axes.flat[len(metrics):]:
+            ax.axis("off")
+        for ax, m in zip(axes.flat, metrics):
             for name, rows, cpu in runs:
                 pts = [(cpu[i] if args.x == "cpu-minutes" else r["epoch"] + 1, 100 * r[m])
                        for i, r in enumerate(rows) if m in r]
@@ -97,7 +101,8 @@ def main(argv=None) -> int:
             if args.x == "epoch":
                 ax.xaxis.set_major_locator(MaxNLocator(integer=True))
             ax.grid(alpha=0.3)
-        axes[0][0].set_ylabel("validation, x100")
+        for ax in axes[:, 0]:
+            ax.set_ylabel("validation, x100")
         axes[0][0].legend(fontsize=8)
         fig.tight_layout()
         print(f"wrote {save_figure(fig, args.out)}")
