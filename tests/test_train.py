@@ -157,9 +157,9 @@ def test_run_curves_compares_runs_by_epoch_and_by_cpu_minutes(tmp_path, capsys):
     assert main([f"A={tmp_path / 'a'}", str(tmp_path / "b" / "metrics.csv"), "--metrics", "top_box_iou,val_score",
                  "--x", "cpu-minutes", "--out", str(out)]) == 0
     table = capsys.readouterr().out.splitlines()
-    assert table[0] == ("| epoch | A: top_box_iou | A: val_score | metrics: top_box_iou | metrics: val_score "
-                        "| A: CPU-min | metrics: CPU-min |")
-    assert table[2:4] == ["| 1 | 20.0 | 40.0 | 30.0 | 60.0 | 1 | 2 |", "| 2 | 25.0 | 50.0 | 35.0 | 70.0 | 2 | 4 |"]
+    assert table[0] == ("| epoch | top_box_iou: A | top_box_iou: metrics | val_score: A | val_score: metrics "
+                        "| CPU-min: A | CPU-min: metrics |")
+    assert table[2:4] == ["| 1 | 20.0 | 30.0 | 40.0 | 60.0 | 1 | 2 |", "| 2 | 25.0 | 35.0 | 50.0 | 70.0 | 2 | 4 |"]
     assert out.stat().st_size > 0
     with pytest.raises(SystemExit, match="'front_box_iou' is in no run's metrics.csv"):
         main([str(tmp_path / "a"), "--metrics", "front_box_iou"])

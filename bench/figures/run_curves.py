@@ -64,14 +64,12 @@ def main(argv=None) -> int:
                 sys.exit(f"{name}: its metrics.csv and config.yaml do not say how many threads trained it; "
                          "compare it --x epoch")
 
-    # the table: one row per epoch (or each run's last), a column per run and metric
-    print("| epoch | " + " | ".join(f"{n}: {m}" for n in names for m in metrics) + " | " + " | ".join(f"{n}: CPU-min" for n in names) + " |")
+    # the table: one row per epoch, each metric's runs side by side, then each run's CPU-minutes
+    print("| epoch | " + " | ".join(f"{m}: {n}" for m in metrics for n in names) + " | " + " | ".join(f"CPU-min: {n}" for n in names) + " |")
     print("|---" * (1 + len(names) * (len(metrics) + 1)) + "|")
     for e in sorted({r["epoch"] for _, rows, _ in runs for r in rows}):
-        cells = []
-        for _, rows, _ in runs:
-            r = next((r for r in rows if r["epoch"] == e), {})
-            cells += [f"{100 * r[m]:.1f}" if m in r else "" for m in metrics]
+        at = [next((r for r in rows if r["epoch"] == e), {}) for _, rows, _ in runs]
+        cells = [f"{100 * r[m]:.1f}" if m in r else "" for m in metrics for r in at]
         for _, rows, cpu in runs:
             i = next((i for i, r in enumerate(rows) if r["epoch"] == e), None)
             cells.append("" if i is None or cpu[i] is None else f"{cpu[i]:.0f}")
