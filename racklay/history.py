@@ -80,19 +80,19 @@ def read_history(path: str | Path) -> list[dict]:
 
 
 def cpu_minutes(history: list[dict], threads: int | None = None) -> list[float | None]:
-    """The run's CPU-minutes (wall time x threads x processes) at the end of each epoch: from the
-    `threads` metrics.csv records per epoch (so a run resumed on another machine adds each part at
-    its own thread count), else the run's wall minutes x `threads` (its config's, where set).
-    None where neither says how many threads ran (runs recorded before the column, on the
-    default thread count); GPU runs record none."""
-    if all("threads" in r for r in history):
-        total, last, out = 0.0, 0.0, []
-        for r in history:   # elapsed_min carries an epoch's time from before a resume; seconds do not
-            total += (r["elapsed_min"] - last) * r["threads"]
-            last = r["elapsed_min"]
-            out.append(total)
-        return out
-    return [r["elapsed_min"] * threads if threads else None for r in history]
+    """The run's CPU-minutes (wall time x threads x processes) at the end of each epoch, each
+    epoch's wall time (from elapsed_min, which keeps an epoch's time from before a resume; its
+    `seconds` do not) at the threads metrics.csv records for it, so a run resumed on another
+    machine adds each part at its own count; an epoch recorded without them (before the column)
+    at `threads` (the run config's, where set). None from the first epoch where neither says
+    how many threads ran; GPU runs record none."""
+    total, last, out = 0.0, 0.0, []
+    for r in history:
+        t = r.get("threads", threads)
+        total = None if total is None or not t else total + (r["elapsed_min"] - last) * t
+        last = r["elapsed_min"]
+        out.append(total)
+    return out
 
 
 def validation_series(history: list[dict]) -> dict[str, list[str]]:

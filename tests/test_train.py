@@ -130,6 +130,7 @@ def test_cpu_minutes_follow_the_threads_of_each_part_of_a_run(tmp_path):
     old = [{k: v for k, v in r.items() if k != "threads"} for r in back]
     assert cpu_minutes(old, threads=2) == [2.0, 4.0, 6.0]
     assert cpu_minutes(old) == [None, None, None]
+    assert cpu_minutes(old[:1] + back[1:], threads=2) == [2.0, 4.0, 8.0]   # resumed after the column came
     (tmp_path / "empty.csv").write_text("epoch,step,elapsed_min\n")
     with pytest.raises(SystemExit, match="empty.csv: no epochs recorded yet"):
         read_history(tmp_path / "empty.csv")
@@ -526,9 +527,9 @@ def test_stale_checkpoint_temp_files_removed_at_next_start(tmp_path, toy):
     assert load_checkpoint(run / "last.safetensors").meta["global_step"] == 1
 
 
-# the golden run: a fixed-seed 2-epoch run whose metrics.csv (every column but the machine's:
-# clock and threads)
-# was recorded before train() was restructured; behaviour is unchanged while it still matches.
+# the golden run: a fixed-seed 2-epoch run whose metrics.csv (every column but the machine's: the
+# clock and the threads) was recorded before train() was restructured; behaviour is unchanged
+# while it still matches.
 # It covers a frozen-encoder epoch, the discriminators joining in epoch 2, paper augmentation and
 # mid-epoch checkpoints. fp32 on one thread; CPUs differ in the last bits, hence the tolerance.
 GOLDEN = Path(__file__).parent / "data" / "train_golden_metrics.json"

@@ -84,8 +84,8 @@ def main(argv=None) -> int:
         from racklay.viz import save_figure
 
         cols = min(3, len(metrics))
-        rows = -(-len(metrics) // cols)
-        fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.3 * rows), squeeze=False)
+        nrows = -(-len(metrics) // cols)
+        fig, axes = plt.subplots(nrows, cols, figsize=(4.2 * cols, 3.3 * nrows), squeeze=False)
         for ax in axes.flat[len(metrics):]:
             ax.axis("off")
         for ax, m in zip(axes.flat, metrics):
