@@ -9,7 +9,8 @@ rescale about the map centre (0.6-1.6) that fits the truth best, the median best
 IoU after applying that scale. Top view: where the box error lies in depth, as shares of the true
 box pixels missed (FN) and drawn wrongly (FP) in columns where truth and prediction disagree on
 whether a box stands, in columns with one box in depth and in columns with a box behind another
-(where a one-interval structure must hedge; `--struct-back`).
+(where a one-interval structure must hedge; `--struct-back`), and on renders the top-view box
+IoU and those two depth errors by the camera's height above each shelf's board.
 docs/results/2026-11-22-to-26-accuracy-log.md ("Where the error is") was measured with it.
 Prints numbers; asserts nothing.
 """
@@ -100,3 +101,23 @@ for v in cfg.views:
         for name, cols in parts:
             m = cols.unsqueeze(2)
             print(f"    {name:<22} FN {(fn & m).sum().item() / total:.3f}  FP {(fp & m).sum().item() / total:.3f}")
+        # the same by where the camera is: its height above each shelf's board (renders' meta). From
+        # below a board the tops of its boxes are hidden; from above, their depth is in view.
+        metas = [ds.root.read_meta(ds.ids[i]) or {} for i in idx]
+        if all("camera" in m and "shelf_board_tops" in m for m in metas):
+            above = torch.full(gb.shape[:2], float("nan"))
+            for j, m in enumerate(metas):
+                tops = m["shelf_board_tops"][:cfg.R]
+                above[j, :len(tops)] = m["camera"]["position_world"][2] - torch.tensor(tops, dtype=torch.float32)
+            print("  top-view box IoU by the camera's height above the shelf's board (shelf channels with a true box):")
+            has = gb.flatten(2).any(2)
+            for rng, lo, hi in (("below", -99, 0.0), ("0-0.5 m", 0.0, 0.5), ("0.5-1 m", 0.5, 1.0),
+                                ("1-2 m", 1.0, 2.0), ("2 m +", 2.0, 99)):
+                sel = has & (above >= lo) & (above < hi)
+                if sel.any():
+                    s_ = sel[..., None, None]
+                    single = (fp & s_ & (agree & (runs == 1)).unsqueeze(2)).sum().item()
+                    behind = (fn & s_ & (agree & (runs >= 2)).unsqueeze(2)).sum().item()
+                    tb = max((gb & s_).sum().item(), 1)
+                    print(f"    {rng:<10} {sel.sum().item():>4} channels  box IoU {iou(pb & s_, gb & s_):.3f}  "
+                          f"too deep behind single boxes {single / tb:.3f}  back boxes missed {behind / tb:.3f}")
