@@ -95,6 +95,19 @@ def cpu_minutes(history: list[dict], threads: int | None = None) -> list[float |
     return out
 
 
+def run_cpu_minutes(path: str | Path) -> tuple[list[dict], list[float | None]]:
+    """A run's metrics.csv rows (`read_history`) and its CPU-minutes at each epoch's end
+    (`cpu_minutes`), with the threads of the run's config.yaml, where there is one, for epochs
+    recorded without them. PATH is a run folder or a metrics.csv file (its config.yaml beside it)."""
+    from .yamlfile import read_yaml_mapping
+
+    path = Path(path)
+    rows = read_history(path)
+    cfg = (path if path.is_dir() else path.parent) / "config.yaml"
+    threads = read_yaml_mapping(cfg, "run config").get("threads") if cfg.is_file() else None
+    return rows, cpu_minutes(rows, threads)
+
+
 def validation_series(history: list[dict]) -> dict[str, list[str]]:
     """The columns of metrics.csv that `metrics.png` draws, per panel: the dataset-level IoU per
     view and class with the validation score (what runs are compared by), and the paper-protocol
@@ -151,4 +164,4 @@ def plot_curves(run_dir: Path, history: list[dict]) -> None:
 
 
 __all__ = ["MACHINE_COLUMNS", "history_row", "write_history", "plot_curves", "validation_series",
-           "read_history", "cpu_minutes"]
+           "read_history", "cpu_minutes", "run_cpu_minutes"]

@@ -137,14 +137,14 @@ def gap_cell(g: dict | None) -> str:
 
 def run_cost(run: Path) -> tuple[float | None, float]:
     """(CPU-minutes of the run, None where its metrics.csv and config.yaml do not say how many
-    threads trained it (`racklay.history.cpu_minutes`); best validation score x 100)."""
-    from racklay.history import cpu_minutes, read_history
-    from racklay.yamlfile import read_yaml_mapping
+    threads trained it (`racklay.history.run_cpu_minutes`); best validation score x 100)."""
+    from racklay.history import run_cpu_minutes
 
-    cfg = read_yaml_mapping(run / "config.yaml", "run config")
-    rows = read_history(run)
+    if not (run / "config.yaml").is_file():
+        raise SystemExit(f"{run}: no config.yaml (an arm is a `racklay train` run folder or a checkpoint file)")
+    rows, cpu = run_cpu_minutes(run)
     best = max((r["val_score"] for r in rows if "val_score" in r), default=float("nan"))
-    return cpu_minutes(rows, cfg.get("threads"))[-1], 100 * best
+    return cpu[-1], 100 * best
 
 
 def scores(res: dict) -> dict:

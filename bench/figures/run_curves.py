@@ -8,7 +8,7 @@ RUN is a `racklay train` run folder (its metrics.csv; config.yaml for the thread
 before metrics.csv kept them) or a metrics.csv file (e.g. one a GPU script copied back). An A/B
 at equal epochs reads `--x epoch` (the default: the same learning rate at each point when the runs
 share a schedule); one at equal CPU time reads `--x cpu-minutes` (wall minutes x threads x
-processes: `racklay.history.cpu_minutes`). Metrics are metrics.csv's validation columns
+processes: `racklay.history.run_cpu_minutes`). Metrics are metrics.csv's validation columns
 (`racklay.history.validation_series`: dataset-level IoU per view and class, `val_score`, and the
 paper-protocol mIoU), drawn x 100.
 """
@@ -18,7 +18,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from racklay.history import cpu_minutes, read_history, validation_series
+from racklay.history import run_cpu_minutes, validation_series
 
 DEFAULT_METRICS = ("top_box_iou", "top_shelf_iou", "front_box_iou", "front_shelf_iou", "val_score")
 
@@ -29,14 +29,8 @@ def load_run(spec: str) -> tuple[str, list[dict], list]:
     if not sep:
         name, path = "", spec
     p = Path(path)
-    rows = read_history(p)
-    threads = None
-    cfg = (p if p.is_dir() else p.parent) / "config.yaml"
-    if cfg.is_file():
-        from racklay.yamlfile import read_yaml_mapping
-
-        threads = read_yaml_mapping(cfg, "run config").get("threads")
-    return name or (p.name if p.is_dir() else p.stem), rows, cpu_minutes(rows, threads)
+    rows, cpu = run_cpu_minutes(p)
+    return name or (p.name if p.is_dir() else p.stem), rows, cpu
 
 
 def main(argv=None) -> int:
@@ -67,12 +61,11 @@ def main(argv=None) -> int:
     # the table: one row per epoch, each metric's runs side by side, then each run's CPU-minutes
     print("| epoch | " + " | ".join(f"{m}: {n}" for m in metrics for n in names) + " | " + " | ".join(f"CPU-min: {n}" for n in names) + " |")
     print("|---" * (1 + len(names) * (len(metrics) + 1)) + "|")
-    for e in sorted({r["epoch"] for _, rows, _ in runs for r in rows}):
-        at = [next((r for r in rows if r["epoch"] == e), {}) for _, rows, _ in runs]
-        cells = [f"{100 * r[m]:.1f}" if m in r else "" for m in metrics for r in at]
-        for _, rows, cpu in runs:
-            i = next((i for i, r in enumerate(rows) if r["epoch"] == e), None)
-            cells.append("" if i is None or cpu[i] is None else f"{cpu[i]:.0f}")
+    by_epoch = [{r["epoch"]: (r, c) for r, c in zip(rows, cpu)} for _, rows, cpu in runs]
+    for e in sorted({e for run in by_epoch for e in run}):
+        at = [run.get(e, ({}, None)) for run in by_epoch]
+        cells = [f"{100 * r[m]:.1f}" if m in r else "" for m in metrics for r, _ in at]
+        cells += ["" if c is None else f"{c:.0f}" for _, c in at]
         print(f"| {e + 1} | " + " | ".join(cells) + " |")
 
     if args.out:
