@@ -545,3 +545,23 @@ def test_rack_box_reads_the_outlined_rack_and_says_so(ckpt, toy, tmp_path, capsy
             racklay_main(["predict", str(img), "--weights", str(ckpt), "--out", str(tmp_path / "x"),
                           "--rack-box", bad])
         assert "--rack-box" in capsys.readouterr().err
+
+
+def test_table1_scoring_refuses_a_test_set_of_another_recipe(tmp_path, monkeypatch):
+    """release_targets (and table1_cpu.sh's scoring through it) renders the WareSynth test set of
+    the recipe it is told, and refuses a folder that holds another recipe's renders instead of
+    scoring the model on them; a folder of the same recipe is used as it is."""
+    import subprocess
+
+    from bench.accuracy.release_targets import ensure
+
+    root = tmp_path / "complex-test"
+    (root / "splits").mkdir(parents=True)
+    (root / "splits" / "test.txt").write_text("000000\n")
+    (root / "waresynth.json").write_text(json.dumps({"recipe": {"name": "complex"}, "n": 2000, "seed": 2027}))
+    monkeypatch.setattr(subprocess, "run", lambda *a, **k: pytest.fail(f"rendered: {a}"))
+    with pytest.raises(SystemExit) as e:
+        ensure(root, ["--recipe", "complex_paper", "--n", "2000", "--seed", "2027"])
+    msg = str(e.value)
+    assert str(root / "waresynth.json") in msg and "'complex'" in msg and "'complex_paper'" in msg
+    ensure(root, ["--recipe", "complex", "--n", "2000", "--seed", "2027"])   # there already: nothing rendered

@@ -174,7 +174,7 @@ def _footprints_overlap(a: L.Box, b: L.Box) -> bool:
     return True
 
 
-@pytest.mark.parametrize("recipe", ["simple", "complex", "proxy_real"])
+@pytest.mark.parametrize("recipe", ["simple", "complex", "proxy_real", "complex_paper"])
 def test_boxes_stand_on_shelves_without_intersecting(recipe):
     r = load_recipe(recipe)
     n_stacked = 0
@@ -204,6 +204,30 @@ def test_boxes_stand_on_shelves_without_intersecting(recipe):
                 b = o.layout_box
                 assert np.allclose(o.center, (b.cx, b.cy, sh.board_top + b.z0 + b.sz / 2))
     assert n_stacked > 0
+
+
+def test_paper_placement_centres_each_item_at_its_category_size_and_front_anchor_sets_back():
+    """`complex_paper` (box_anchor centre, no jitter, never turned) puts every item that stands
+    on a board on the shelf's depth centre line at its category's nominal footprint, yawed by at
+    most 5 degrees; `complex` with `setback: 0` puts every one flush with the board's front edge
+    (2 cm margin) when nothing stands behind it, and `complex` itself sets some back."""
+    def board_items(recipe, n=12):
+        for index in range(n):
+            scene = sample_scene(recipe, 5, index)
+            for sh in scene.shelves:
+                for i in sh.items:
+                    if scene.objects[i].layout_box.z0 == 0:
+                        yield scene, scene.objects[i]
+
+    items = list(board_items(load_recipe("complex_paper")))
+    assert len(items) > 50
+    for scene, o in items:
+        b, (sx, sy, _) = o.layout_box, CATEGORIES[o.category][1]
+        assert b.cy == 0.0 and (b.sx, b.sy) == (sx, sy) and abs(b.yaw) <= math.radians(5) + 1e-12, (o.category, b)
+    flush = [(s, o) for s, o in board_items(load_recipe("complex", {"setback": 0.0, "back_row": 0.0}))]
+    assert flush and all(abs(o.layout_box.y_range()[0] - (-s.rack_depth / 2 + 0.02)) < 1e-9 for s, o in flush)
+    front = [o.layout_box.y_range()[0] + s.rack_depth / 2 for s, o in board_items(load_recipe("complex"))]
+    assert max(front) > 0.1
 
 
 def test_visible_shelves_rule_and_channels():

@@ -3,7 +3,8 @@
   .venv/bin/python -m bench.accuracy.release_targets [--weights FILE] [--complex DIR] [--proxy-real DIR]
 
 1. WareSynth `complex` test split (2,000 images never trained on: another seed than the release
-   set, and another recipe), scored at the data's own 512 x 512 resolution (`--native`):
+   set, and another recipe; `--complex-recipe complex_paper` for the paper authors' box placement),
+   scored at the data's own 512 x 512 resolution (`--native`):
    paper-protocol mIoU against the paper's RackLay-D-disc row (93.15 / 95.07 / 90.75 / 94.29)
    and dataset-level box IoU against >= 70 (top) and >= 75 (front).
 2. Cross-domain, no fine-tuning: the proxy-real test split (100 images of `transfer`'s benchmark
@@ -46,6 +47,15 @@ def skipped(path: Path) -> bool:
 
 
 def ensure(root: Path, args: list[str]) -> None:
+    """Render the set at `root` with these `racklay synth` arguments unless it is there; a set
+    there made with another recipe (its manifest's `recipe.name`) is refused in one line."""
+    recipe = args[args.index("--recipe") + 1]
+    manifest = root / "waresynth.json"
+    if manifest.is_file():
+        made = json.loads(manifest.read_text()).get("recipe", {}).get("name")
+        if made != recipe:
+            raise SystemExit(f"{manifest}: {root} was rendered with recipe {made!r}, not {recipe!r}; "
+                             f"give its recipe or another folder")
     if (root / "splits" / "test.txt").is_file():
         return
     cmd = [sys.executable, "-m", "racklay", "synth", "--out", str(root), "--no-progress", "--workers", "2", *args]
@@ -192,6 +202,9 @@ def main() -> int:
     ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
     ap.add_argument("--complex", default="/work/data/complex-test", type=Path,
                     help="WareSynth complex test set (rendered with seed 2027 if missing)")
+    ap.add_argument("--complex-recipe", default="complex",
+                    help="the recipe of that test set (default complex; complex_paper: the paper authors' "
+                         "box placement); a set made with another recipe is refused")
     ap.add_argument("--proxy-real", default="/work/data/proxy_real", type=Path,
                     help="proxy-real set of bench/accuracy/transfer_table2.sh (rendered with seed 1 if missing; "
                          "'' to skip: with --real-photos '' only the Table 1 row, as table1_cpu.sh prints it)")
@@ -208,7 +221,7 @@ def main() -> int:
     from racklay.predict import Predictor
     from racklay.release import resolve_weights
 
-    ensure(args.complex, ["--recipe", "complex", "--n", "2000", "--seed", "2027", "--set", "splits={test: 1.0}", *NO_EXTRAS])
+    ensure(args.complex, ["--recipe", args.complex_recipe, "--n", "2000", "--seed", "2027", "--set", "splits={test: 1.0}", *NO_EXTRAS])
     with_proxy = not skipped(args.proxy_real)
     if with_proxy:
         ensure(args.proxy_real, ["--recipe", "proxy_real", "--n", "542", "--seed", "1", "--set", "layout_size=256"])
@@ -245,7 +258,7 @@ def main() -> int:
     rows = []
     c = out["complex"]["result"]
     n = c["top"]["images"]
-    print(f"\nWareSynth complex test split, {n} images, scored at the data's resolution")
+    print(f"\nWareSynth {args.complex_recipe} test split, {n} images, scored at the data's resolution")
     print("| cell | paper-protocol mIoU | paper RackLay-D-disc | dataset-level IoU | target |")
     print("|---|---|---|---|---|")
     for view in ("top", "front"):
@@ -258,7 +271,7 @@ def main() -> int:
             line = f"| {view} {cls} | {m:.2f} ({'MET' if ok_m else f'NOT MET, {m - ref:+.2f}'}) | {ref:.2f} | {iou:.2f} |"
             line += (f" box IoU >= {tgt:g}: {'MET' if iou >= tgt else f'NOT MET ({iou - tgt:+.2f})'} |" if tgt else " - |")
             print(line)
-            rows.append({"set": "complex", "view": view, "class": cls, "paper_mIoU": m, "dataset_IoU": iou})
+            rows.append({"set": args.complex_recipe, "view": view, "class": cls, "paper_mIoU": m, "dataset_IoU": iou})
     if with_proxy:
         p = out["proxy-real"]["result"]
         print(f"\nproxy-real test split (cross-domain, no fine-tuning), {p['top']['images']} images")

@@ -18,17 +18,23 @@
 # One 8,000-image epoch takes ~9 min on a 2-core Zen 4 in bf16 with nothing else running, validation included (the first fills the cache; sharing the cores doubles it).
 # FLAGS adds racklay train options to the recipe (an arm: e.g. FLAGS=--struct-back NAME=table1-struct-back
 # with DECODER=struct); a resumed run must be given the same FLAGS (the trainer refuses others).
+# RECIPE=complex_paper trains and scores on the WareSynth recipe with the paper authors' box placement
+# (items centred on the shelf's depth, fixed sizes: docs/waresynth.md), in $DATA=/work/data/complex_paper8k,
+# the run table1-complex_paper-$DECODER and the test set /work/data/complex_paper-test.
 # The GPU recipe (bench/accuracy/table1_gpu.sh) is the same but for the batch (16 here) and its time schedule.
 set -euo pipefail
-DATA=${DATA:-/work/data/complex8k}
+RECIPE=${RECIPE:-complex}
+if [ "$RECIPE" = complex ]; then TAG=""; else TAG="$RECIPE-"; fi
+DATA=${DATA:-/work/data/${RECIPE}8k}
+TEST=${TEST:-/work/data/${RECIPE}-test}
 RUNS=${RUNS:-/work/runs}
 DECODER=${DECODER:-light}
-NAME=${NAME:-table1-$DECODER}
+NAME=${NAME:-table1-$TAG$DECODER}
 EPOCHS=${EPOCHS:-30}
 FLAGS=${FLAGS:-}
 PY=${PY:-.venv/bin/python}
 if [ ! -f "$DATA/splits/val.txt" ]; then
-  $PY -m racklay synth --recipe complex --n 10000 --seed 11 --out "$DATA" --workers "$(nproc)" \
+  $PY -m racklay synth --recipe "$RECIPE" --n 10000 --seed 11 --out "$DATA" --workers "$(nproc)" \
     --set layout_size=256 --set 'splits={train: 0.8, val: 0.2, test: 0.0}' --set write_depth=false \
     --set write_normals=false --set write_semantic=false --set write_instance=false --set write_kitti=false \
     --set write_coco=false --no-progress
@@ -36,7 +42,7 @@ fi
 LIMIT=${LIMIT:-400}
 score() {
   $PY -m bench.accuracy.release_targets --weights "$RUNS/$NAME/best.safetensors" --limit "$LIMIT" \
-    --proxy-real '' --real-photos ''
+    --complex "$TEST" --complex-recipe "$RECIPE" --proxy-real '' --real-photos ''
 }
 if [ -n "${SCORE_ONLY:-}" ]; then score; exit; fi
 RESUME=""

@@ -103,6 +103,9 @@ class Recipe:
     crate_fraction: float = _f(0.25, "float", 0.0, 1.0, "probability that an item is a crate, not a carton")
     size_jitter: float = _f(0.12, "float", 0.0, 0.5, "relative size variation within a category")
     back_row: float = _f(0.5, "float", 0.0, 1.0, "probability of a second box row behind a shallow box")
+    turn_fraction: float = _f(0.25, "float", 0.0, 1.0, "probability that an item stands turned, its two footprint sides swapped (a category's depth is then its width)")
+    box_anchor: str = _f("front", "choice:front|centre", doc="where an item (the front row) stands across the shelf: 'front' at the shelf's front edge, set back by up to `setback`; 'centre' centred on the shelf's depth, as the paper authors' WareSynth places every item (its back rows then fit only behind a shallow item on a deep shelf)")
+    setback: float = _f(0.6, "float", 0.0, 1.0, "box_anchor 'front': an item's set-back from the front edge is U(0, free depth) x U(0, setback) (0: every item flush with the front edge)")
     # --- camera ---------------------------------------------------------------------------
     focal_px: list = _f([330.0, 520.0], "frange", 50.0, 5000.0, "focal length in pixels (fx = fy)")
     long_lens_fraction: float = _f(0.0, "float", 0.0, 1.0, "probability that a camera zooms in: its focal length comes from long_focal_px instead of focal_px (phone zoom, crops of larger frames)")

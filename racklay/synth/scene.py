@@ -304,7 +304,7 @@ def fill_shelf(rng, r: Recipe, length: float, depth: float, max_top: float, dens
     while misfits < 3:
         cat = _category(rng, r)
         sx, sy, sz = _item_size(rng, r, cat)
-        if rng.uniform() < 0.25:
+        if rng.uniform() < r.turn_fraction:
             sx, sy = sy, sx
         sy = min(sy, depth - 2 * margin)
         if sz > max_top:
@@ -325,8 +325,11 @@ def fill_shelf(rng, r: Recipe, length: float, depth: float, max_top: float, dens
         misfits = 0
         if rng.uniform() < density:
             free = depth - 2 * margin - 2 * ey
-            # front row: pushed towards the front edge, with some random set-back
-            cy = -depth / 2 + margin + ey + float(rng.uniform(0, free)) * float(rng.uniform(0, 0.6))
+            # front row: pushed towards the front edge, with some random set-back (both draws made
+            # for either anchor, so that the scenes of the other keys do not depend on it)
+            cy = -depth / 2 + margin + ey + float(rng.uniform(0, free)) * float(rng.uniform(0, r.setback))
+            if r.box_anchor == "centre":
+                cy = 0.0
             base = L.Box(cx=x + ex, cy=cy, sx=sx, sy=sy, sz=sz, z0=0.0, yaw=yaw)
             items.append((cat, base))
             _stack(rng, r, items, cat, base, slot, (-depth / 2 + margin, depth / 2 - margin), max_top, stack_max)
