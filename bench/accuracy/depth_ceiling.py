@@ -52,20 +52,24 @@ def main(argv=None) -> int:
     shelf_back = np.where(foot, rows, D).min(2)[:, :, None, :]
     print(f"{args.data} [{args.split}]: {len(ids)} images, {int(box.sum())} true top-view box pixels, D = {D}")
 
-    def sweep(edge):
-        return max((iou(has & (rows <= edge) & (rows > edge - k), box), k) for k in range(1, D // 4))
+    def sweep(band):
+        """The best constant depth k (rows) for boxes in every box column, band(k) their rows."""
+        return max((iou(has & band(k), box), k) for k in range(1, D // 4))
 
-    best, k = sweep(front)
+    def behind(edge):
+        return lambda k: (rows <= edge) & (rows > edge - k)
+
+    best, k = sweep(behind(front))
     print(f"presence and front edge known, constant depth: box IoU {100 * best:.1f} (best depth {k} rows)")
     for f in (0.5, 0.7, 1.0):
         kk = np.maximum(1, np.round(f * (front - shelf_back + 1)))
         print(f"presence and front edge known, depth {f:.0%} of the shelf behind it: box IoU "
               f"{100 * iou(has & (rows <= front) & (rows > front - kk), box):.1f}")
-    best, k = sweep(shelf_front)
+    best, k = sweep(behind(shelf_front))
     print(f"presence known, drawn from the shelf's front edge, constant depth: box IoU {100 * best:.1f} (best depth {k} rows)")
     # centred on the shelf's depth (the placement of the paper authors' WareSynth, recipe complex_paper)
     mid2 = shelf_front + shelf_back                                  # twice the shelf's centre row
-    best, k = max((iou(has & (2 * rows <= mid2 + k) & (2 * rows > mid2 - k), box), k) for k in range(1, D // 4))
+    best, k = sweep(lambda k: (2 * rows <= mid2 + k) & (2 * rows > mid2 - k))
     print(f"presence known, centred on the shelf's depth, constant depth: box IoU {100 * best:.1f} (best depth {k} rows)")
     return 0
 

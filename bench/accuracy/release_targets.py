@@ -49,8 +49,10 @@ def skipped(path: Path) -> bool:
 def ensure(root: Path, args: list[str]) -> None:
     """Render the set at `root` with these `racklay synth` arguments unless it is there; a set
     there made with another recipe (its manifest's `recipe.name`) is refused in one line."""
+    from racklay.data import SYNTH_MANIFEST
+
     recipe = args[args.index("--recipe") + 1]
-    manifest = root / "waresynth.json"
+    manifest = root / SYNTH_MANIFEST
     if manifest.is_file():
         made = json.loads(manifest.read_text()).get("recipe", {}).get("name")
         if made != recipe:
