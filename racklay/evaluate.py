@@ -2,9 +2,10 @@
 protocol) and dataset-level IoU / precision / recall / AP, via `racklay.metrics.LayoutMetrics`.
 
 By default layouts are compared at the model's layout size S (ground truth resized with
-`racklay.layout.resize_layouts`, as in training). `native=True` instead upsamples the
-predictions (nearest, at pixel centres) to the dataset's own resolution D and scores there, which
-is what the paper's numbers at D = 512 mean when the model predicts at a smaller S.
+`racklay.layout.resize_layouts`, as in training). `native=True` instead scores at the dataset's
+own resolution D, which is what the paper's numbers at D = 512 mean when the model was trained at
+a smaller S: a struct model on the torch backend draws its layouts at D (`Predictor.draw_at`),
+any other model's are upsampled (nearest, at pixel centres).
 """
 from __future__ import annotations
 
@@ -90,7 +91,9 @@ def evaluate(weights, data, split: str | None = "test", batch_size: int = 8, bac
         from tqdm import tqdm
 
         bar = tqdm(total=len(ds), desc=f"eval {split or 'all'}", unit="img", leave=False)
-    with torch.inference_mode():
+    shape = root.layout_shape(ds.ids[:20], views) if native else None
+    draw = shape[1] if shape else None       # a struct model draws at the dataset's D
+    with torch.inference_mode(), pred.drawing_at(draw):
         for batch in loader:
             classes, probs = pred.predict_batch(batch["image"])
             truth = {v: (np.stack([root.read_layouts(v, sid, R=pred.R) for sid in batch["id"]]) if native

@@ -484,6 +484,8 @@ class StructDecoder(nn.Module):
     N_CUE = 3
     #: with a gap output, draw boxes cut at its gaps (False: the box output alone; `RackLayNet.set_gap_cut`)
     cut_gaps = True
+    #: the layout size `draw` rasterises at; None = the trained `layout_size` (`RackLayNet.set_draw_size`)
+    draw_size = None
 
     def __init__(self, view: str, R: int, layout_size: int, extent: float, enc_channels, T: int = DEFAULT_T,
                  width: int = 128, fine: bool = False, gap: bool = False, fuse_k: int = 3, trunk: bool = True,
@@ -632,7 +634,7 @@ class StructDecoder(nn.Module):
         """A structure -> (N, R, 3, S, S) layout log-probabilities: soft edges while training,
         hard edges for prediction."""
         tau = DEFAULT_TAU_PX if self.training else HARD_TAU_PX
-        return rasterize(self.view, st, self.layout_size, self.extent, tau)
+        return rasterize(self.view, st, self.draw_size or self.layout_size, self.extent, tau)
 
     def forward(self, feats) -> torch.Tensor:
         """(N, R, 3, S, S) layout log-probabilities of this view alone (RackLayNet.forward ties the
@@ -754,6 +756,24 @@ class RackLayNet(nn.Module):
                              f"{'' if self.cfg.decoder != 'struct' else ' without --struct-gap'})")
         for dec in self.decoders.values():
             dec.cut_gaps = bool(on)
+
+    def set_draw_size(self, size: int | None) -> None:
+        """A struct model's layouts drawn at `size` x `size` pixels over the same metric extent
+        (None: the trained `layout_size`). Its structure is metric and continuous, so it can be
+        rasterised at any resolution: at a dataset's D (512 for the paper's protocol) this replaces
+        an upsampling of the S x S layouts, whose edges fall on S's pixel boundaries. Dense decoders
+        predict at their trained size alone."""
+        if self.cfg.decoder != "struct":
+            raise ValueError(f"only a struct model draws its layouts at any size; this one has the "
+                             f"{self.cfg.decoder} decoder (resize its layouts: racklay.layout.resize_layouts)")
+        if size is not None and int(size) < 8:
+            raise ValueError(f"layout size must be at least 8 pixels, got {size}")
+        for dec in self.decoders.values():
+            dec.draw_size = None if size is None else int(size)
+
+    def draw_size(self) -> int | None:
+        """The size `set_draw_size` gave (None: the trained `layout_size`)."""
+        return next((dec.draw_size for dec in self.decoders.values() if isinstance(dec, StructDecoder)), None)
 
     def trunk_view(self, view: str) -> str:
         """The view whose struct decoder holds the trunk that reads the image for `view`: `view`

@@ -13,6 +13,7 @@ training. `predict_folder` is the engine behind `racklay predict`.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -257,7 +258,36 @@ class Predictor:
 
     @property
     def layout_size(self) -> int:
-        return int(self.cfg.layout_size)
+        """The size S of the layouts this predictor returns: the model's trained size, or the size
+        a struct model draws at after `draw_at`."""
+        size = self.model.draw_size() if self._draws() else None
+        return int(size or self.cfg.layout_size)
+
+    def _draws(self) -> bool:
+        """Whether the torch model predicts (not an ONNX graph) and is a struct model."""
+        return self.session is None and self.model is not None and self.cfg.decoder == "struct"
+
+    @contextlib.contextmanager
+    def drawing_at(self, size: int | None):
+        """`draw_at(size)` for the duration of a `with` block (nothing for None), then back to the
+        size drawn before; yields whether the model draws at `size` itself."""
+        before = self.layout_size
+        drawn = bool(size) and self.draw_at(size)
+        try:
+            yield drawn
+        finally:
+            if drawn:
+                self.draw_at(None if before == int(self.cfg.layout_size) else before)
+
+    def draw_at(self, size: int | None) -> bool:
+        """Return layouts of `size` x `size` pixels (None: the trained size) drawn by the model
+        itself where it can: a struct model on the torch backend rasterises its metric structure at
+        any resolution (True). Any other model predicts at its trained size (False; the caller
+        resizes, `resize_prediction`)."""
+        if not self._draws():
+            return False
+        self.model.set_draw_size(size)
+        return True
 
     @property
     def grid(self) -> L.Grid:
@@ -443,8 +473,9 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
                    layout_size: int | None = None, shelf_length: float | None = None,
                    rack_box=None) -> PredictReport:
     """Predict every input file; a file that cannot be read gets one line via `log` (default:
-    stderr) and the rest still run. layout_size: write layouts at this D (nearest resize of the
-    model's S x S output), e.g. a ground-truth dataset's D so `racklay score` can compare.
+    stderr) and the rest still run. layout_size: write layouts at this D, e.g. a ground-truth
+    dataset's D so `racklay score` can compare (a struct model on the torch backend draws them at D,
+    `Predictor.draw_at`; any other model's S x S output is resized, nearest).
     shelf_length: the shelves' known length in metres (fixes the scale, `Predictor.predict`).
     rack_box: (x0, y0, x1, y1) pixels, the rack to read in every photo (`Predictor.predict`); the
     sample's image is then the crop the model read, and its meta records both."""
@@ -482,41 +513,42 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
     if predictor.model is not None and predictor.model.flip_average:
         extra["flip_average"] = True
     made_out = not Path(out).exists()
-    for path, sid in zip(files, ids):
-        try:
-            image = read_image(path)
-            if min(image.shape[:2]) < MIN_PHOTO_SIDE:
-                h, w = predictor.image_size
-                log(f"warning: {path}: {image.shape[1]}x{image.shape[0]} pixels is far smaller than the model's "
-                    f"{w}x{h} input; its layouts say little about a rack")
-            pred = predictor.predict(image, shelf_length=shelf_length, rack_box=rack_box, source=str(path))
-            meta = extra
-            if "crop" in pred:
-                x0, y0, x1, y1 = pred["crop"]
-                meta = {**extra, "rack_box_px": [float(v) for v in rack_box], "crop_px": [x0, y0, x1, y1],
-                        "photo_size": [int(image.shape[1]), int(image.shape[0])]}
-                image = image[y0:y1, x0:x1]
-            if layout_size:
-                pred = resize_prediction(pred, layout_size)
-            write_prediction(out, sid, image, pred, predictor.views, source=str(path), figure=figure,
-                             png=png, crop=crop, extra_meta=meta)
-            rep.done.append(sid)
-        except WriteError:
-            # the output cannot be written (disk full, read-only): every next photo would fail the
-            # same way, so stop here; the error names the file
+    with predictor.drawing_at(layout_size):    # a struct model draws at layout_size itself
+        for path, sid in zip(files, ids):
+            try:
+                image = read_image(path)
+                if min(image.shape[:2]) < MIN_PHOTO_SIDE:
+                    h, w = predictor.image_size
+                    log(f"warning: {path}: {image.shape[1]}x{image.shape[0]} pixels is far smaller than the model's "
+                        f"{w}x{h} input; its layouts say little about a rack")
+                pred = predictor.predict(image, shelf_length=shelf_length, rack_box=rack_box, source=str(path))
+                meta = extra
+                if "crop" in pred:
+                    x0, y0, x1, y1 = pred["crop"]
+                    meta = {**extra, "rack_box_px": [float(v) for v in rack_box], "crop_px": [x0, y0, x1, y1],
+                            "photo_size": [int(image.shape[1]), int(image.shape[0])]}
+                    image = image[y0:y1, x0:x1]
+                if layout_size:
+                    pred = resize_prediction(pred, layout_size)
+                write_prediction(out, sid, image, pred, predictor.views, source=str(path), figure=figure,
+                                 png=png, crop=crop, extra_meta=meta)
+                rep.done.append(sid)
+            except WriteError:
+                # the output cannot be written (disk full, read-only): every next photo would fail the
+                # same way, so stop here; the error names the file
+                if bar is not None:
+                    bar.close()
+                raise
+            except (ValueError, OSError, MemoryError) as e:  # DataError is a ValueError and names the file
+                msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+                if isinstance(e, MemoryError):
+                    msg = f"out of memory ({msg})"
+                if str(path) not in msg:
+                    msg = f"{path}: {msg}"
+                rep.failed.append((str(path), msg))
+                log(f"error: {msg}")
             if bar is not None:
-                bar.close()
-            raise
-        except (ValueError, OSError, MemoryError) as e:  # DataError is a ValueError and names the file
-            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-            if isinstance(e, MemoryError):
-                msg = f"out of memory ({msg})"
-            if str(path) not in msg:
-                msg = f"{path}: {msg}"
-            rep.failed.append((str(path), msg))
-            log(f"error: {msg}")
-        if bar is not None:
-            bar.update(1)
+                bar.update(1)
     if bar is not None:
         bar.close()
     if made_out and not rep.done:   # every input failed: leave no (empty) output folder behind

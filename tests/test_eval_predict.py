@@ -565,3 +565,50 @@ def test_table1_scoring_refuses_a_test_set_of_another_recipe(tmp_path, monkeypat
     msg = str(e.value)
     assert str(root / "waresynth.json") in msg and "'complex'" in msg and "'complex_paper'" in msg
     ensure(root, ["--recipe", "complex", "--n", "2000", "--seed", "2027"])   # there already: nothing rendered
+
+
+def test_struct_model_draws_its_layouts_at_any_size(toy, ckpt, tmp_path):
+    """A struct model's structure is metric and continuous: at a dataset's D it is drawn at D (its
+    shelf as long as the structure says, to a pixel of D), not the S x S layout upsampled (to a pixel
+    of S); `drawing_at` restores the trained size, eval --native and predict --layout-size use it,
+    and a dense model keeps its size (callers resize)."""
+    from racklay.checkpoint import save_checkpoint
+    from racklay.evaluate import evaluate
+    from racklay.model import ModelConfig, RackLayNet
+
+    torch.manual_seed(2)
+    cfg = ModelConfig(R=R, image_size=IMG, layout_size=S, decoder="struct")
+    path = tmp_path / "struct.safetensors"
+    save_checkpoint(path, RackLayNet(cfg).eval(), cfg)
+    p = Predictor(path)
+    image = RackLayRoot(toy).read_image(RackLayRoot(toy).ids()[0])
+    coarse = p.predict(image)
+    with p.drawing_at(128) as drawn:
+        assert drawn and p.layout_size == 128
+        fine = p.predict(image)
+        length = p.structures(p.prepare(image))["top"]["length"][0].float().numpy()
+    assert p.layout_size == S and fine["grid"].size == 128 and fine["top"].shape == (R, 128, 128)
+    shelves = np.flatnonzero(fine["top"].reshape(R, -1).max(-1) > 0)
+    assert len(shelves)
+    for k in shelves:          # a shelf is centred: its columns come in pairs, so within 2 pixels
+        cols = lambda lay: np.count_nonzero(lay[k].max(0) > 0)                # noqa: E731
+        assert abs(cols(fine["top"]) * 8.0 / 128 - length[k]) <= 2 * 8.0 / 128
+        assert abs(cols(coarse["top"]) * 8.0 / S - length[k]) <= 2 * 8.0 / S
+    # the two agree but where an edge falls between S's pixel boundaries
+    up = L.resize_layouts(coarse["top"], 128)
+    assert 0.9 < np.mean(up == fine["top"]) < 1.0
+    res = evaluate(p, toy, split="val", native=True, progress=False, with_probs=False)
+    n = len(RackLayRoot(toy).split_ids("val"))
+    assert np.array(res["top"]["confusion"]).sum() == n * R * 128 * 128 and p.layout_size == S
+    out = tmp_path / "pred"
+    assert racklay_main(["predict", str(RackLayRoot(toy).image_path(RackLayRoot(toy).ids()[0])),
+                         "--weights", str(path), "--out", str(out), "--layout-size", "128"]) == 0
+    sid = RackLayRoot(out).ids()[0]
+    np.testing.assert_array_equal(RackLayRoot(out).read_layouts("top", sid, R=R), fine["top"])
+    # an ONNX graph has its size built in; a dense model predicts at its trained size
+    onnx = Predictor(path, backend="onnx")
+    assert not onnx.draw_at(128) and onnx.layout_size == S
+    dense = Predictor(ckpt)
+    assert not dense.draw_at(128) and dense.layout_size == S
+    with pytest.raises(ValueError, match="only a struct model draws"):
+        dense.model.set_draw_size(128)

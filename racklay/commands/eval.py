@@ -26,7 +26,8 @@ def register(sub) -> None:
                    help="run the model with torch (default) or onnxruntime")
     p.add_argument("--limit", type=at_least(1), default=None, help="evaluate only the first N images of the split")
     p.add_argument("--native", action="store_true",
-                   help="upsample predictions to the dataset's own layout resolution and score there")
+                   help="score at the dataset's own layout resolution: a struct model draws its layouts "
+                        "there, any other model's are upsampled (nearest)")
     scale = p.add_mutually_exclusive_group()
     scale.add_argument("--scale-from-truth", action="store_true",
                        help="scale every predicted shelf to its true shelf's length before scoring: the "

@@ -25,8 +25,9 @@ def register(sub) -> None:
     p.add_argument("--backend", choices=("torch", "onnx"), default="torch",
                    help="torch (default) or onnxruntime (a checkpoint is exported in memory)")
     p.add_argument("--layout-size", type=at_least(2), default=None, metavar="D",
-                   help="write layouts at D x D (nearest resize of the model's output, same metric extent), "
-                        "e.g. 512 to score against the original RackLay data (default: the model's size)")
+                   help="write layouts at D x D over the same metric extent, e.g. 512 to score against the "
+                        "original RackLay data: a struct model draws its rectangles at D, any other model's "
+                        "output is resized (nearest) (default: the model's size)")
     add_shelf_length_arg(p)
     add_rack_box_arg(p)
     add_precision_args(p)
