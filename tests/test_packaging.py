@@ -9,7 +9,7 @@ def test_recipes_are_package_data():
 
     assert RECIPE_DIR.is_relative_to(REPO / "racklay") or "site-packages" in str(RECIPE_DIR)
     names = sorted(p.stem for p in RECIPE_DIR.glob("*.yaml"))
-    assert names == ["boltless", "complex", "complex_paper", "cube", "mixed", "mixed_cover", "mixed_wide", "pallet", "proxy_real", "release", "simple", "slotted", "wire"]
+    assert names == ["boltless", "complex", "complex_paper", "complex_paper_fixed", "cube", "mixed", "mixed_cover", "mixed_wide", "pallet", "proxy_real", "release", "simple", "slotted", "wire"]
     for name in names:
         assert load_recipe(name).name == name
     assert not list((REPO / "datasets" / "recipes").glob("*.yaml")), "recipes have one home: racklay/synth/recipes/"

@@ -174,7 +174,7 @@ def _footprints_overlap(a: L.Box, b: L.Box) -> bool:
     return True
 
 
-@pytest.mark.parametrize("recipe", ["simple", "complex", "proxy_real", "complex_paper"])
+@pytest.mark.parametrize("recipe", ["simple", "complex", "proxy_real", "complex_paper", "complex_paper_fixed"])
 def test_boxes_stand_on_shelves_without_intersecting(recipe):
     r = load_recipe(recipe)
     n_stacked = 0
@@ -228,6 +228,27 @@ def test_paper_placement_centres_each_item_at_its_category_size_and_front_anchor
     assert flush and all(abs(o.layout_box.y_range()[0] - (-s.rack_depth / 2 + 0.02)) < 1e-9 for s, o in flush)
     front = [o.layout_box.y_range()[0] + s.rack_depth / 2 for s, o in board_items(load_recipe("complex"))]
     assert max(front) > 0.1
+
+
+def test_paper_fixed_recipe_holds_rack_size_and_camera_fixed():
+    """`complex_paper_fixed` (the authors' generator's fixed rack size and camera): every bay 2.3 m
+    long and 0.85 m deep with evenly spaced levels 0.57-0.68 m apart, one 287 px lens, the camera
+    level, square on and centred on the rack; `complex_paper` varies all of it."""
+    def facts(recipe):
+        for index in range(12):
+            sc = sample_scene(load_recipe(recipe), 3, index)
+            tops = np.array([sh.board_top for sh in sc.shelves])
+            centre = -sc.camera.R.T @ sc.camera.t
+            yield sc, np.diff(tops), centre
+
+    for sc, gaps, centre in facts("complex_paper_fixed"):
+        assert (sc.rack_length, sc.rack_depth) == (2.3, 0.85)
+        assert 0.57 <= gaps.min() and gaps.max() <= 0.68 and np.ptp(gaps) < 1e-9
+        assert sc.camera.K[0, 0] == 287.0
+        assert np.allclose(np.abs(sc.camera.R), np.abs(np.round(sc.camera.R))) and abs(centre[0]) < 1e-9
+    varied = list(facts("complex_paper"))
+    assert len({sc.rack_length for sc, _, _ in varied}) > 1 and max(abs(c[0]) for _, _, c in varied) > 0.01
+    assert not all(np.allclose(np.abs(sc.camera.R), np.abs(np.round(sc.camera.R))) for sc, _, _ in varied)
 
 
 def test_visible_shelves_rule_and_channels():

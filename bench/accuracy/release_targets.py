@@ -206,7 +206,8 @@ def main() -> int:
                     help="WareSynth complex test set (rendered with seed 2027 if missing)")
     ap.add_argument("--complex-recipe", default="complex",
                     help="the recipe of that test set (default complex; complex_paper: the paper authors' "
-                         "box placement); a set made with another recipe is refused")
+                         "box placement; complex_paper_fixed: and their fixed rack size and camera); a set made "
+                         "with another recipe is refused")
     ap.add_argument("--proxy-real", default="/work/data/proxy_real", type=Path,
                     help="proxy-real set of bench/accuracy/transfer_table2.sh (rendered with seed 1 if missing; "
                          "'' to skip: with --real-photos '' only the Table 1 row, as table1_cpu.sh prints it)")

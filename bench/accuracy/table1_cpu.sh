@@ -20,7 +20,8 @@
 # with DECODER=struct); a resumed run must be given the same FLAGS (the trainer refuses others).
 # RECIPE=complex_paper trains and scores on the WareSynth recipe with the paper authors' box placement
 # (items centred on the shelf's depth, fixed sizes: docs/waresynth.md) in its own data folder
-# (/work/data/complex_paper8k), run (table1-complex_paper-$DECODER) and test set (/work/data/complex_paper-test).
+# (/work/data/complex_paper8k), run (table1-complex_paper-$DECODER) and test set (/work/data/complex_paper-test);
+# RECIPE=complex_paper_fixed adds the authors' fixed rack size and camera (docs/waresynth.md), likewise.
 # The GPU recipe (bench/accuracy/table1_gpu.sh) is the same but for the batch (16 here) and its time schedule.
 set -euo pipefail
 RECIPE=${RECIPE:-complex}
