@@ -116,12 +116,7 @@ def main(argv=None) -> int:
                 classes = rasterize(v, st, D, extent, HARD_TAU_PX).argmax(2).to(torch.uint8).numpy()
                 metrics[name].update(v, classes, gt)
         print(f"\r{s + len(items)} / {len(ds)} images", end="", flush=True)
-    print(f"\n{pred.weights} on {root.root} [{args.split}], {len(ds)} images, drawn at the data's "
-          f"resolution ({D} x {D}, T = {T} positions per shelf)")
-    print("| structure | " + " | ".join(f"{v} {c} mIoU" for v in views for c in ("rack", "box"))
-          + " | " + " | ".join(f"{v} {k} IoU" for v in views for k in ("shelf", "box")) + " |")
-    print("|---" * (1 + 4 * len(views)) + "|")
-    print("\nscale error of the shelves both the model and the truth have: median |predicted / true - 1|, "
+    print("scale error of the shelves both the model and the truth have: median |predicted / true - 1|, "
           "as predicted and after one factor per image (the median length ratio of its shelves, as `image scale`; "
           "an image of one shelf keeps no length error)")
     print("| view | shelves | length | extent | length, image factor removed | extent, image factor removed |")
@@ -133,7 +128,11 @@ def main(argv=None) -> int:
         f = np.array([factor[i] for i in img])
         pct = [100 * np.median(np.abs(np.expm1(x))) for x in (e[:, 0], e[:, 1], e[:, 0] - f, e[:, 1] - f)]
         print(f"| {v} | {len(e)} | " + " | ".join(f"{x:.1f} %" for x in pct) + " |")
-    print()
+    print(f"\n{pred.weights} on {root.root} [{args.split}], {len(ds)} images, drawn at the data's "
+          f"resolution ({D} x {D}, T = {T} positions per shelf)")
+    print("| structure | " + " | ".join(f"{v} {c} mIoU" for v in views for c in ("rack", "box"))
+          + " | " + " | ".join(f"{v} {k} IoU" for v in views for k in ("shelf", "box")) + " |")
+    print("|---" * (1 + 4 * len(views)) + "|")
     base = None
     for name, m in metrics.items():
         r = m.result()
