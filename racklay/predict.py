@@ -271,13 +271,13 @@ class Predictor:
     def drawing_at(self, size: int | None):
         """`draw_at(size)` for the duration of a `with` block (nothing for None), then back to the
         size drawn before; yields whether the model draws at `size` itself."""
-        before = self.layout_size
+        before = self.model.draw_size() if self._draws() else None
         drawn = bool(size) and self.draw_at(size)
         try:
             yield drawn
         finally:
             if drawn:
-                self.draw_at(None if before == int(self.cfg.layout_size) else before)
+                self.draw_at(before)
 
     def draw_at(self, size: int | None) -> bool:
         """Return layouts of `size` x `size` pixels (None: the trained size) drawn by the model
