@@ -233,10 +233,13 @@ def check_init(ck: "Checkpoint", cfg) -> None:
     """Before fine-tuning from checkpoint `ck`: the run (a TrainConfig) must predict the same
     shelves and layout size with the same encoder and the same decoder (a struct one of the same
     width, fuse kernel and trunk sharing), or one it grows into or shares its tensors with (at the
-    same input size when grown); else one error naming the file and every difference."""
+    same input size when grown); else one error naming the file and every difference. Struct to
+    struct, the layout size may differ: the structure's tensors do not depend on it (it is drawn at
+    any size), so a model trained on 256² layouts can be fine-tuned on 512² ones."""
     c = ck.cfg
-    shape = ("struct_width", "struct_fuse_k", "struct_joint") if c.decoder == cfg.decoder == "struct" else ()
-    problems = config_mismatches(c, cfg, ("R", "layout_size", "encoder") + shape, cfg.views)
+    struct = c.decoder == cfg.decoder == "struct"
+    shape = ("struct_width", "struct_fuse_k", "struct_joint") if struct else ("layout_size",)
+    problems = config_mismatches(c, cfg, ("R", "encoder") + shape, cfg.views)
     pair = (c.decoder, cfg.decoder)
     if c.decoder != cfg.decoder and pair not in GROWABLE_DECODERS and pair not in SAME_TENSOR_DECODERS:
         problems.append(f"decoder {c.decoder} (run: {cfg.decoder})")

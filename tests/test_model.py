@@ -140,6 +140,34 @@ def test_struct_joint_reads_both_views_from_one_trunk(tmp_path):
         check_init(load_checkpoint(sep_path), run)
 
 
+def test_struct_checkpoint_fine_tunes_at_another_layout_size(tmp_path):
+    """A struct model's tensors do not depend on the layout size (its structure is drawn at any
+    size), so `racklay train --init` accepts a struct checkpoint trained on 32² layouts for a run
+    on 64² ones and loads every tensor; a dense decoder's checkpoint at another size is refused
+    (one error naming the file and the size)."""
+    from racklay.checkpoint import check_init, load_checkpoint, load_state_strict
+    from racklay.config import TrainConfig
+
+    base = dict(R=2, image_size=(64, 128), struct_width=16)
+    torch.manual_seed(0)
+    small = RackLayNet(ModelConfig(**base, layout_size=32, decoder="struct")).eval()
+    path = save_checkpoint(tmp_path / "s32.safetensors", small, small.cfg)
+    run = TrainConfig(data="x", decoder="struct", layout_size=64, **base)
+    check_init(load_checkpoint(path), run)                      # no error
+    big = RackLayNet(run.model_config()).eval()
+    load_state_strict(big, load_checkpoint(path).section("model"), path, "model")
+    x = torch.randn(1, 3, 64, 128, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        a, b = small.structures(small.features(x)), big.structures(big.features(x))
+        assert big(x)["front"].shape[-1] == 64
+    assert all(torch.equal(a[v][k], b[v][k]) for v in a for k in ("length", "extent", "box"))
+    dense = RackLayNet(ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder="light")).eval()
+    dpath = save_checkpoint(tmp_path / "d32.safetensors", dense, dense.cfg)
+    with pytest.raises(ValueError, match=r"d32.safetensors: cannot fine-tune.*layout_size 32 \(run: 64\)"):
+        check_init(load_checkpoint(dpath), TrainConfig(data="x", decoder="light", R=2, image_size=(64, 128),
+                                                       layout_size=64))
+
+
 def _struct_grown_with(field: str, **base_flags):
     """A small struct model (with `base_flags`), the same grown with `field` (a ModelConfig flag)
     from its weights (racklay.checkpoint.load_grown), both in eval mode, and an input batch."""
