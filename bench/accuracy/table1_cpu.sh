@@ -22,11 +22,18 @@
 # (items centred on the shelf's depth, fixed sizes: docs/waresynth.md) in its own data folder
 # (/work/data/complex_paper8k), run (table1-complex_paper-$DECODER) and test set (/work/data/complex_paper-test);
 # RECIPE=complex_paper_fixed adds the authors' fixed rack size and camera (docs/waresynth.md), likewise.
+# LAYOUT=512 trains on labels at the paper's (and the test set's) 512² instead of 256² (its own data folder,
+# ${RECIPE}8k-512, 22 GB; samples not cached in memory; ~14 min an epoch): at 256² a pixel is 31 mm, and
+# a model scored at 512² draws the 256² rounding (on complex_paper_fixed every shelf 2 rows too deep,
+# docs/results/2026-12-07-sixty-second-session.md). With DECODER=struct, FLAGS="--init <a 256² run's best>"
+# fine-tunes a model trained at 256² (a struct model's tensors do not depend on the layout size).
 # The GPU recipe (bench/accuracy/table1_gpu.sh) is the same but for the batch (16 here) and its time schedule.
 set -euo pipefail
 RECIPE=${RECIPE:-complex}
 if [ "$RECIPE" = complex ]; then TAG=""; else TAG="$RECIPE-"; fi
-DATA=${DATA:-/work/data/${RECIPE}8k}
+LAYOUT=${LAYOUT:-256}
+if [ "$LAYOUT" = 256 ]; then SUFFIX=""; CACHE=""; else SUFFIX="-$LAYOUT"; CACHE="--no-cache"; fi
+DATA=${DATA:-/work/data/${RECIPE}8k$SUFFIX}
 TEST=${TEST:-/work/data/${RECIPE}-test}
 RUNS=${RUNS:-/work/runs}
 DECODER=${DECODER:-light}
@@ -36,7 +43,7 @@ FLAGS=${FLAGS:-}
 PY=${PY:-.venv/bin/python}
 if [ ! -f "$DATA/splits/val.txt" ]; then
   $PY -m racklay synth --recipe "$RECIPE" --n 10000 --seed 11 --out "$DATA" --workers "$(nproc)" \
-    --set layout_size=256 --set 'splits={train: 0.8, val: 0.2, test: 0.0}' --set write_depth=false \
+    --set "layout_size=$LAYOUT" --set 'splits={train: 0.8, val: 0.2, test: 0.0}' --set write_depth=false \
     --set write_normals=false --set write_semantic=false --set write_instance=false --set write_kitti=false \
     --set write_coco=false --no-progress
 fi
@@ -49,8 +56,8 @@ if [ -n "${SCORE_ONLY:-}" ]; then score; exit; fi
 RESUME=""
 [ -f "$RUNS/$NAME/last.safetensors" ] && RESUME="--resume"
 $PY -m racklay train --data "$DATA" --out "$RUNS" --name "$NAME" --decoder "$DECODER" --no-disc \
-  --image-size 160x256 --layout-size 256 --augment paper --class-weights 1,5,10 --batch-size 16 --lr 1e-3 \
-  --warmup-steps 200 --epochs "$EPOCHS" --patience 0 --checkpoint-every 100 --seed 0 --no-progress $RESUME $FLAGS &
+  --image-size 160x256 --layout-size "$LAYOUT" --augment paper --class-weights 1,5,10 --batch-size 16 --lr 1e-3 \
+  --warmup-steps 200 --epochs "$EPOCHS" --patience 0 --checkpoint-every 100 --seed 0 --no-progress $CACHE $RESUME $FLAGS &
 train=$!
 # `kill <this script's pid>` (or Ctrl-C) stops the training (SIGTERM: it exits 143 and keeps its last
 # checkpoint, written every 100 steps) and the script exits with the trainer's status, unscored
