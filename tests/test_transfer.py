@@ -278,11 +278,35 @@ def test_finetune_rejects_checkpoint_with_other_R_or_D(killed_then_resumed_compa
     build_toy_dataset(tmp_path / "r3", n=4, seed=2, R=3, D=64, splits={"train": 0.5, "test": 0.5})
     with pytest.raises(ValueError, match=r"R=4 shelves, but .*r3 has R=3"):
         check_init_compatible(init, tmp_path / "r3")
-    with pytest.raises(ValueError, match=r"predicts 32x32 layouts \(D\), but layout size 64"):
+    with pytest.raises(ValueError, match=r"predicts 32x32 layouts \(D\) with the \w+ decoder, but layout size 64"):
         check_init_compatible(init, tiny_data / "real", layout_size=64)
     # and through the command line: one line, exit code 2, nothing trained
     assert main(["finetune", "--init", str(init), "--real", str(tmp_path / "r3"), "--out", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_finetune_takes_a_struct_checkpoint_at_another_layout_size(tmp_path):
+    """`transfer finetune --layout-size 64` from a struct checkpoint trained at 32² is accepted
+    (its structure is drawn at any size, as `racklay train --init` allows); from a dense one it is
+    refused with one line naming the file and both sizes."""
+    import torch
+
+    from racklay.checkpoint import save_checkpoint
+    from racklay.config import ModelConfig
+    from racklay.model import RackLayNet
+    from transfer.workflow import check_init_compatible
+
+    build_toy_dataset(tmp_path / "real", n=4, seed=2, R=2, D=64, splits={"train": 0.5, "test": 0.5})
+    torch.manual_seed(0)
+    paths = {}
+    for dec in ("struct", "light"):
+        extra = {"struct_width": 16} if dec == "struct" else {}
+        net = RackLayNet(ModelConfig(R=2, image_size=(64, 128), layout_size=32, decoder=dec, **extra))
+        paths[dec] = save_checkpoint(tmp_path / f"{dec}32.safetensors", net, net.cfg)
+    assert check_init_compatible(paths["struct"], tmp_path / "real", layout_size=64).decoder == "struct"
+    with pytest.raises(ValueError, match=r"light32.safetensors: checkpoint predicts 32x32 layouts \(D\) with the "
+                                         r"light decoder, but layout size 64"):
+        check_init_compatible(paths["light"], tmp_path / "real", layout_size=64)
 
 
 def test_missing_split_names_the_splits_found(tiny_data, tmp_path, capsys):

@@ -98,8 +98,9 @@ def checkpoint_loss(path: str | os.PathLike) -> dict:
 def check_init_compatible(init: str | os.PathLike, real: str | os.PathLike, split: str = "train",
                           layout_size: int | None = None, R: int | None = None):
     """Before fine-tuning: the checkpoint's R (shelves) must match the real dataset's and a
-    requested layout size D must match the checkpoint's (the input size may differ: the network
-    is convolutional). Returns the model config."""
+    requested layout size D must match the checkpoint's, except for a `struct` checkpoint, whose
+    structure is drawn at any size (the rule of `racklay.checkpoint.check_init`); the input size
+    may differ: the network is convolutional. Returns the model config."""
     cfg = checkpoint_config(init)
     data_R, data_D = dataset_shape(real, split)
     if R is not None and R != cfg.R:
@@ -107,9 +108,10 @@ def check_init_compatible(init: str | os.PathLike, real: str | os.PathLike, spli
     if data_R != cfg.R:
         raise ValueError(f"{init}: checkpoint predicts R={cfg.R} shelves, but {real} has R={data_R} "
                          f"layout channels; fine-tune from a checkpoint trained with R={data_R}")
-    if layout_size is not None and layout_size != cfg.layout_size:
-        raise ValueError(f"{init}: checkpoint predicts {cfg.layout_size}x{cfg.layout_size} layouts (D), "
-                         f"but layout size {layout_size} was requested")
+    if layout_size is not None and layout_size != cfg.layout_size and cfg.decoder != "struct":
+        raise ValueError(f"{init}: checkpoint predicts {cfg.layout_size}x{cfg.layout_size} layouts (D) with the "
+                         f"{cfg.decoder} decoder, but layout size {layout_size} was requested (only a struct "
+                         f"checkpoint is fine-tuned at another size)")
     missing = [v for v in cfg.views if v not in RackLayRoot(real).views()]
     if missing:
         raise DataError(f"{real}: has no {'/'.join(missing)} layouts, which checkpoint {init} predicts")

@@ -20,7 +20,8 @@ def register(sub) -> None:
                     f"{FINETUNE_LR_RATIO:g}x TrainConfig's unless --lr, optional encoder freezing for the first "
                     "epochs, early stopping on a validation set carved from the training split. The "
                     "architecture (R, layout size, input size, decoder, discriminators) comes from the checkpoint; a "
-                    "checkpoint whose R or layout size does not fit is refused with a clear error.")
+                    "checkpoint whose R or layout size does not fit is refused with a clear error (a struct "
+                    "checkpoint is fine-tuned at any --layout-size).")
     p.add_argument("--init", default=None, metavar="CHECKPOINT",
                    help="checkpoint to start from (default: the shipped model, docs/model-card.md; or a "
                         "`transfer pretrain` checkpoint)")
