@@ -236,6 +236,14 @@ GAP_POS_WEIGHT = 5.0
 MIN_HALF_WIDTH, MAX_HALF_WIDTH = 0.02, 4.0
 
 
+def image_span(st: dict) -> torch.Tensor:
+    """Where a struct decoder places each shelf across the image, from its placement ("centre",
+    "half") -> (..., 2) left and right ends in image widths (0 the left edge, 1 the right; beyond
+    [0, 1] where the shelf leaves the frame): the form of the labelled spans (`racklay.data.level_spans`)."""
+    c, h = 0.5 + st["centre"].float(), st["half"].float()
+    return torch.stack([c - h, c + h], -1)
+
+
 def placement_loss(st: dict, spans: torch.Tensor, present: torch.Tensor) -> torch.Tensor | None:
     """L1 of a struct decoder's placement (`centre`, log `half`) against the labelled span of each
     shelf in the image (`spans` (N, R, 2): left and right end in image widths, NaN where no span is
@@ -359,4 +367,4 @@ def rescale_structure(st: dict, length: float | torch.Tensor) -> dict:
 
 
 __all__ = ["DEFAULT_T", "DEFAULT_TAU_PX", "HARD_TAU_PX", "NUM_CLASSES", "pixel_centres", "sample_positions", "rasterize",
-           "truth_structure", "gap_positions", "GAP_POS_WEIGHT", "MIN_HALF_WIDTH", "MAX_HALF_WIDTH", "placement_loss", "structure_loss", "rescale_structure"]
+           "truth_structure", "gap_positions", "GAP_POS_WEIGHT", "MIN_HALF_WIDTH", "MAX_HALF_WIDTH", "image_span", "placement_loss", "structure_loss", "rescale_structure"]

@@ -382,6 +382,47 @@ def test_predict_shelf_length_rescales_every_shelf_and_says_so(toy, struct_ckpt,
     assert "--shelf-length" in capsys.readouterr().err
 
 
+def test_predict_says_where_the_frame_cuts_a_shelf(toy, tmp_path, capsys):
+    """A struct model's placement says where each shelf lies across the photo: `racklay predict`
+    writes it to the meta (`shelf_spans_image`, image widths) and, where a shelf runs out of the
+    frame, notes that its length (the metric scale) is inferred, not seen, unless --shelf-length
+    fixes it; `racklay analyze` warns the same; a shelf inside the frame gets no note."""
+    from racklay.checkpoint import save_checkpoint
+
+    photo = str(toy / "Images" / "000000.png")
+    for half in (0.3, 0.8):                  # spans [0.2, 0.8] (inside) and [-0.3, 1.3] (cut at both ends)
+        net = _struct_net(R=3, img=64, lay=64)
+        with torch.no_grad():
+            for dec in net.decoders.values():
+                dec.shelf_head.weight[[0, 3, 4]] = 0.0
+                dec.shelf_head.bias[[0, 3, 4]] = torch.tensor([5.0, 0.0, math.log(half)])
+        ck = save_checkpoint(tmp_path / f"half{half}.safetensors", net, net.cfg)
+        for extra in ([], ["--shelf-length", "1.5"]):
+            out = tmp_path / f"o{half}{len(extra)}"
+            assert racklay_main(["predict", photo, "--weights", str(ck), "--out", str(out), "--no-figure",
+                                 "--no-png", *extra]) == 0
+            err = capsys.readouterr().err
+            spans = json.loads((out / "meta" / "000000.json").read_text())["shelf_spans_image"]
+            assert spans == [pytest.approx([0.5 - half, 0.5 + half], abs=1e-3)] * 3
+            cut = half > 0.5 and not extra
+            assert ("000000.png: the frame cuts shelf 1 (both ends), shelf 2 (both ends), shelf 3 (both ends)"
+                    in err) == cut
+            assert ("the frame cuts a shelf in 1 of 1 photo(s)" in err and "--shelf-length fixes the scale" in err) == cut
+            # analyze's metric sizes and volumes rest on the same scale: it warns too
+            assert racklay_main(["analyze", photo, "--weights", str(ck), "--out", str(out) + "_an", "--no-render",
+                                 *extra]) == 0
+            err = capsys.readouterr().err
+            assert ("warning: " + photo + ": the frame cuts shelf 1 (both ends)" in err) == cut
+
+
+def test_frame_cuts_names_each_shelf_that_reaches_the_frame_edge():
+    from racklay.predict import FRAME_EDGE_MARGIN, frame_cuts
+
+    m = FRAME_EDGE_MARGIN
+    spans = np.array([[m / 2, 0.7], [m * 1.5, 1 - m * 1.5], [0.3, 1.2], [np.nan, np.nan], [-0.4, 1.0]])
+    assert frame_cuts(spans) == ["shelf 1 (left end)", "shelf 3 (right end)", "shelf 5 (both ends)"]
+
+
 def test_eval_scale_from_truth_scores_shape_alone(toy, struct_ckpt, tmp_path, capsys):
     """A prediction that is the truth at twice its size scores low on the metric IoU and 1 with
     --scale-from-truth; the JSON says which scale was scored."""

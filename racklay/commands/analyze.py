@@ -121,7 +121,7 @@ def _samples_from_layouts(args):
 
 def _samples_from_photos(args):
     from racklay.data import RackLayRoot, read_image
-    from racklay.predict import Predictor, list_inputs, unique_ids
+    from racklay.predict import Predictor, frame_cuts, list_inputs, unique_ids
     from racklay.reasoning import analyze_layouts
 
     files = []
@@ -148,7 +148,10 @@ def _samples_from_photos(args):
             x0, y0, x1, y1 = pred["crop"]
             image = image[y0:y1, x0:x1]
         result = analyze_layouts(pred.get("top"), pred.get("front"), pred["grid"], cfg, source=str(path))
-        return result, image, None
+        cuts = frame_cuts(pred["shelf_spans"]) if "shelf_spans" in pred and args.shelf_length is None else []
+        warn = (f"{path}: the frame cuts {', '.join(cuts)}: a cut shelf's length, and so every metric size and "
+                f"volume, is inferred from what stands on it, not seen (--shelf-length fixes the scale)") if cuts else None
+        return result, image, warn
 
     for sid, path in zip(unique_ids(files), files):
         yield sid, (lambda p=path: one(p))

@@ -1,6 +1,8 @@
 """racklay predict IMAGES_OR_FOLDER... --weights W --out DIR"""
 from __future__ import annotations
 
+import sys
+
 from racklay.commands import add_progress_arg, show_progress
 from racklay.config import at_least
 
@@ -76,4 +78,6 @@ def run(args) -> int:
     scale += ", read in the rack box" if args.rack_box else ""
     print(f"{rep.summary()} -> {args.out} (backend {pred.backend}, "
           f"{pred.image_size[1]}x{pred.image_size[0]} input, {D}x{D} layouts{scale})")
+    if rep.scale_note():
+        print(rep.scale_note(), file=sys.stderr)
     return 0 if rep.ok else 1
