@@ -423,6 +423,19 @@ def test_frame_cuts_names_each_shelf_that_reaches_the_frame_edge():
     assert frame_cuts(spans) == ["shelf 1 (left end)", "shelf 3 (right end)", "shelf 5 (both ends)"]
 
 
+def test_scale_cues_bench_prints_its_tables_and_plot(toy, struct_ckpt, tmp_path, capsys):
+    """bench/accuracy/scale_cues.py on a set without WareSynth meta: the size tables, the framing
+    group "unknown" scored, and the plot written."""
+    from bench.accuracy.scale_cues import main as scale_cues
+
+    out = tmp_path / "scale.png"
+    assert scale_cues(["--weights", str(struct_ckpt), "--data", str(toy), "--n", "4", "--iou", "--plot", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| all | " in text and "shelf length (front view)" in text
+    assert "| no level spans in the meta | 1 |" in text       # the toy set's test split: one image
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_eval_scale_from_truth_scores_shape_alone(toy, struct_ckpt, tmp_path, capsys):
     """A prediction that is the truth at twice its size scores low on the metric IoU and 1 with
     --scale-from-truth; the JSON says which scale was scored."""

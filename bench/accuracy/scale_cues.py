@@ -31,7 +31,8 @@ view: shelf depth) and the truth's (`truth_structure` of the dataset's layouts),
   median error once its linear trend in log focal is removed (fitted on the same images: what a
   known focal length could remove at most, linearly).
 
-`--plot PNG` draws predicted against true size, one dot per image coloured by how many ends of
+`--iou` also scores the layouts (drawn at the data's resolution) on the images whose frame shows
+both ends of every labelled level and on the others. `--plot PNG` draws predicted against true size, one dot per image coloured by how many ends of
 its shelf the frame shows, with the line a perfect reading would follow and the best constant's.
 
 Torch backend, struct models only; precision follows the machine. Prints numbers; asserts nothing.
@@ -46,14 +47,18 @@ import torch
 
 from racklay.data import level_spans
 from racklay.evaluate import split_dataset
-from racklay.predict import Predictor, add_precision_args, ends_cut
+from racklay.metrics import LayoutMetrics
+from racklay.predict import Predictor, add_precision_args, decide, ends_cut
 from racklay.release import resolve_weights
-from racklay.structure import image_span, truth_structure
+from racklay.structure import HARD_TAU_PX, image_span, rasterize, truth_structure
 
 #: (view, structure field, what it is) of each size this script reads
 SIZES = (("front", "length", "shelf length"), ("top", "extent", "shelf depth"))
 #: rows of the shelf-ends table: how many of the shelf's two ends the image shows
 ENDS = ((2, "both ends in the frame"), (1, "one end"), (0, "neither (the frame cuts both)"))
+#: the image groups of `--iou` (`framing_of`)
+FRAMING = {"in": "both ends of every level in the frame", "cut": "the frame cuts a level",
+           "unknown": "no level spans in the meta"}
 #: bins of the image's box fill (share of positions along its shelves where a box stands)
 FILL_BINS = ((0.0, 0.05, "empty (< 5 %)"), (0.05, 0.4, "partly (5-40 %)"), (0.4, 1.01, "full (>= 40 %)"))
 
@@ -63,6 +68,13 @@ def ends_in_frame(span) -> float:
     by `racklay predict`'s rule (`racklay.predict.ends_cut`); NaN for an unknown span."""
     cut = ends_cut(span)
     return math.nan if cut is None else float(2 - sum(cut))
+
+
+def framing_of(spans: np.ndarray) -> str:
+    """An image's framing from its levels' spans ((R, 2), NaN where none): "in" when the frame shows
+    both ends of every labelled level, "cut" when it cuts one, "unknown" without spans."""
+    cuts = [ends_cut(sp) for sp in spans if np.isfinite(sp).all()]
+    return "unknown" if not cuts else ("cut" if any(any(c) for c in cuts) else "in")
 
 
 def fit(true_log: np.ndarray, pred_log: np.ndarray) -> dict:
@@ -90,6 +102,9 @@ def main(argv=None) -> int:
     ap.add_argument("--n", type=int, default=400, help="the split's first N images (default 400)")
     ap.add_argument("--batch-size", type=int, default=8)
     ap.add_argument("--plot", default=None, metavar="PNG", help="also draw predicted against true size (a PNG)")
+    ap.add_argument("--iou", action="store_true",
+                    help="also score the layouts (drawn at the data's resolution, as `racklay eval --native`) "
+                         "on the images whose frame shows both ends of every labelled level and on the others")
     add_precision_args(ap)
     args = ap.parse_args(argv)
 
@@ -100,12 +115,23 @@ def main(argv=None) -> int:
     sizes = [s for s in SIZES if s[0] in views]
     extent = pred.grid.extent
     rows = {v: [] for v, _, _ in sizes}   # per image: log true, log predicted, box fill, focal, ends in frame
+    groups = {g: LayoutMetrics() for g in FRAMING}
+    counts = dict.fromkeys(FRAMING, 0)
     for s in range(0, len(ds), args.batch_size):
         items = [ds[i] for i in range(s, min(s + args.batch_size, len(ds)))]
         ids = ds.ids[s:s + len(items)]
         structs = pred.structures(torch.stack([it["image"] for it in items]))
         metas = [root.read_meta(sid) or {} for sid in ids]
         spans = np.stack([level_spans(m, pred.R, str(root.meta_path(sid))) for m, sid in zip(metas, ids)])
+        framing = [framing_of(sp) for sp in spans]
+        for g in framing:
+            counts[g] += 1
+        if args.iou:
+            for v in views:
+                gt = np.stack([root.read_layouts(v, sid, R=pred.R) for sid in ids])
+                classes = decide(rasterize(v, structs[v], gt.shape[-1], extent, HARD_TAU_PX).numpy())
+                for j, g in enumerate(framing):
+                    groups[g].update(v, classes[j:j + 1], gt[j:j + 1])
         for v, field, _ in sizes:
             gt = np.stack([root.read_layouts(v, sid, R=pred.R) for sid in ids])
             st = structs[v]
@@ -166,6 +192,18 @@ def main(argv=None) -> int:
                   f"what knowing the focal length could remove, linearly): "
                   f"{100 * np.median(np.abs(np.expm1(e - a - b * np.log(focal)))):.1f} % "
                   f"(as predicted {100 * np.median(np.abs(np.expm1(e))):.1f} %)")
+    if args.iou:
+        print("\nlayouts by framing, drawn at the data's resolution: paper-protocol mIoU (a channel empty in both "
+              "scores 1, so images of fewer levels score higher: compare groups by the dataset level), dataset-level IoU")
+        print("| images | n | " + " | ".join(f"{v} {c} mIoU" for v in views for c in ("rack", "box"))
+              + " | " + " | ".join(f"{v} {k} IoU" for v in views for k in ("shelf", "box")) + " |")
+        print("|---" * (2 + 4 * len(views)) + "|")
+        for g, label in FRAMING.items():
+            if counts[g]:
+                r = groups[g].result()
+                vals = ([100 * r[v]["paper"][c]["mIoU"] for v in views for c in ("rack", "box")]
+                        + [100 * r[v]["dataset"][k]["IoU"] for v in views for k in ("shelf", "box")])
+                print(f"| {label} | {counts[g]} | " + " | ".join(f"{x:.2f}" for x in vals) + " |")
     if args.plot:
         print(f"wrote {plot(rows, sizes, args.plot, f'{pred.weights.parent.name} on {root.root.name} [{args.split}]')}")
     return 0
