@@ -365,8 +365,12 @@ class Predictor:
         out: dict = {v: classes[v][0] for v in self.views}
         out["probs"] = {v: probs[v][0] for v in self.views}
         out["grid"] = self.grid
-        if self._draws():
-            out["shelf_spans"] = shelf_spans(structs)[0]
+        if self._draws():   # in widths of the photo (or crop) read, not of a letterboxed input
+            from .torchdata import letterbox_fit, photo_columns
+
+            h, w = self.image_size
+            nw = letterbox_fit(image.shape[0], image.shape[1], (h, w), self.cfg.letterbox)[1]
+            out["shelf_spans"] = photo_columns(shelf_spans(structs)[0], nw, w)
         if crop is not None:
             out["crop"] = crop
         return with_shelf_length(out, shelf_length) if shelf_length is not None else out

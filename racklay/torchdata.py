@@ -89,6 +89,12 @@ def padded_columns(x: np.ndarray, inner_w: int, w: int) -> np.ndarray:
     return ((w - inner_w) // 2 + np.asarray(x, np.float32) * inner_w) / w
 
 
+def photo_columns(x: np.ndarray, inner_w: int, w: int) -> np.ndarray:
+    """The inverse of `padded_columns`: x in widths of the `w`-pixel canvas -> in widths of the
+    `inner_w`-pixel image centred on it."""
+    return (np.asarray(x, np.float64) * w - (w - inner_w) // 2) / inner_w
+
+
 def prepare_image(image: np.ndarray, size, letterbox: bool = False) -> np.ndarray:
     """Resize an RGB uint8 image to the model input size (H, W) with area/linear filtering.
     With `letterbox`, a photo of another aspect keeps its aspect and is padded (PAD_RGB) to the

@@ -417,10 +417,14 @@ def test_predict_says_where_the_frame_cuts_a_shelf(toy, tmp_path, capsys):
 
 def test_frame_cuts_names_each_shelf_that_reaches_the_frame_edge():
     from racklay.predict import FRAME_EDGE_MARGIN, frame_cuts
+    from racklay.torchdata import padded_columns, photo_columns
 
     m = FRAME_EDGE_MARGIN
     spans = np.array([[m / 2, 0.7], [m * 1.5, 1 - m * 1.5], [0.3, 1.2], [np.nan, np.nan], [-0.4, 1.0]])
     assert frame_cuts(spans) == ["shelf 1 (left end)", "shelf 3 (right end)", "shelf 5 (both ends)"]
+    # a letterboxed photo's spans are read back in the photo's widths: its edges at 0 and 1
+    x = np.array([-0.2, 0.0, 0.37, 1.0])
+    assert photo_columns(padded_columns(x, 170, 256), 170, 256) == pytest.approx(x, abs=1e-6)
 
 
 def test_scale_cues_bench_prints_its_tables_and_plot(toy, struct_ckpt, tmp_path, capsys):
