@@ -166,3 +166,44 @@ def labelled_photos(project, split: str = "all", limit: int | None = None) -> li
     if not names:
         raise SystemExit(f"{project.root}: no finished photo{'' if split == 'all' else f' in split {split}'}")
     return names[:limit]
+
+
+def add_struct_split_args(ap, data_help: str = "RackLay dataset root") -> None:
+    """The inputs of the benches that read a struct model's structures on a dataset split:
+    --weights, --data, --split, --n (the split's first N images), --batch-size, --precision."""
+    from racklay.predict import add_precision_args
+
+    ap.add_argument("--weights", default=None, help="a struct model (default: the shipped one)")
+    ap.add_argument("--data", required=True, help=data_help)
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--n", type=int, default=400, help="the split's first N images (default 400)")
+    ap.add_argument("--batch-size", type=int, default=8)
+    add_precision_args(ap)
+
+
+def open_struct_split(args):
+    """(Predictor, dataset root, views, dataset of the split's first N images) for the arguments
+    of `add_struct_split_args`; one line and exit for a model without a structure."""
+    from racklay.evaluate import split_dataset
+    from racklay.predict import Predictor
+    from racklay.release import resolve_weights
+
+    pred = Predictor(resolve_weights(args.weights), precision=args.precision)
+    if pred.cfg.decoder != "struct":
+        raise SystemExit(f"{pred.weights}: the {pred.cfg.decoder} decoder has no structure; give a struct model")
+    return (pred, *split_dataset(pred, args.data, args.split, args.n))
+
+
+def table1_header(first: str, views) -> str:
+    """The header row of a table of `table1_cells`, after `first` column(s) ("structure", "images | n")."""
+    return (f"| {first} | " + " | ".join(f"{v} {c} mIoU" for v in views for c in ("rack", "box"))
+            + " | " + " | ".join(f"{v} {k} IoU" for v in views for k in ("shelf", "box")) + " |\n"
+            + "|---" * (first.count("|") + 1 + 4 * len(views)) + "|")
+
+
+def table1_cells(result: dict, views) -> list[float]:
+    """A `racklay.metrics.LayoutMetrics` result -> x100: per view the paper-protocol rack and box
+    mIoU, then per view the dataset-level shelf and box IoU."""
+    return ([100 * result[v]["paper"][c]["mIoU"] for v in views for c in ("rack", "box")]
+            + [100 * result[v]["dataset"][k]["IoU"] for v in views for k in ("shelf", "box")])
+

@@ -45,11 +45,10 @@ import math
 import numpy as np
 import torch
 
+from bench.common import add_struct_split_args, open_struct_split, table1_cells, table1_header
 from racklay.data import level_spans
-from racklay.evaluate import split_dataset
 from racklay.metrics import LayoutMetrics
-from racklay.predict import Predictor, add_precision_args, decide, ends_cut
-from racklay.release import resolve_weights
+from racklay.predict import decide, ends_cut
 from racklay.structure import HARD_TAU_PX, image_span, rasterize, truth_structure
 
 #: (view, structure field, what it is) of each size this script reads
@@ -96,22 +95,14 @@ def row(label: str, f: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--weights", default=None, help="a struct model (default: the shipped one)")
-    ap.add_argument("--data", required=True, help="RackLay dataset root (WareSynth meta gives the focal length)")
-    ap.add_argument("--split", default="test")
-    ap.add_argument("--n", type=int, default=400, help="the split's first N images (default 400)")
-    ap.add_argument("--batch-size", type=int, default=8)
+    add_struct_split_args(ap, "RackLay dataset root (WareSynth meta gives the focal length and the level spans)")
     ap.add_argument("--plot", default=None, metavar="PNG", help="also draw predicted against true size (a PNG)")
     ap.add_argument("--iou", action="store_true",
                     help="also score the layouts (drawn at the data's resolution, as `racklay eval --native`) "
                          "on the images whose frame shows both ends of every labelled level and on the others")
-    add_precision_args(ap)
     args = ap.parse_args(argv)
 
-    pred = Predictor(resolve_weights(args.weights), precision=args.precision)
-    if pred.cfg.decoder != "struct":
-        raise SystemExit(f"{pred.weights}: the {pred.cfg.decoder} decoder has no structure; give a struct model")
-    root, views, ds = split_dataset(pred, args.data, args.split, args.n)
+    pred, root, views, ds = open_struct_split(args)
     sizes = [s for s in SIZES if s[0] in views]
     extent = pred.grid.extent
     rows = {v: [] for v, _, _ in sizes}   # per image: log true, log predicted, box fill, focal, ends in frame
@@ -195,14 +186,10 @@ def main(argv=None) -> int:
     if args.iou:
         print("\nlayouts by framing, drawn at the data's resolution: paper-protocol mIoU (a channel empty in both "
               "scores 1, so images of fewer levels score higher: compare groups by the dataset level), dataset-level IoU")
-        print("| images | n | " + " | ".join(f"{v} {c} mIoU" for v in views for c in ("rack", "box"))
-              + " | " + " | ".join(f"{v} {k} IoU" for v in views for k in ("shelf", "box")) + " |")
-        print("|---" * (2 + 4 * len(views)) + "|")
+        print(table1_header("images | n", views))
         for g, label in FRAMING.items():
             if counts[g]:
-                r = groups[g].result()
-                vals = ([100 * r[v]["paper"][c]["mIoU"] for v in views for c in ("rack", "box")]
-                        + [100 * r[v]["dataset"][k]["IoU"] for v in views for k in ("shelf", "box")])
+                vals = table1_cells(groups[g].result(), views)
                 print(f"| {label} | {counts[g]} | " + " | ".join(f"{x:.2f}" for x in vals) + " |")
     if args.plot:
         print(f"wrote {plot(rows, sizes, args.plot, f'{pred.weights.parent.name} on {root.root.name} [{args.split}]')}")

@@ -29,10 +29,9 @@ import math
 import numpy as np
 import torch
 
-from racklay.evaluate import split_dataset
+from bench.common import add_struct_split_args, open_struct_split, table1_cells, table1_header
 from racklay.metrics import LayoutMetrics
-from racklay.predict import Predictor, add_precision_args, decide
-from racklay.release import resolve_weights
+from racklay.predict import decide
 from racklay.structure import HARD_TAU_PX, rasterize, truth_structure
 
 #: the parts of a structure an oracle can take from the truth
@@ -83,18 +82,10 @@ def with_truth(view: str, st: dict, tr: dict, parts) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--weights", default=None, help="a struct model (default: the shipped one)")
-    ap.add_argument("--data", required=True, help="RackLay dataset root")
-    ap.add_argument("--split", default="test")
-    ap.add_argument("--n", type=int, default=400, help="the split's first N images (default 400)")
-    ap.add_argument("--batch-size", type=int, default=8)
-    add_precision_args(ap)
+    add_struct_split_args(ap)
     args = ap.parse_args(argv)
 
-    pred = Predictor(resolve_weights(args.weights), precision=args.precision)
-    if pred.cfg.decoder != "struct":
-        raise SystemExit(f"{pred.weights}: the {pred.cfg.decoder} decoder has no structure; give a struct model")
-    root, views, ds = split_dataset(pred, args.data, args.split, args.n)
+    pred, root, views, ds = open_struct_split(args)
     extent = pred.grid.extent
     metrics = {name: LayoutMetrics() for name in ORACLES}
     T = None
@@ -131,14 +122,10 @@ def main(argv=None) -> int:
         print(f"| {v} | {len(e)} | " + " | ".join(f"{x:.1f} %" for x in pct) + " |")
     print(f"\n{pred.weights} on {root.root} [{args.split}], {len(ds)} images, drawn at the data's "
           f"resolution ({D} x {D}, T = {T} positions per shelf)")
-    print("| structure | " + " | ".join(f"{v} {c} mIoU" for v in views for c in ("rack", "box"))
-          + " | " + " | ".join(f"{v} {k} IoU" for v in views for k in ("shelf", "box")) + " |")
-    print("|---" * (1 + 4 * len(views)) + "|")
+    print(table1_header("structure", views))
     base = None
     for name, m in metrics.items():
-        r = m.result()
-        vals = ([100 * r[v]["paper"][c]["mIoU"] for v in views for c in ("rack", "box")]
-                + [100 * r[v]["dataset"][k]["IoU"] for v in views for k in ("shelf", "box")])
+        vals = table1_cells(m.result(), views)
         base = vals if base is None else base
         cells = [f"{x:.2f}" if name == "model" else f"{x:.2f} ({x - b:+.2f})" for x, b in zip(vals, base)]
         print(f"| {name} | " + " | ".join(cells) + " |")
