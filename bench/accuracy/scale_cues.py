@@ -32,8 +32,9 @@ view: shelf depth) and the truth's (`truth_structure` of the dataset's layouts),
   known focal length could remove at most, linearly).
 
 `--iou` also scores the layouts (drawn at the data's resolution) on the images whose frame shows
-both ends of every labelled level and on the others. `--plot PNG` draws predicted against true size, one dot per image coloured by how many ends of
-its shelf the frame shows, with the line a perfect reading would follow and the best constant's.
+both ends of every labelled level and on the others. `--plot PNG` draws predicted against true
+size, one dot per image coloured by how many ends of its shelf the frame shows, with the line a
+perfect reading would follow and the best constant's.
 
 Torch backend, struct models only; precision follows the machine. Prints numbers; asserts nothing.
 """
