@@ -516,3 +516,42 @@ def test_cli_analyze_stops_at_an_output_it_cannot_write_and_leaves_no_half_rack(
     assert capsys.readouterr().err.strip() == f"racklay: error: {afile}: is a file, expected a folder (output folder)"
     assert main(["analyze", "--layouts", str(ds.root), "--weights", "w.safetensors", "--out", str(out)]) == 2
     assert "--layouts ROOT analyses ground-truth layouts (no model)" in capsys.readouterr().err
+
+
+def test_step_segments_cuts_a_slope_once_not_into_a_staircase():
+    # what a prediction's top edge looks like: two levels joined by a blurred step (a 0.6 m rise
+    # over 20 columns), then a valley; the fit alone cuts each slope into narrow pieces
+    from racklay.reasoning import step_segments
+
+    up = np.linspace(0.4, 1.0, 22)[1:-1]
+    h = np.r_[np.full(30, 0.4), up, np.full(30, 1.0)]
+    staircase = step_segments(h, 0.08, 3)
+    assert len(staircase) >= 5
+    spans = step_segments(h, 0.08, 3, slope_fraction=1.0)
+    assert len(spans) == 2 and spans[0] == (0, spans[1][0]) and spans[1][1] == len(h)
+    assert abs(spans[1][0] - 40) <= 1                         # cut where the slope is half way up
+    # a valley between two levels is three stacks; the short foot of a slope at an end belongs to
+    # its level, a lower stack at an end stays a stack
+    valley = np.r_[np.full(30, 1.0), up[::-1], np.full(15, 0.4), up, np.full(30, 1.0)]
+    assert len(step_segments(valley, 0.08, 3, slope_fraction=1.0)) == 3
+    foot = np.r_[0.85, 0.9, 0.95, np.full(30, 1.0)]
+    assert len(step_segments(foot, 0.08, 3)) == 2
+    assert step_segments(foot, 0.08, 3, slope_fraction=1.0) == step_segments(foot[::-1], 0.08, 3, slope_fraction=1.0) \
+        == [(0, 33)]
+    lower = np.r_[np.full(10, 0.5), np.full(30, 1.0)]
+    assert step_segments(lower, 0.08, 3, slope_fraction=1.0) == [(0, 10), (10, 40)]
+    # sharp steps between flat levels are cut as before: a staircase of cartons stays one
+    stairs = np.repeat([0.3, 0.5, 0.7, 0.9], 12)
+    assert step_segments(stairs, 0.08, 3, slope_fraction=1.0) == step_segments(stairs, 0.08, 3) \
+        == [(0, 12), (12, 24), (24, 36), (36, 48)]
+
+
+def test_slope_rule_reads_a_stack_of_shrinking_items_as_one():
+    # items stacked narrower upward (a wedding cake): the front view's top edge climbs in steps
+    # narrower than min_stack_m (5 cm a side: 1.6 px), which the fit alone reads as extra stacks
+    shelf = L.Shelf(2.0, 0.8, 1.2)
+    boxes = [L.Box(0.0, 0.0, 0.7 - 0.1 * k, 0.5, 0.2, z0=0.2 * k) for k in range(4)]
+    on, _ = one_shelf(boxes, shelf=shelf)
+    assert len(on.boxes) == 1
+    off, _ = one_shelf(boxes, shelf=shelf, cfg=ReasoningConfig(slope_fraction=0))
+    assert len(off.boxes) > 1

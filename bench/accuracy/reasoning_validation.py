@@ -47,7 +47,46 @@ from bench.common import markdown_table
 from racklay import layout as L
 from racklay.data import DataError, RackLayRoot
 from racklay.predict import add_precision_args
-from racklay.reasoning import ReasoningConfig, ShelfTruth, analyze_layouts
+from racklay.reasoning import ReasoningConfig, ShelfTruth, analyze_layouts, group_stacks
+
+#: a read stack matches a true one when their spans along the shelf overlap by at least this IoU
+MATCH_IOU = 0.5
+
+
+def true_spans(t: ShelfTruth) -> list[tuple[float, float]]:
+    """The truth's box stacks as spans along its shelf, in fractions of its length (0 = left end)."""
+    out = []
+    for group in group_stacks(t.boxes):
+        lo = min(t.boxes[i].x_range()[0] for i in group)
+        hi = max(t.boxes[i].x_range()[1] for i in group)
+        out.append((lo / t.shelf.length + 0.5, hi / t.shelf.length + 0.5))
+    return out
+
+
+def read_spans(s) -> list[tuple[float, float]]:
+    """A read shelf's box stacks as spans along it, in fractions of its read length: positions
+    relative to the shelf, so a shelf read at the wrong metric size still matches by where its
+    stacks stand."""
+    x0, x1 = s.x
+    n = max(x1 - x0, 1e-9)
+    return [((b.x[0] - x0) / n, (b.x[1] - x0) / n) for b in s.boxes]
+
+
+def matched_spans(a: list[tuple[float, float]], b: list[tuple[float, float]], iou: float = MATCH_IOU) -> int:
+    """How many spans of `a` and `b` pair up one to one (greedy, highest 1-D IoU first) at >= iou."""
+    pairs = []
+    for i, (a0, a1) in enumerate(a):
+        for j, (b0, b1) in enumerate(b):
+            inter = min(a1, b1) - max(a0, b0)
+            if inter > 0:
+                pairs.append((inter / (max(a1, b1) - min(a0, b0)), i, j))
+    used_a, used_b, n = set(), set(), 0
+    for v, i, j in sorted(pairs, reverse=True):
+        if v >= iou and i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            n += 1
+    return n
 
 BOX_FIELDS = ("cx", "cy", "sx", "sy", "sz", "z0", "yaw")
 
@@ -101,6 +140,7 @@ def compare(result, truth: list[ShelfTruth]) -> dict:
     for i, t in enumerate(truth):
         s = next((s for s in result.shelves if s.index == i), None)
         shelves.append({"true": t.n_stacks, "read": len(s.boxes) if s else 0,
+                        "matched": matched_spans(true_spans(t), read_spans(s)) if s else 0,
                         "hidden": sum(b.hidden for b in s.boxes) if s else 0})
     return {"n_true": n_true, "n_read": result.n_box_stacks, "shelves_true": len(truth),
             "shelves_read": result.n_shelves, "free_true": free_true, "free_read": result.free_m3,
@@ -143,6 +183,8 @@ def summarise(rows: list[dict]) -> dict:
         "merged_shelves": int(sum(s["read"] < s["true"] for s in shelf)),
         "split_shelves": int(sum(s["read"] > s["true"] for s in shelf)),
         "hidden_stacks": int(sum(s["hidden"] for s in shelf)),
+        "stack_recall": sum(s["matched"] for s in shelf) / max(sum(s["true"] for s in shelf), 1),
+        "stack_precision": sum(s["matched"] for s in shelf) / max(sum(s["read"] for s in shelf), 1),
         "free_rel_err_mean": float(np.mean(free_rel)),
         "free_rel_err_median": float(statistics.median(free_rel)),
         "free_rel_err_max": float(np.max(free_rel)),
@@ -163,6 +205,8 @@ def table(results: dict[str, dict]) -> str:
             ("merged_shelves", "shelves with merged stacks", "{:d}"),
             ("split_shelves", "shelves with extra stacks", "{:d}"),
             ("hidden_stacks", "stacks flagged hidden", "{:d}"),
+            ("stack_recall", f"stacks found in place: recall (span IoU >= {MATCH_IOU:g})", "{:.1%}"),
+            ("stack_precision", "stacks found in place: precision (on the truth's shelves)", "{:.1%}"),
             ("free_rel_err_mean", "free volume rel. error, mean", "{:.2%}"),
             ("free_rel_err_median", "free volume rel. error, median", "{:.2%}"),
             ("free_rel_err_max", "free volume rel. error, max", "{:.2%}"),
@@ -193,11 +237,16 @@ def main(argv=None) -> int:
     ap.add_argument("--split-step", type=float, action="append", default=None, metavar="M",
                     help="racklay.reasoning split_step_m; repeat to compare settings (default: "
                          f"{ReasoningConfig().split_step_m})")
+    ap.add_argument("--slope-fraction", type=float, action="append", default=None, metavar="F",
+                    help="racklay.reasoning slope_fraction (0: the step split cuts slopes into staircases); "
+                         f"repeat to compare (default: {ReasoningConfig().slope_fraction})")
     add_precision_args(ap)
     args = ap.parse_args(argv)
 
     steps = args.split_step or [ReasoningConfig().split_step_m]
-    args.configs = {(f"step {st:g} m" if len(steps) > 1 else ""): ReasoningConfig(split_step_m=st) for st in steps}
+    slopes = args.slope_fraction or [ReasoningConfig().slope_fraction]
+    args.configs = {", ".join(([f"step {st:g} m"] if len(steps) > 1 else []) + ([f"slope {sf:g}"] if len(slopes) > 1 else [])):
+                    ReasoningConfig(split_step_m=st, slope_fraction=sf) for st in steps for sf in slopes}
     if args.synth:
         return synth_main(args)
     if args.photos:
