@@ -345,8 +345,8 @@ def _slopes(h: np.ndarray, spans: list[tuple[int, int]], fraction: float) -> lis
     neighbouring pieces) has the sign of every step to its neighbours' medians and at least
     `fraction` of the smaller step. (An end span has one neighbour, so its step, median to median,
     counts its own half rise: only a short foot of a slope passes there, and a lower stack whose
-    edge the prediction blurs stays a stack, which on v11's predictions finds more stacks in place
-    than a rule that takes whole slopes at the ends: docs/reasoning.md.)"""
+    edge the prediction blurs stays a stack; on v11's predictions that finds more stacks in place
+    than taking whole slopes at the ends, docs/results/2026-12-08-sixty-fourth-session.md.)"""
     med = [float(np.median(h[a:b])) for a, b in spans]
     out = []
     for i, (a, b) in enumerate(spans):

@@ -540,7 +540,7 @@ def test_step_segments_cuts_a_slope_once_not_into_a_staircase():
         == [(0, 33)]
     lower = np.r_[np.full(10, 0.5), np.full(30, 1.0)]
     assert step_segments(lower, 0.08, 3, slope_fraction=1.0) == [(0, 10), (10, 40)]
-    # sharp steps between flat levels are cut as before: a staircase of cartons stays one
+    # sharp steps between flat levels are cut as before: a staircase of flat cartons keeps its four stacks
     stairs = np.repeat([0.3, 0.5, 0.7, 0.9], 12)
     assert step_segments(stairs, 0.08, 3, slope_fraction=1.0) == step_segments(stairs, 0.08, 3) \
         == [(0, 12), (12, 24), (24, 36), (36, 48)]

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 from bench.common import REPO
 from racklay.predict import add_precision_args
@@ -34,7 +35,7 @@ def cake():
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--photo", action="append", default=None, help=f"photo (default: {', '.join(PHOTOS)})")
+    ap.add_argument("--photo", action="append", default=None, help=f"photo; repeat for more (default: {', '.join(PHOTOS)})")
     ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
     ap.add_argument("--out", default=str(REPO / "docs" / "img" / "reasoning-slope-rule.jpg"))
     add_precision_args(ap)
@@ -54,11 +55,10 @@ def main(argv=None) -> int:
 
     pred = Predictor(str(resolve_weights(args.weights)), precision=args.precision)
     rows = []
-    for p in args.photo or PHOTOS:
-        path = REPO / p if not p.startswith("/") else p
+    for path in [Path(p) for p in args.photo] if args.photo else [REPO / p for p in PHOTOS]:
         img = read_image(path)
         out = pred.predict(img)
-        rows.append((img, path.name if hasattr(path, "name") else str(p), out["top"], out["front"], out["grid"]))
+        rows.append((img, path.name, out["top"], out["front"], out["grid"]))
     top, front, grid = cake()
     rows.append((None, "ground truth: four items stacked narrower upward", top, front, grid))
 
