@@ -355,33 +355,43 @@ def synth_main(args) -> int:
     return 0
 
 
-def photos_main(args) -> int:
-    """Validate on a labelled photo project: truth = the labelled boxes, layouts = their rasterisation,
-    predictions as the annotation tool makes them (the photo as taken)."""
+def photo_rows(project, split: str, predictor=None, configs: dict | None = None, limit: int | None = None
+               ) -> tuple[dict, list[str], L.Grid]:
+    """The comparisons (`add_rows`) of a labelled photo project's `split`: truth = the labelled boxes,
+    layouts = their rasterisation, predictions (with a racklay.predict.Predictor) as the annotation
+    tool makes them (the photo as taken). Returns (rows by column name, the photos, the grid)."""
     from annotate import dataset as DS
     from annotate.editor import Tool
     from annotate.store import Project
     from bench.common import labelled_photos
 
-    proj = Project(args.photos)
-    names = labelled_photos(proj, args.split, args.limit)
-    tool = None
-    if args.weights:
-        from racklay.predict import Predictor
-
-        tool = Tool(proj, Predictor(args.weights, precision=args.precision))
+    proj = Project(project)
+    names = labelled_photos(proj, split, limit)
+    tool = Tool(proj, predictor) if predictor is not None else None
     st = proj.settings
     grid = L.Grid(st["D"], st["extent"])
     rows: dict = {}
-    t0 = time.perf_counter()
     for name in names:
         ann = proj.load(name)
         top, front, scene = DS.annotation_layouts(proj, ann)
         truth = [ShelfTruth(sh, scene.layout_boxes(i)) for i, sh in enumerate(scene.shelves())]
-        add_rows(rows, args.configs, truth, top, front, grid, tool.prediction(name) if tool else None, name)
+        add_rows(rows, configs or {"": ReasoningConfig()}, truth, top, front, grid,
+                 tool.prediction(name) if tool else None, name)
+    return rows, names, grid
+
+
+def photos_main(args) -> int:
+    """Validate on a labelled photo project (`photo_rows`)."""
+    predictor = None
+    if args.weights:
+        from racklay.predict import Predictor
+
+        predictor = Predictor(args.weights, precision=args.precision)
+    t0 = time.perf_counter()
+    rows, names, grid = photo_rows(args.photos, args.split, predictor, args.configs, args.limit)
     results = {k: summarise(v) for k, v in rows.items()}
     print(f"{args.photos} split {args.split}: {len(names)} labelled photos, layouts at D={grid.size}"
-          f"{', predictions by ' + args.weights if tool else ''}; {time.perf_counter() - t0:.0f} s\n")
+          f"{', predictions by ' + args.weights if predictor else ''}; {time.perf_counter() - t0:.0f} s\n")
     print(table(results))
     if args.json:
         from racklay.atomic import atomic_write_json

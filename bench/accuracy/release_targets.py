@@ -12,8 +12,10 @@
 3. The hand-labelled real photos of `datasets/real-photos/` (an `annotate` project, exported to a
    temporary RackLay dataset; its test split when the project's SOURCES.tsv gives a split per
    photo, all of them otherwise), scored at their own resolution: dataset-level IoU, precision,
-   recall and AP, metric and of the shape alone (`--scale-from-truth`), and on how many photos
-   whose labels show separate boxes on a shelf the model shows them too. The project's `holdout`
+   recall and AP, metric and of the shape alone (`--scale-from-truth`), on how many photos
+   whose labels show separate boxes on a shelf the model shows them too, and how many labelled
+   box stacks `racklay analyze` finds in place in the model's layouts (the same target graded:
+   bench/accuracy/reasoning_validation.py's "stacks found in place"). The project's `holdout`
    split (HOLDOUT_SPLIT: photos of sites no released model was trained on, kept apart for release
    decisions) is scored the same way, after the test split.
 4. The model issue's targets for the shipped model (SHIPPED_TARGETS: complex box IoU >= 60 / 70,
@@ -174,8 +176,32 @@ def photos_seen(rr, split: str, project: Path, meta: dict) -> bool:
     return False
 
 
-def report_photos(out: dict, name: str, split: str, real: Path, pred_root: Path, project: Path, meta: dict) -> list[dict]:
-    """Print one photo split's scores (metric, shape alone, separate boxes); its rows for the targets."""
+def has_split_column(project: Path) -> bool:
+    """Whether the photo project's SOURCES.tsv gives a split per photo (else every photo is `test`)."""
+    src = project / "SOURCES.tsv"
+    return src.is_file() and "split" in src.read_text(encoding="utf-8").split("\n", 1)[0].split("\t")
+
+
+def print_stacks_in_place(project: Path, split: str, predictor, limit: int | None = None) -> dict:
+    """The same target graded: the box stacks `racklay analyze` reads in the model's layouts of a
+    photo split against the labelled stacks, by where they stand along their shelf
+    (bench/accuracy/reasoning_validation.py: spans in fractions of the shelf, paired at IoU >= 0.5)."""
+    from bench.accuracy.reasoning_validation import MATCH_IOU, photo_rows, summarise
+
+    rows, _, _ = photo_rows(project, split if has_split_column(project) else "all", predictor, limit=limit)
+    r = summarise(rows["predicted layouts"])
+    print(f"box stacks found in place (`racklay analyze`'s reading of the model's layouts against the "
+          f"{r['stacks_true']} labelled stacks, span along the shelf IoU >= {MATCH_IOU:g}): recall "
+          f"{100 * r['stack_recall']:.1f} %, precision {100 * r['stack_precision']:.1f} % of the "
+          f"{r['stacks_read']} read; the labels' own layouts read that way: recall "
+          f"{100 * summarise(rows['ground-truth layouts'])['stack_recall']:.1f} %")
+    return r
+
+
+def report_photos(out: dict, name: str, split: str, real: Path, pred_root: Path, project: Path, meta: dict,
+                  predictor=None, limit: int | None = None) -> list[dict]:
+    """Print one photo split's scores (metric, shape alone, separate boxes, and with `predictor` the
+    box stacks found in place); its rows for the targets."""
     r, sh = out[name]["result"], out[f"{name}, shape"]["result"]
     print(f"\nhand-labelled real photos ({project}, {split} split: {name}), {r['top']['images']} images, "
           "their own resolution")
@@ -196,6 +222,9 @@ def report_photos(out: dict, name: str, split: str, real: Path, pred_root: Path,
         rows.append({"set": f"{name}, shape", "view": view, "shelf_IoU": 100 * d["shelf"]["IoU"],
                      "box_IoU": 100 * d["box"]["IoU"]})
     print_separate_boxes(real, pred_root, split)
+    if predictor is not None:
+        r = print_stacks_in_place(project, split, predictor, limit)
+        out[name]["stacks_in_place"] = {k: r[k] for k in ("stacks_true", "stacks_read", "stack_recall", "stack_precision")}
     return rows
 
 
@@ -244,8 +273,7 @@ def main() -> int:
         from racklay.data import RackLayRoot
 
         src = args.real_photos / "SOURCES.tsv"
-        by_site = src.is_file() and "split" in src.read_text(encoding="utf-8").split("\n", 1)[0].split("\t")
-        split_args = ["--split-file", str(src)] if by_site else ["--split-fractions", "test=1"]
+        split_args = ["--split-file", str(src)] if has_split_column(args.real_photos) else ["--split-fractions", "test=1"]
         if annotate_main(["export", str(args.real_photos), "--out", str(real)] + split_args) != 0:
             raise SystemExit(f"{args.real_photos}: annotate export failed")
         photo_sets = [(split, name) for split, name in PHOTO_SETS if (real / "splits" / f"{split}.txt").is_file()]
@@ -288,7 +316,8 @@ def main() -> int:
             rows.append({"set": "proxy-real", "view": view, "shelf_IoU": s, "box_IoU": b})
     seen = {}
     for split, name in photo_sets:
-        rows += report_photos(out, name, split, real, Path(tmp.name) / f"pred-{split}", args.real_photos, pred.meta)
+        rows += report_photos(out, name, split, real, Path(tmp.name) / f"pred-{split}", args.real_photos, pred.meta,
+                              pred, args.limit)
         seen[name] = photos_seen(RackLayRoot(real), split, args.real_photos, pred.meta)
     if with_proxy or photo_sets:
         print_model_issue_targets(rows, seen)
