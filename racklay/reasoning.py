@@ -74,6 +74,10 @@ class ReasoningConfig:
                                          "its step to its neighbours is part of a slope: the step split cuts a "
                                          "slope once, half way up, not into a staircase; 0: off (default {default})",
                                    lo=0, flags=["--slope-fraction"])
+    load_width_m: float = option(0.0, "the loads' width along the shelf when they are all alike (pallets stand 0.8, "
+                                      "1.0 or 1.2 m wide): each box run is cut into round(length / width) equal "
+                                      "stacks instead of at its steps; 0: not known (default)",
+                                 lo=0, flags=["--load-width"])
 
     def __post_init__(self):
         check_fields(self)
@@ -402,20 +406,31 @@ def _absorb_slopes(h: np.ndarray, spans: list[tuple[int, int]], step: float, fra
 _EDGE_TOL_M = 0.04
 
 
+def load_cuts(n_cols: int, res: float, load_width: float) -> list[int]:
+    """Where a run of `n_cols` columns of `res` metres is cut into loads of about `load_width`:
+    round(length / width) equal pieces, at least one (the inner cut positions, in columns)."""
+    n = max(1, round(n_cols * res / load_width))
+    return sorted({round(k * n_cols / n) for k in range(1, n)} - {0, n_cols})
+
+
 def _split_entity(e: dict, grid: L.Grid, cfg: ReasoningConfig, top_edges: np.ndarray) -> list[dict]:
     """A front entity cut where its top edge steps (step_segments on the top profile), one entity
     per piece; the entity itself when nothing steps or splitting is off. A cut where a top-view
     footprint starts or ends (`top_edges`, columns) is not made: separate footprints already explain
-    that step (a taller stack behind a shorter one), and the fusion gives each its own columns."""
+    that step (a taller stack behind a shorter one), and the fusion gives each its own columns.
+    With `load_width_m` each run is cut into loads of that width instead (`load_cuts`)."""
     cols = np.flatnonzero(e["cols"])
-    if cfg.split_step_m <= 0 or cols.size == 0:
+    if (cfg.split_step_m <= 0 and cfg.load_width_m <= 0) or cols.size == 0:
         return [e]
     tol = grid.m_to_px(_EDGE_TOL_M)
     out = []
     for run in np.split(cols, np.flatnonzero(np.diff(cols) > 1) + 1):
-        spans = step_segments(e["top"][run] * grid.res, cfg.split_step_m, grid.m_to_px(cfg.min_stack_m),
-                              cfg.slope_fraction)
-        cuts = [b for _, b in spans[:-1] if not (np.abs(top_edges - run[b]) <= tol).any()]
+        if cfg.load_width_m > 0:
+            cuts = load_cuts(len(run), grid.res, cfg.load_width_m)
+        else:
+            spans = step_segments(e["top"][run] * grid.res, cfg.split_step_m, grid.m_to_px(cfg.min_stack_m),
+                                  cfg.slope_fraction)
+            cuts = [b for _, b in spans[:-1] if not (np.abs(top_edges - run[b]) <= tol).any()]
         for a, b in zip([0] + cuts, cuts + [len(run)]):
             c = np.zeros_like(e["cols"])
             c[run[a:b]] = True

@@ -555,3 +555,42 @@ def test_slope_rule_reads_a_stack_of_shrinking_items_as_one():
     assert len(on.boxes) == 1
     off, _ = one_shelf(boxes, shelf=shelf, cfg=ReasoningConfig(slope_fraction=0))
     assert len(off.boxes) > 1
+
+
+def test_known_load_width_cuts_a_run_of_touching_loads_into_equal_stacks():
+    # what v11 draws over a row of pallets on the test site: one box run with a smooth top (here
+    # three touching loads of one height, which no step tells apart); told the loads' width, the
+    # reading cuts the run into round(length / width) equal stacks
+    from racklay.reasoning import load_cuts
+
+    boxes = [L.Box(x, 0.0, 0.6, 0.5, 0.4) for x in (-0.6, 0.0, 0.6)]
+    plain, _ = one_shelf(boxes)
+    assert len(plain.boxes) == 1
+    loads, _ = one_shelf(boxes, cfg=ReasoningConfig(load_width_m=0.6))
+    got = sorted(loads.boxes, key=lambda q: q.x[0])
+    assert len(got) == 3
+    for q, b in zip(got, boxes):
+        assert q.x == pytest.approx(b.x_range(), abs=RES) and q.z[1] == pytest.approx(b.sz, abs=RES)
+    # a width a sixth off still reads three (1.8 m / 0.7 m rounds to 3), a run shorter than half a
+    # load stays one
+    assert len(one_shelf(boxes, cfg=ReasoningConfig(load_width_m=0.7))[0].boxes) == 3
+    assert load_cuts(10, 0.03125, 0.8) == [] and load_cuts(100, 0.03125, 0.8) == [25, 50, 75]
+
+
+def test_cli_analyze_load_width_flag(tmp_path, capsys):
+    from racklay.cli import main
+
+    lay = L.rasterize_shelf(SHELF, [L.Box(x, 0.0, 0.6, 0.5, 0.4) for x in (-0.6, 0.0, 0.6)], G)
+    top, front = L.stack_shelves([lay], 4, G)
+    root = RackLayRoot(tmp_path / "row")
+    root.write_sample("000000", image=np.zeros((64, 96, 3), np.uint8), top=top, front=front, meta={})
+    counts = []
+    for extra in ([], ["--load-width", "0.6"]):
+        assert main(["analyze", "--layouts", str(root.root), "--out", str(tmp_path / f"o{len(extra)}"),
+                     "--no-render", "--format", "none", *extra]) == 0
+        counts.append(json.loads((tmp_path / f"o{len(extra)}" / "000000.json").read_text())["n_box_stacks"])
+        capsys.readouterr()
+    assert counts == [1, 3]
+    with pytest.raises(SystemExit):
+        main(["analyze", "--layouts", str(root.root), "--out", str(tmp_path / "o"), "--load-width", "-1"])
+    assert "argument --load-width: must be >= 0, got -1" in capsys.readouterr().err

@@ -240,13 +240,19 @@ def main(argv=None) -> int:
     ap.add_argument("--slope-fraction", type=float, action="append", default=None, metavar="F",
                     help="racklay.reasoning slope_fraction (0: the step split cuts slopes into staircases); "
                          f"repeat to compare (default: {ReasoningConfig().slope_fraction})")
+    ap.add_argument("--load-width", type=float, action="append", default=None, metavar="M",
+                    help="racklay.reasoning load_width_m (0: not known, the step cut reads the stacks); repeat to "
+                         "compare")
     add_precision_args(ap)
     args = ap.parse_args(argv)
 
     steps = args.split_step or [ReasoningConfig().split_step_m]
     slopes = args.slope_fraction or [ReasoningConfig().slope_fraction]
-    args.configs = {", ".join(([f"step {st:g} m"] if len(steps) > 1 else []) + ([f"slope {sf:g}"] if len(slopes) > 1 else [])):
-                    ReasoningConfig(split_step_m=st, slope_fraction=sf) for st in steps for sf in slopes}
+    loads = args.load_width or [ReasoningConfig().load_width_m]
+    args.configs = {", ".join(([f"step {st:g} m"] if len(steps) > 1 else []) + ([f"slope {sf:g}"] if len(slopes) > 1 else [])
+                              + ([f"loads {lw:g} m"] if len(loads) > 1 else [])):
+                    ReasoningConfig(split_step_m=st, slope_fraction=sf, load_width_m=lw)
+                    for st in steps for sf in slopes for lw in loads}
     if args.synth:
         return synth_main(args)
     if args.photos:

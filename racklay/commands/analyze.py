@@ -9,7 +9,7 @@ from racklay.config import add_flags, at_least, positive_float
 
 FORMATS = ("glb", "ply", "both", "none")
 #: racklay.reasoning.ReasoningConfig fields that `racklay analyze` exposes as flags
-KNOBS = ("open_m", "min_box_area_m2", "split_step_m", "min_stack_m", "slope_fraction")
+KNOBS = ("open_m", "min_box_area_m2", "split_step_m", "min_stack_m", "slope_fraction", "load_width_m")
 
 
 def register(sub) -> None:
