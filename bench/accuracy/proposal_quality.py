@@ -14,8 +14,8 @@ around each stack on the rack plane) on the same shelf: a proposal with IoU >= -
 labeller accepts as it is.
 
 Prints, per reasoning setting (`--split-step`, repeatable; 0: regions split only at gaps, as before
-the step cut) and gap cut (`--gap-depth`, repeatable; 0: no cut at the photo's gaps, as before
-it): label stacks, proposals, accepted (IoU >= --iou), precision, recall, the mean IoU of
+the step cut), gap cut (`--gap-depth`, repeatable; 0: no cut at the photo's gaps, as before
+it) and load width (`--load-width`, repeatable; 0, the default: not known): label stacks, proposals, accepted (IoU >= --iou), precision, recall, the mean IoU of
 the accepted, and the labeller's input for the boxes alone: with no model, two clicks per stack;
 with proposals, one key per accepted proposal, two clicks per stack left to draw and two keys on
 each photo where proposals are left over (`d` rejects the waiting ones after asking once); 1.5 s
@@ -95,6 +95,9 @@ def main(argv=None) -> int:
     ap.add_argument("--gap-depth", type=float, action="append", default=None, metavar="D",
                     help="annotate.geometry.GapSplit depth: cut proposals at the photo's gaps this deep; 0: no cut; "
                          "repeat to compare (default: 0 and the default)")
+    ap.add_argument("--load-width", type=float, action="append", default=None, metavar="M",
+                    help="racklay.reasoning load_width_m for reading proposals (each box run cut into loads of this "
+                         "width; 0: not known); repeat to compare (default: 0)")
     ap.add_argument("--iou", type=float, default=0.5, help="a proposal this close to a label stack is accepted")
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--flip-average", action="store_true",
@@ -122,7 +125,8 @@ def main(argv=None) -> int:
     tool.read_rack_crop = not args.whole_photo
     steps = args.split_step or [0.0, ReasoningConfig().split_step_m]
     depths = args.gap_depth or [0.0, G.GapSplit().depth]
-    settings = [(s, d) for s in steps for d in depths]
+    loads = args.load_width or [0.0]
+    settings = [(s, d, w) for s in steps for d in depths for w in loads]
     rows = {k: {"truth": 0, "props": 0, "ious": [], "left": 0} for k in settings}
     row_tools = {k: {"shelves": 0, "parts": 0, "right": 0} for k in ("w", "W")}
     n_truth = 0
@@ -131,11 +135,11 @@ def main(argv=None) -> int:
         scene = G.build_scene(ann, proj.settings)
         truth = label_stacks(scene)
         n_truth += len(truth)
-        for s, d in settings:
-            tool.reasoning = replace(ReasoningConfig(), split_step_m=s)
+        for s, d, w in settings:
+            tool.reasoning = replace(ReasoningConfig(), split_step_m=s, load_width_m=w)
             tool.gap_split = replace(G.GapSplit(), depth=d)
             props = tool_proposals(tool, ann, scene)
-            r = rows[s, d]
+            r = rows[s, d, w]
             r["truth"] += len(truth)
             r["props"] += len(props)
             ious = match(props, truth, args.iou)
@@ -157,14 +161,14 @@ def main(argv=None) -> int:
                 rt["right"] += len(match([(i, (a, b, v0, v1)) for a, b in spans], ts, args.iou))
     print(f"{args.project}, split {args.split}: {len(names)} labelled photos; proposals of {Path(weights).name}, "
           f"accepted at IoU >= {args.iou} with a label stack\n")
-    print("| step cut | cut at the photo's gaps | label stacks | proposals | accepted | precision | recall | mean IoU accepted "
-          "| input for the boxes, s (no model / with proposals) |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for (s, d), r in rows.items():
+    print("| step cut | cut at the photo's gaps | load width | label stacks | proposals | accepted | precision | recall "
+          "| mean IoU accepted | input for the boxes, s (no model / with proposals) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for (s, d, w), r in rows.items():
         acc = len(r["ious"])
         manual = 2 * CLICK_S * r["truth"]
         assisted = KEY_S * (acc + 2 * r["left"]) + 2 * CLICK_S * (r["truth"] - acc)
-        print(f"| {s:g} m | {f'depth {d:g}' if d else 'no'} | {r['truth']} | {r['props']} | {acc} | {100 * acc / max(r['props'], 1):.1f} % "
+        print(f"| {s:g} m | {f'depth {d:g}' if d else 'no'} | {f'{w:g} m' if w else '-'} | {r['truth']} | {r['props']} | {acc} | {100 * acc / max(r['props'], 1):.1f} % "
               f"| {100 * acc / max(r['truth'], 1):.1f} % | {sum(r['ious']) / max(acc, 1):.3f} "
               f"| {manual:.0f} / {assisted:.0f} |")
     print(f"\nno model, one box drawn around each shelf's {n_truth} label stacks, then split:\n")
