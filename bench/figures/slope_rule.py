@@ -1,5 +1,6 @@
 """Regenerate docs/img/reasoning-slope-rule.jpg: the box stacks `racklay analyze` reads in a
-front view without and with the slope rule (racklay.reasoning's `slope_fraction`), side by side.
+front view without and with the slope rule (racklay.reasoning's `slope_fraction`), and told the
+loads' width (`load_width_m`, `--load-width`), side by side.
 
     .venv/bin/python -m bench.figures.slope_rule [--photo PATH ...] [--weights FILE] [--out FILE]
 
@@ -37,6 +38,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--photo", action="append", default=None, help=f"photo; repeat for more (default: {', '.join(PHOTOS)})")
     ap.add_argument("--weights", default=None, help="model (default: the shipped one)")
+    ap.add_argument("--load-width", type=float, default=0.8, help="the last column's load width, metres (default 0.8)")
     ap.add_argument("--out", default=str(REPO / "docs" / "img" / "reasoning-slope-rule.jpg"))
     add_precision_args(ap)
     args = ap.parse_args(argv)
@@ -63,9 +65,10 @@ def main(argv=None) -> int:
     rows.append((None, "ground truth: four items stacked narrower upward", top, front, grid))
 
     on = ReasoningConfig()
-    settings = (("without the slope rule", replace(on, slope_fraction=0.0)), (f"with it (slope_fraction {on.slope_fraction:g})", on))
-    fig, axes = plt.subplots(len(rows), 3, figsize=(10.5, 2.6 * len(rows)), squeeze=False,
-                             gridspec_kw={"width_ratios": [1.5, 1, 1]})
+    settings = (("without the slope rule", replace(on, slope_fraction=0.0)), (f"with it (slope_fraction {on.slope_fraction:g})", on),
+                (f"loads {args.load_width:g} m wide", replace(on, load_width_m=args.load_width)))
+    fig, axes = plt.subplots(len(rows), 4, figsize=(13.5, 2.6 * len(rows)), squeeze=False,
+                             gridspec_kw={"width_ratios": [1.5, 1, 1, 1]})
     for r, (img, name, top, front, grid) in enumerate(rows):
         ax = axes[r, 0]
         if img is not None:
