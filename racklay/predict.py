@@ -492,9 +492,10 @@ def unique_ids(paths: Iterable[Path]) -> list[str]:
 
 def write_prediction(out_root, sid: str, image: np.ndarray, pred: dict, views: Sequence[str],
                      source: str = "", figure: bool = True, png: bool = True, crop: bool = True,
-                     extra_meta: dict | None = None) -> None:
+                     extra_meta: dict | None = None, load_width: float | None = None) -> None:
     """Write one prediction as a RackLay sample (Images/, topLayouts/, frontLayouts/, meta/),
-    colour PNGs per shelf (png/ID_VIEW_shelfK.png) and a paper-style figure (figures/ID.png)."""
+    colour PNGs per shelf (png/ID_VIEW_shelfK.png) and a paper-style figure (figures/ID.png)
+    with the box stacks outlined (read with the loads' width `load_width`, when given)."""
     from .atomic import atomic_save_png
     from .data import RackLayRoot
     from .viz import colorize, layout_figure
@@ -512,7 +513,7 @@ def write_prediction(out_root, sid: str, image: np.ndarray, pred: dict, views: S
         if figure:
             layout_figure(image, pred.get("top"), pred.get("front"), out=root.root / "figures" / f"{sid}.png",
                           title=f"{Path(source).name or sid}: predicted layouts", grid=g, crop=crop,
-                          outline_stacks=True)
+                          outline_stacks=True, load_width=load_width)
     except BaseException:
         # a sample is written whole or not at all: no layouts without their figure, no stale mix
         # of this prediction's files with an earlier one's
@@ -538,14 +539,16 @@ def resize_prediction(pred: dict, size: int) -> dict:
 def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], out, figure: bool = True,
                    png: bool = True, crop: bool = True, progress: bool = True, log=None,
                    layout_size: int | None = None, shelf_length: float | None = None,
-                   rack_box=None) -> PredictReport:
+                   rack_box=None, load_width: float | None = None) -> PredictReport:
     """Predict every input file; a file that cannot be read gets one line via `log` (default:
     stderr) and the rest still run. layout_size: write layouts at this D, e.g. a ground-truth
     dataset's D so `racklay score` can compare (a struct model on the torch backend draws them at D,
     `Predictor.draw_at`; any other model's S x S output is resized, nearest).
     shelf_length: the shelves' known length in metres (fixes the scale, `Predictor.predict`).
     rack_box: (x0, y0, x1, y1) pixels, the rack to read in every photo (`Predictor.predict`); the
-    sample's image is then the crop the model read, and its meta records both."""
+    sample's image is then the crop the model read, and its meta records both.
+    load_width: the loads' width in metres, when all are alike: the figures outline the stacks
+    read with it (racklay.reasoning `load_width_m`, as `racklay analyze --load-width`)."""
     import sys
 
     from .atomic import WriteError
@@ -577,6 +580,8 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
     if shelf_length is not None:
         L.check_shelf_length(shelf_length, predictor.grid)    # before the first photo, not once per photo
         extra["shelf_length_m"] = float(shelf_length)
+    if load_width:
+        extra["load_width_m"] = float(load_width)
     if predictor.model is not None and predictor.model.flip_average:
         extra["flip_average"] = True
     made_out = not Path(out).exists()
@@ -605,7 +610,7 @@ def predict_folder(predictor: Predictor, inputs: Sequence[str | os.PathLike], ou
                 if layout_size:
                     pred = resize_prediction(pred, layout_size)
                 write_prediction(out, sid, image, pred, predictor.views, source=str(path), figure=figure,
-                                 png=png, crop=crop, extra_meta=meta)
+                                 png=png, crop=crop, extra_meta=meta, load_width=load_width)
                 rep.done.append(sid)
             except WriteError:
                 # the output cannot be written (disk full, read-only): every next photo would fail the

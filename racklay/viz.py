@@ -37,12 +37,13 @@ def content_window(stacks: Sequence[np.ndarray], margin: float = 0.15, min_px: i
 
 def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.ndarray | None,
                   out: str | os.PathLike | None = None, title: str = "", grid: Grid | None = None,
-                  crop: bool = True, dpi: int = 110, outline_stacks: bool = False):
+                  crop: bool = True, dpi: int = 110, outline_stacks: bool = False,
+                  load_width: float | None = None):
     """Paper-style figure: the photo on the left, then one column per shelf (lowest first) with
     its top view above its front view. `outline_stacks`: outline every box stack that the rack
     reasoning reads in these layouts (racklay.reasoning.analyze_layouts, its defaults), so stacks
-    that touch are told apart. Returns the matplotlib Figure (closed after saving when `out` is
-    given)."""
+    that touch are told apart; `load_width`: read with the loads' width known (`load_width_m`).
+    Returns the matplotlib Figure (closed after saving when `out` is given)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -58,9 +59,9 @@ def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.nd
     half_m = (hi - lo) / 2 * grid.res
     analysis = None
     if outline_stacks:
-        from .reasoning import analyze_layouts
+        from .reasoning import ReasoningConfig, analyze_layouts
 
-        analysis = analyze_layouts(top, front, grid)
+        analysis = analyze_layouts(top, front, grid, ReasoningConfig(load_width_m=load_width or 0.0))
     rows = [("top", top), ("front", front)]
     rows = [(n, s) for n, s in rows if s is not None]
     ncols = R + (1 if image is not None else 0)
@@ -98,7 +99,8 @@ def layout_figure(image: np.ndarray | None, top: np.ndarray | None, front: np.nd
                 ax.set_xlabel("x (m)", fontsize=7)
     handles = [Patch(color=PALETTE[c] / 255, label=CLASS_NAMES[c]) for c in range(3)]
     if analysis is not None:
-        handles.append(Patch(fill=False, edgecolor=STACK_EDGE, label="box stack read (racklay analyze)"))
+        handles.append(Patch(fill=False, edgecolor=STACK_EDGE, label="box stack read (racklay analyze"
+                             + (f", loads {load_width:g} m wide)" if load_width else ")")))
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
     if title:
         fig.suptitle(title, fontsize=10)

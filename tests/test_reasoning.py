@@ -594,3 +594,20 @@ def test_cli_analyze_load_width_flag(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["analyze", "--layouts", str(root.root), "--out", str(tmp_path / "o"), "--load-width", "-1"])
     assert "argument --load-width: must be >= 0, got -1" in capsys.readouterr().err
+
+
+def test_layout_figure_reads_the_stacks_with_a_known_load_width(tmp_path):
+    # `racklay predict --load-width`: the figure outlines a row of touching loads as loads
+    from matplotlib.patches import Rectangle
+
+    from racklay.viz import layout_figure
+
+    lay = L.rasterize_shelf(SHELF, [L.Box(x, 0.0, 0.6, 0.5, 0.4) for x in (-0.6, 0.0, 0.6)], G)
+    top, front = L.stack_shelves([lay], 4, G)
+    counts = []
+    for w in (None, 0.6):
+        fig = layout_figure(None, top, front, grid=G, outline_stacks=True, load_width=w)
+        counts.append([len([p for p in ax.patches if isinstance(p, Rectangle)]) for ax in fig.axes][4])
+        labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert counts == [1, 3]
+    assert labels[-1] == "box stack read (racklay analyze, loads 0.6 m wide)"

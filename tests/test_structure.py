@@ -376,6 +376,13 @@ def test_predict_shelf_length_rescales_every_shelf_and_says_so(toy, struct_ckpt,
         assert all(x == pytest.approx(1.5, abs=2 * g.res) for x, y in zip(have, L.shelf_lengths(a, g)) if y > 0)
     meta = json.loads((tmp_path / "b" / "meta" / "000000.json").read_text())
     assert meta["shelf_length_m"] == 1.5
+    # a known load width changes the figure's outlines only: the same layouts, recorded in the meta
+    assert racklay_main(["predict", photo, "--weights", str(struct_ckpt), "--out", str(tmp_path / "w"),
+                         "--no-png", "--shelf-length", "1.5", "--load-width", "0.5"]) == 0
+    assert json.loads((tmp_path / "w" / "meta" / "000000.json").read_text())["load_width_m"] == 0.5
+    assert (tmp_path / "w" / "figures" / "000000.png").is_file()
+    for v in ("top", "front"):
+        assert np.array_equal(_layouts(tmp_path / "w", v), _layouts(tmp_path / "b", v))
     with pytest.raises(SystemExit):
         racklay_main(["predict", photo, "--weights", str(struct_ckpt), "--out", str(tmp_path / "c"),
                       "--shelf-length", "-2"])

@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 
 from racklay.commands import add_progress_arg, show_progress
-from racklay.config import at_least
+from racklay.config import at_least, positive_float
 
 
 def register(sub) -> None:
@@ -31,6 +31,10 @@ def register(sub) -> None:
                         "original RackLay data: a struct model draws its rectangles at D, any other model's "
                         "output is resized (nearest) (default: the model's size)")
     add_shelf_length_arg(p)
+    p.add_argument("--load-width", type=positive_float, default=None, metavar="M",
+                   help="the loads' width in metres along the shelf when all are alike (pallets stand 0.8, 1.0 "
+                        "or 1.2 m wide): the figures outline each box run cut into loads of that width "
+                        "(as `racklay analyze --load-width`; the layouts are unchanged)")
     add_rack_box_arg(p)
     add_precision_args(p)
     add_flip_average_arg(p)
@@ -70,7 +74,7 @@ def run(args) -> int:
                      precision=args.precision, flip_average=args.flip_average)
     rep = predict_folder(pred, args.inputs, args.out, figure=not args.no_figure, png=not args.no_png,
                          crop=not args.full, layout_size=args.layout_size, shelf_length=args.shelf_length,
-                         rack_box=args.rack_box,
+                         rack_box=args.rack_box, load_width=args.load_width,
                          progress=show_progress(args))
     D = args.layout_size or pred.layout_size
     scale = f", shelves scaled to {args.shelf_length:g} m" if args.shelf_length else ""
