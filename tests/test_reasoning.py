@@ -437,22 +437,28 @@ def test_cli_analyze_layouts_and_malformed_file(tmp_path, capsys):
     assert (out3 / f"{lone}.json").exists()
 
 
+def analyze_counts(tmp_path, capsys, boxes, flag_sets) -> list[int]:
+    """`racklay analyze --layouts` on one shelf holding `boxes`, once per list of extra flags: the
+    box stacks it counts each time."""
+    from racklay.cli import main
+
+    top, front = L.stack_shelves([L.rasterize_shelf(SHELF, boxes, G)], 4, G)
+    root = RackLayRoot(tmp_path / "one")
+    root.write_sample("000000", image=np.zeros((64, 96, 3), np.uint8), top=top, front=front, meta={})
+    counts = []
+    for k, extra in enumerate(flag_sets):
+        assert main(["analyze", "--layouts", str(root.root), "--out", str(tmp_path / f"o{k}"),
+                     "--no-render", "--format", "none", *extra]) == 0
+        counts.append(json.loads((tmp_path / f"o{k}" / "000000.json").read_text())["n_box_stacks"])
+        capsys.readouterr()
+    return counts
+
+
 def test_cli_analyze_split_step_flag(tmp_path, capsys):
     """`--split-step` reaches the analysis: a wall of two touching stacks of different heights is
     two stacks by default and one with the cut off."""
-    from racklay.cli import main
-
-    lay = L.rasterize_shelf(SHELF, [L.Box(-0.3, 0.0, 0.6, 0.5, 0.25), L.Box(0.3, 0.0, 0.6, 0.5, 0.5)], G)
-    top, front = L.stack_shelves([lay], 4, G)
-    root = RackLayRoot(tmp_path / "wall")
-    root.write_sample("000000", image=np.zeros((64, 96, 3), np.uint8), top=top, front=front, meta={})
-    counts = []
-    for extra in ([], ["--split-step", "0"]):
-        assert main(["analyze", "--layouts", str(root.root), "--out", str(tmp_path / f"o{len(extra)}"),
-                     "--no-render", "--format", "none", *extra]) == 0
-        counts.append(json.loads((tmp_path / f"o{len(extra)}" / "000000.json").read_text())["n_box_stacks"])
-        capsys.readouterr()
-    assert counts == [2, 1]
+    wall = [L.Box(-0.3, 0.0, 0.6, 0.5, 0.25), L.Box(0.3, 0.0, 0.6, 0.5, 0.5)]
+    assert analyze_counts(tmp_path, capsys, wall, [[], ["--split-step", "0"]]) == [2, 1]
 
 
 def test_cli_usage_errors(tmp_path, capsys):
@@ -580,19 +586,10 @@ def test_known_load_width_cuts_a_run_of_touching_loads_into_equal_stacks():
 def test_cli_analyze_load_width_flag(tmp_path, capsys):
     from racklay.cli import main
 
-    lay = L.rasterize_shelf(SHELF, [L.Box(x, 0.0, 0.6, 0.5, 0.4) for x in (-0.6, 0.0, 0.6)], G)
-    top, front = L.stack_shelves([lay], 4, G)
-    root = RackLayRoot(tmp_path / "row")
-    root.write_sample("000000", image=np.zeros((64, 96, 3), np.uint8), top=top, front=front, meta={})
-    counts = []
-    for extra in ([], ["--load-width", "0.6"]):
-        assert main(["analyze", "--layouts", str(root.root), "--out", str(tmp_path / f"o{len(extra)}"),
-                     "--no-render", "--format", "none", *extra]) == 0
-        counts.append(json.loads((tmp_path / f"o{len(extra)}" / "000000.json").read_text())["n_box_stacks"])
-        capsys.readouterr()
-    assert counts == [1, 3]
+    row = [L.Box(x, 0.0, 0.6, 0.5, 0.4) for x in (-0.6, 0.0, 0.6)]
+    assert analyze_counts(tmp_path, capsys, row, [[], ["--load-width", "0.6"]]) == [1, 3]
     with pytest.raises(SystemExit):
-        main(["analyze", "--layouts", str(root.root), "--out", str(tmp_path / "o"), "--load-width", "-1"])
+        main(["analyze", "--layouts", str(tmp_path / "one"), "--out", str(tmp_path / "o"), "--load-width", "-1"])
     assert "argument --load-width: must be >= 0, got -1" in capsys.readouterr().err
 
 
