@@ -118,14 +118,15 @@ def main(argv=None) -> int:
         framing = [framing_of(sp) for sp in spans]
         for g in framing:
             counts[g] += 1
+        gts = {v: np.stack([root.read_layouts(v, sid, R=pred.R) for sid in ids]) for v in views}
         if args.iou:
             for v in views:
-                gt = np.stack([root.read_layouts(v, sid, R=pred.R) for sid in ids])
+                gt = gts[v]
                 classes = decide(rasterize(v, structs[v], gt.shape[-1], extent, HARD_TAU_PX).numpy())
                 for j, g in enumerate(framing):
                     groups[g].update(v, classes[j:j + 1], gt[j:j + 1])
         for v, field, _ in sizes:
-            gt = np.stack([root.read_layouts(v, sid, R=pred.R) for sid in ids])
+            gt = gts[v]
             st = structs[v]
             tr = truth_structure(v, torch.from_numpy(gt.astype(np.int64)), extent, st["box"].shape[-1])
             both = (tr["presence"] & (st["presence"].float() > 0)).numpy()
