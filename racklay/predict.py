@@ -357,7 +357,8 @@ class Predictor:
             crop = self.crop_for(image, rack_box, source)
             image = image[crop[1]:crop[3], crop[0]:crop[2]]
         x = self.prepare(image, source)
-        if self._draws():    # one pass gives the layouts and the structure they are drawn from
+        draws = self._draws()
+        if draws:    # one pass gives the layouts and the structure they are drawn from
             logits, structs = self._forward(x, with_structure=True)
             classes, probs = self.decide_logits({v: logits[v].float().numpy() for v in self.views})
         else:
@@ -365,7 +366,7 @@ class Predictor:
         out: dict = {v: classes[v][0] for v in self.views}
         out["probs"] = {v: probs[v][0] for v in self.views}
         out["grid"] = self.grid
-        if self._draws():   # in widths of the photo (or crop) read, not of a letterboxed input
+        if draws:   # shelf spans in widths of the photo (or crop) read, not of a letterboxed input
             from .torchdata import letterbox_fit, photo_columns
 
             h, w = self.image_size
